@@ -1,0 +1,359 @@
+"""The feature store: one SQLite file per database, written through sqlite-utils.
+
+Tables
+------
+``visloc_schema``  one row: the schema version and when the file was created.
+``settings``       key -> JSON value; ``sift`` holds the SIFT settings the
+                   features were extracted with (every image in a store shares them).
+``cameras``        per (source, camera): the rectified projection matrix ``P_rect``
+                   (3x4, pixels) when known, and the image size in pixels.
+``images``         per (source, camera, frame): geotag, timestamp, original path,
+                   SIFT keypoints (float32, N x 6: x_px, y_px, size_px, angle_deg,
+                   response, octave) and descriptors (uint8, N x 128) as BLOBs.
+
+Writes happen in transactions (``FeatureStore.add_images`` commits a batch at
+once), the journal is in WAL mode, and an interrupted write rolls back: a store
+never holds half an image.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import sqlite3
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import sqlite_utils
+
+SCHEMA_VERSION = 1
+KEYPOINT_COLUMNS = 6  # x_px, y_px, size_px, angle_deg, response, octave
+DESCRIPTOR_DIM = 128
+
+_TABLES = {"visloc_schema", "settings", "cameras", "images"}
+
+
+class StoreError(Exception):
+    """Base class for every error the store raises; its message is one line."""
+
+
+class NotAStoreError(StoreError):
+    """The file is not SQLite, or is SQLite but not a visloc store."""
+
+
+class EmptyStoreError(StoreError):
+    """The store exists but holds no images (or no images of the requested camera)."""
+
+
+class SettingsMismatchError(StoreError):
+    """Features were requested or added with SIFT settings other than the store's."""
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    """Metadata of one image, as it goes into the store."""
+
+    source: str  # drive or dataset name, e.g. "2011_09_26_drive_0001_sync"
+    camera: str  # e.g. "image_01"
+    frame: int  # index of the image within (source, camera)
+    path: str  # original image file, for display only; the store never reads it
+    timestamp_s: float  # seconds since the Unix epoch
+    lat_deg: float
+    lon_deg: float
+    alt_m: float | None = None
+    heading_deg: float | None = None  # compass: 0 = north, clockwise
+    width_px: int = 0
+    height_px: int = 0
+    sift_ms: float | None = None  # time SIFT took on this image when it was ingested
+
+
+@dataclass(frozen=True)
+class StoredImage(ImageRecord):
+    """An image row read back from the store (metadata only, no arrays)."""
+
+    image_id: int = 0
+    n_keypoints: int = 0
+
+
+@dataclass(frozen=True)
+class CameraRecord:
+    source: str
+    camera: str
+    P_rect: np.ndarray | None  # (3, 4) float64, pixels
+    width_px: int
+    height_px: int
+
+
+def _now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+class FeatureStore:
+    """A visloc store in one SQLite file.
+
+    ``FeatureStore(path)`` opens an existing store for reading and writing;
+    ``FeatureStore(path, create=True)`` also creates a new store when the file
+    does not exist or is an empty file. A file that is not SQLite, or is a SQLite
+    database of something else, is refused with ``NotAStoreError`` and left
+    untouched. ``FeatureStore.memory()`` gives an in-memory store for tests.
+    """
+
+    def __init__(self, path: str | Path, *, create: bool = False):
+        self.path = Path(path)
+        label = str(self.path)
+        if not self.path.exists():
+            if not create:
+                raise StoreError(f"{label}: database file does not exist (build it with 'visloc ingest')")
+            if not self.path.parent.exists():
+                raise StoreError(f"{label}: folder {self.path.parent} does not exist")
+        elif self.path.is_dir():
+            raise StoreError(f"{label}: is a folder, not a database file")
+        conn = self._connect(label)
+        self._open(sqlite_utils.Database(conn), label, create=create, on_disk=True)
+
+    @classmethod
+    def memory(cls) -> "FeatureStore":
+        store = cls.__new__(cls)
+        store.path = Path(":memory:")
+        store._open(sqlite_utils.Database(memory=True), ":memory:", create=True, on_disk=False)
+        return store
+
+    @staticmethod
+    def _connect(label: str) -> sqlite3.Connection:
+        try:
+            conn = sqlite3.connect(label, timeout=30.0)
+            conn.execute("SELECT name FROM sqlite_master LIMIT 1").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise NotAStoreError(f"{label}: not a SQLite database ({exc})") from None
+        return conn
+
+    def _open(self, db: sqlite_utils.Database, label: str, *, create: bool, on_disk: bool) -> None:
+        self.db = db
+        self.label = label
+        tables = set(db.table_names())
+        if not tables:
+            if not create:
+                raise EmptyStoreError(f"{label}: empty database file (build it with 'visloc ingest')")
+            self._create_schema()
+        elif "visloc_schema" not in tables:
+            shown = ", ".join(sorted(tables)[:5])
+            raise NotAStoreError(f"{label}: SQLite database but not a visloc store (its tables: {shown})")
+        else:
+            row = next(db.query("SELECT version FROM visloc_schema LIMIT 1"), None)
+            version = None if row is None else row["version"]
+            if version != SCHEMA_VERSION:
+                raise NotAStoreError(
+                    f"{label}: visloc store schema version {version}, this visloc reads version {SCHEMA_VERSION}"
+                )
+            missing = _TABLES - tables
+            if missing:
+                raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}")
+        if on_disk and db.journal_mode != "wal":
+            db.enable_wal()
+
+    def _create_schema(self) -> None:
+        db = self.db
+        with db.atomic():
+            db["visloc_schema"].create({"version": int, "created_at": str})
+            db["visloc_schema"].insert({"version": SCHEMA_VERSION, "created_at": _now_iso()})
+            db["settings"].create({"key": str, "value_json": str}, pk="key")
+            db["cameras"].create(
+                {"source": str, "camera": str, "p_rect_json": str, "width_px": int, "height_px": int},
+                pk=("source", "camera"),
+            )
+            db["images"].create(
+                {
+                    "id": int,
+                    "source": str,
+                    "camera": str,
+                    "frame": int,
+                    "path": str,
+                    "timestamp_s": float,
+                    "lat_deg": float,
+                    "lon_deg": float,
+                    "alt_m": float,
+                    "heading_deg": float,
+                    "width_px": int,
+                    "height_px": int,
+                    "sift_ms": float,
+                    "n_keypoints": int,
+                    "keypoints_f32": bytes,
+                    "descriptors_u8": bytes,
+                    "created_at": str,
+                },
+                pk="id",
+                not_null={"source", "camera", "frame", "timestamp_s", "lat_deg", "lon_deg", "n_keypoints"},
+            )
+            db["images"].create_index(["source", "camera", "frame"], unique=True)
+            db["images"].create_index(["source", "camera", "timestamp_s"])
+
+    def close(self) -> None:
+        self.db.close()
+
+    def __enter__(self) -> "FeatureStore":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- settings ---------------------------------------------------------------
+
+    def get_setting(self, key: str) -> object | None:
+        row = next(self.db.query("SELECT value_json FROM settings WHERE key = ?", [key]), None)
+        return None if row is None else json.loads(row["value_json"])
+
+    def require_setting(self, key: str, value: object, *, what: str = "settings") -> None:
+        """Record ``value`` under ``key`` if the store has none; refuse a different one.
+
+        Values are compared as JSON, so ``{"a": 1}`` equals ``{"a": 1.0}`` only if
+        the caller normalised them the same way (it should pass plain dicts).
+        """
+        stored = self.get_setting(key)
+        if stored is None:
+            if self.image_count() and key == "sift":
+                raise StoreError(f"{self.label}: holds images but no SIFT settings; rebuild it")
+            with self.db.atomic():
+                self.db["settings"].upsert({"key": key, "value_json": json.dumps(value, sort_keys=True)}, pk="key")
+            return
+        if json.loads(json.dumps(value, sort_keys=True)) != stored:
+            diffs = _dict_diff(stored, value)
+            raise SettingsMismatchError(f"{self.label}: built with other {what} ({diffs})")
+
+    # -- cameras ----------------------------------------------------------------
+
+    def set_camera(self, camera: CameraRecord) -> None:
+        p_json = None if camera.P_rect is None else json.dumps(np.asarray(camera.P_rect, float).tolist())
+        with self.db.atomic():
+            self.db["cameras"].upsert(
+                {
+                    "source": camera.source,
+                    "camera": camera.camera,
+                    "p_rect_json": p_json,
+                    "width_px": int(camera.width_px),
+                    "height_px": int(camera.height_px),
+                },
+                pk=("source", "camera"),
+            )
+
+    def get_camera(self, source: str, camera: str) -> CameraRecord | None:
+        row = next(
+            self.db.query("SELECT * FROM cameras WHERE source = ? AND camera = ?", [source, camera]), None
+        )
+        return None if row is None else _camera_from_row(row)
+
+    def cameras(self) -> list[CameraRecord]:
+        return [_camera_from_row(r) for r in self.db.query("SELECT * FROM cameras ORDER BY source, camera")]
+
+    # -- images -----------------------------------------------------------------
+
+    def image_count(self, source: str | None = None, camera: str | None = None) -> int:
+        where, args = _where(source, camera)
+        return next(self.db.query(f"SELECT count(*) AS n FROM images {where}", args))["n"]
+
+    def stored_frames(self, source: str, camera: str) -> set[int]:
+        rows = self.db.query("SELECT frame FROM images WHERE source = ? AND camera = ?", [source, camera])
+        return {r["frame"] for r in rows}
+
+    def add_images(self, batch: Sequence[tuple[ImageRecord, np.ndarray, np.ndarray]]) -> int:
+        """Insert (record, keypoints_f32 (N, 6), descriptors_u8 (N, 128)) triples in one transaction.
+
+        Images already stored (same source, camera, frame) are skipped. Returns the
+        number inserted. Either the whole batch is committed or none of it.
+        """
+        rows = []
+        for record, keypoints, descriptors in batch:
+            keypoints = np.ascontiguousarray(keypoints, dtype=np.float32)
+            descriptors = np.asarray(descriptors)
+            if descriptors.dtype != np.uint8 or descriptors.ndim != 2 or descriptors.shape[1] != DESCRIPTOR_DIM:
+                raise StoreError(
+                    f"{record.path}: descriptors must be uint8 (N, {DESCRIPTOR_DIM}), got "
+                    f"{descriptors.dtype} {descriptors.shape}"
+                )
+            if keypoints.shape != (descriptors.shape[0], KEYPOINT_COLUMNS):
+                raise StoreError(
+                    f"{record.path}: keypoints must be ({descriptors.shape[0]}, {KEYPOINT_COLUMNS}), got {keypoints.shape}"
+                )
+            row = {k: getattr(record, k) for k in ImageRecord.__dataclass_fields__}
+            row.update(
+                n_keypoints=int(descriptors.shape[0]),
+                keypoints_f32=keypoints.tobytes(),
+                descriptors_u8=np.ascontiguousarray(descriptors).tobytes(),
+                created_at=_now_iso(),
+            )
+            rows.append(row)
+        if not rows:
+            return 0
+        before = self.image_count()
+        with self.db.atomic():
+            self.db["images"].insert_all(rows, ignore=True)
+        return self.image_count() - before
+
+    def images(self, source: str | None = None, camera: str | None = None) -> list[StoredImage]:
+        """Metadata of the stored images, ordered by (source, camera, timestamp)."""
+        where, args = _where(source, camera)
+        columns = ", ".join(["id", "n_keypoints", *ImageRecord.__dataclass_fields__])
+        rows = self.db.query(
+            f"SELECT {columns} FROM images {where} ORDER BY source, camera, timestamp_s, frame", args
+        )
+        return [StoredImage(image_id=r.pop("id"), **r) for r in rows]
+
+    def features(self, image_ids: Iterable[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """image_id -> (keypoints_f32 (N, 6), descriptors_u8 (N, 128)), as writable arrays."""
+        ids = [int(i) for i in image_ids]
+        out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        for start in range(0, len(ids), 500):
+            chunk = ids[start : start + 500]
+            marks = ",".join("?" * len(chunk))
+            for r in self.db.query(
+                f"SELECT id, n_keypoints, keypoints_f32, descriptors_u8 FROM images WHERE id IN ({marks})", chunk
+            ):
+                n = r["n_keypoints"]
+                kp = np.frombuffer(r["keypoints_f32"], dtype=np.float32).reshape(n, KEYPOINT_COLUMNS).copy()
+                desc = np.frombuffer(r["descriptors_u8"], dtype=np.uint8).reshape(n, DESCRIPTOR_DIM).copy()
+                out[r["id"]] = (kp, desc)
+        missing = set(ids) - set(out)
+        if missing:
+            raise StoreError(f"{self.label}: no image with id {sorted(missing)[:5]}")
+        return out
+
+    def sources(self) -> list[dict]:
+        """One dict per (source, camera): image count, time span, keypoint statistics."""
+        return list(
+            self.db.query(
+                "SELECT source, camera, count(*) AS n_images, min(timestamp_s) AS first_timestamp_s, "
+                "max(timestamp_s) AS last_timestamp_s, avg(n_keypoints) AS mean_keypoints "
+                "FROM images GROUP BY source, camera ORDER BY source, camera"
+            )
+        )
+
+
+def _where(source: str | None, camera: str | None) -> tuple[str, list]:
+    clauses, args = [], []
+    if source is not None:
+        clauses.append("source = ?")
+        args.append(source)
+    if camera is not None:
+        clauses.append("camera = ?")
+        args.append(camera)
+    return ("WHERE " + " AND ".join(clauses)) if clauses else "", args
+
+
+def _camera_from_row(row: dict) -> CameraRecord:
+    p = row["p_rect_json"]
+    return CameraRecord(
+        source=row["source"],
+        camera=row["camera"],
+        P_rect=None if p is None else np.array(json.loads(p), dtype=np.float64),
+        width_px=row["width_px"],
+        height_px=row["height_px"],
+    )
+
+
+def _dict_diff(stored: object, wanted: object) -> str:
+    if isinstance(stored, dict) and isinstance(wanted, dict):
+        keys = sorted(set(stored) | set(wanted))
+        parts = [f"{k}: store {stored.get(k)!r}, asked {wanted.get(k)!r}" for k in keys if stored.get(k) != wanted.get(k)]
+        return "; ".join(parts)
+    return f"store {stored!r}, asked {wanted!r}"

@@ -1,0 +1,101 @@
+"""Equations (1) and (2) on hand-made descriptors with known answers."""
+
+import numpy as np
+import pytest
+
+from visloc.matching import correspondence_mask, correspondences, count_correspondences, nearest_two
+from visloc.params import MatchParams
+
+
+def desc(*rows):
+    """uint8 descriptors from short rows, zero-padded to 128 dimensions."""
+    out = np.zeros((len(rows), 128), np.uint8)
+    for i, r in enumerate(rows):
+        out[i, : len(r)] = r
+    return out
+
+
+def test_clear_match_passes_both_tests():
+    query = desc([10, 0])
+    database = desc([9, 0], [0, 10])  # d1^2 = 1, d2^2 = 200, cos = 1
+    nn = nearest_two(query, database)
+    assert nn.index1.tolist() == [0]
+    assert nn.dist1_sq.tolist() == [1.0] and nn.dist2_sq.tolist() == [200.0]
+    assert nn.cosine1[0] == pytest.approx(1.0)
+    assert count_correspondences(query, database, MatchParams(0.8, 0.97)) == 1
+
+
+def test_ambiguous_match_fails_ratio_test():
+    query = desc([10, 10])
+    database = desc([10, 0], [0, 10])  # both at d^2 = 100: ratio 1
+    assert count_correspondences(query, database, MatchParams(0.8, -1.0)) == 0
+
+
+def test_ratio_is_strict_at_the_threshold():
+    query = desc([0, 0, 4])
+    database = desc([0, 0, 5], [0, 0, 6])  # d1^2 = 1, d2^2 = 4: ratio^2 = 0.25 = tau1^2
+    assert count_correspondences(query, database, MatchParams(tau1=0.5, tau2=-1.0)) == 0
+    assert count_correspondences(query, database, MatchParams(tau1=0.51, tau2=-1.0)) == 1
+
+
+def test_low_cosine_fails_even_when_ratio_passes():
+    query = desc([100, 0])
+    database = desc([100, 60], [0, 0])  # d1^2 = 3600 < 0.64 * 10000; cos = 100/116.6 = 0.857
+    nn = nearest_two(query, database)
+    assert nn.cosine1[0] == pytest.approx(100 / np.hypot(100, 60), abs=1e-6)
+    assert count_correspondences(query, database, MatchParams(0.8, 0.97)) == 0
+    assert count_correspondences(query, database, MatchParams(0.8, 0.85)) == 1
+
+
+def test_zero_descriptor_never_corresponds():
+    query = desc([0, 0])
+    database = desc([0, 0], [50, 50])
+    # (1) passes (d1 = 0), but the cosine of a zero vector is undefined: NaN, never > tau2
+    assert np.isnan(nearest_two(query, database).cosine1[0])
+    assert count_correspondences(query, database, MatchParams(1.0, -1.0)) == 0
+
+
+def test_single_database_descriptor_has_no_second_neighbour():
+    nn = nearest_two(desc([5, 5]), desc([5, 4]))
+    assert np.isinf(nn.dist2_sq[0])
+    assert count_correspondences(desc([5, 5]), desc([5, 4]), MatchParams(0.8, 0.97)) == 1
+
+
+def test_empty_inputs_give_no_correspondences():
+    assert count_correspondences(desc([1]), np.zeros((0, 128), np.uint8), MatchParams()) == 0
+    assert count_correspondences(np.zeros((0, 128), np.uint8), desc([1], [2]), MatchParams()) == 0
+
+
+def test_pairs_name_query_and_database_rows():
+    query = desc([10, 0], [0, 0, 10], [7, 7])
+    database = desc([0, 0, 11], [50, 50], [11, 0])
+    pairs = correspondences(query, database, MatchParams(0.8, 0.97))
+    assert pairs.tolist() == [[0, 2], [1, 0]]
+
+
+def test_nearest_two_is_exact_against_float64_brute_force():
+    rng = np.random.default_rng(0)
+    query = rng.integers(0, 256, (300, 128), dtype=np.uint8)
+    database = rng.integers(0, 256, (400, 128), dtype=np.uint8)
+    database[17] = query[5]  # an exact duplicate: distance 0
+    nn = nearest_two(query, database)
+    q, d = query.astype(np.float64), database.astype(np.float64)
+    dist = ((q[:, None, :] - d[None, :, :]) ** 2).sum(-1)
+    ordered = np.sort(dist, axis=1)
+    np.testing.assert_array_equal(nn.dist1_sq, ordered[:, 0])
+    np.testing.assert_array_equal(nn.dist2_sq, ordered[:, 1])
+    np.testing.assert_array_equal(dist[np.arange(300), nn.index1], ordered[:, 0])
+    cos = (q * d[nn.index1]).sum(1) / np.linalg.norm(q, axis=1) / np.linalg.norm(d[nn.index1], axis=1)
+    np.testing.assert_allclose(nn.cosine1, cos, rtol=1e-6)
+    assert nn.index1[5] == 17 and nn.dist1_sq[5] == 0
+
+
+@pytest.mark.parametrize("tau1,tau2", [(0.6, 0.9), (0.8, 0.97), (1.0, -1.0)])
+def test_mask_equals_the_equations_elementwise(tau1, tau2):
+    rng = np.random.default_rng(1)
+    base = rng.integers(0, 200, (200, 128), dtype=np.uint8)
+    query = np.clip(base[:120].astype(int) + rng.integers(-8, 9, (120, 128)), 0, 255).astype(np.uint8)
+    nn = nearest_two(query, base)
+    mask = correspondence_mask(nn, MatchParams(tau1, tau2))
+    expected = (nn.dist1_sq / nn.dist2_sq < tau1**2) & (nn.cosine1 > tau2)
+    np.testing.assert_array_equal(mask, expected)

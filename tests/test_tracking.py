@@ -1,0 +1,84 @@
+"""The constant-velocity Kalman filter: a hand-worked case and filterpy as a reference."""
+
+import numpy as np
+import pytest
+
+from visloc.params import FilterParams
+from visloc.tracking import ConstantVelocityKalman, process_noise, run_filter, transition_matrix
+
+
+def test_transition_and_process_noise_match_equation_6_and_the_white_acceleration_model():
+    F = transition_matrix(2.0)
+    assert F.tolist() == [[1, 0, 2, 0], [0, 1, 0, 2], [0, 0, 1, 0], [0, 0, 0, 1]]
+    Q = process_noise(2.0, 3.0)
+    # G = [dt^2/2, dt] = [2, 2]: per axis 3 * [[4, 4], [4, 4]]
+    assert Q[0, 0] == Q[0, 2] == Q[2, 2] == Q[1, 1] == Q[1, 3] == Q[3, 3] == pytest.approx(12.0)
+    assert Q[0, 1] == Q[0, 3] == 0.0
+
+
+def test_hand_worked_two_steps():
+    kf = ConstantVelocityKalman(FilterParams(dt_s=1.0, meas_var_m2=100.0, accel_var_m2_s4=0.0, init_var=1000.0))
+    first = kf.step(np.array([10.0, 20.0]))
+    # The first measurement initialises the position and is applied once: estimate = z,
+    # position variance (1/1000 + 1/100)^-1 = 90.909, velocity untouched.
+    np.testing.assert_allclose(first.x, [10, 20, 0, 0])
+    np.testing.assert_allclose(np.diag(first.P), [1000 / 11, 1000 / 11, 1000, 1000])
+    second = kf.step(np.array([20.0, 20.0]))
+    # predict: Pxx = 90.909 + 1000, Pxv = 1000; innovation 10 m east, S = 1190.909
+    # K = [1090.909, 1000] / 1190.909 = [0.916031, 0.839695]
+    np.testing.assert_allclose(second.x_prior, [10, 20, 0, 0])
+    np.testing.assert_allclose(second.x, [10 + 10 * 0.9160305, 20, 10 * 0.8396947, 0], rtol=1e-6)
+    assert second.innovation.y.tolist() == [10.0, 0.0]
+    assert second.innovation.mahalanobis == pytest.approx(10 / np.sqrt(1190.909), rel=1e-5)
+
+
+def test_missing_measurement_only_predicts():
+    params = FilterParams(dt_s=1.0, meas_var_m2=4.0, accel_var_m2_s4=0.5, init_var=100.0)
+    steps = run_filter([np.array([0.0, 0.0]), np.array([5.0, 1.0]), None], params)
+    assert steps[2].innovation is None
+    np.testing.assert_allclose(steps[2].x, transition_matrix(1.0) @ steps[1].x)
+    assert np.trace(steps[2].P) > np.trace(steps[1].P)
+
+
+def test_no_measurement_before_the_first_gives_an_empty_step():
+    steps = run_filter([None, np.array([1.0, 2.0])], FilterParams())
+    assert np.isnan(steps[0].x).all()
+    np.testing.assert_allclose(steps[1].x[:2], [1, 2])
+
+
+def test_covariance_stays_symmetric_positive_definite():
+    rng = np.random.default_rng(3)
+    zs = [rng.normal(size=2) * 50 for _ in range(200)]
+    for s in run_filter(zs, FilterParams(meas_var_m2=1e-6, accel_var_m2_s4=1e-3, init_var=1e6)):
+        np.testing.assert_allclose(s.P, s.P.T, atol=1e-9 * np.abs(s.P).max())
+        assert np.linalg.eigvalsh(s.P).min() > 0
+
+
+@pytest.mark.parametrize("params", [
+    FilterParams(),  # the paper preset
+    FilterParams(dt_s=0.1, meas_var_m2=0.25, accel_var_m2_s4=4.0, init_var=10.0),
+    FilterParams(dt_s=2.0, meas_var_m2=400.0, accel_var_m2_s4=0.0, init_var=1e5),
+])
+def test_agrees_with_filterpy(params):
+    from filterpy.kalman import KalmanFilter
+
+    rng = np.random.default_rng(42)
+    truth = np.cumsum(np.full((12, 2), [9.0, -3.0]), axis=0)
+    zs = [t + rng.normal(scale=8.0, size=2) for t in truth]
+    zs[5] = None
+    ours = run_filter(zs, params)
+
+    ref = KalmanFilter(dim_x=4, dim_z=2)
+    ref.F = transition_matrix(params.dt_s)
+    ref.H = np.array([[1.0, 0, 0, 0], [0, 1.0, 0, 0]])
+    ref.Q = process_noise(params.dt_s, params.accel_var_m2_s4)
+    ref.R = params.meas_var_m2 * np.eye(2)
+    ref.P = params.init_var * np.eye(4)
+    ref.x = np.array([[zs[0][0]], [zs[0][1]], [0.0], [0.0]])  # same initialisation as ours
+    for k, z in enumerate(zs):
+        if k > 0:
+            ref.predict()
+        # filterpy 2.0 does not reshape a 1-D z: pass a column vector
+        ref.update(None if z is None else np.asarray(z).reshape(2, 1))
+        np.testing.assert_allclose(ours[k].x, ref.x.ravel(), rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(ours[k].P, ref.P, rtol=1e-8, atol=1e-8)

@@ -1,0 +1,4 @@
+from visloc.cli import main
+import sys
+
+sys.exit(main())

@@ -1,0 +1,344 @@
+"""The ``visloc`` command line: ingest, localize, evaluate, info.
+
+Errors in input or parameters end the command with one line on stderr naming
+the file or parameter, and exit status 2; nothing already stored is lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from db import FeatureStore, StoreError
+from visloc.errors import InputError, VislocError
+from visloc.params import (
+    PAPER_EVAL_RETRIEVAL,
+    PAPER_FILTER,
+    PAPER_MATCH,
+    PAPER_RETRIEVAL,
+    PAPER_SIFT,
+    FilterParams,
+    MatchParams,
+    RetrievalParams,
+    SiftParams,
+)
+
+DEFAULT_DB = "visloc.sqlite"
+
+
+def default_data_root() -> Path:
+    """$VISLOC_DATA, else ../shared/data/kitti beside the checkout, else relative to the working folder."""
+    env = os.environ.get("VISLOC_DATA")
+    if env:
+        return Path(env)
+    beside_checkout = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
+    return beside_checkout if beside_checkout.is_dir() else Path("../shared/data/kitti")
+
+
+# -- argument groups --------------------------------------------------------------
+
+def _add_sift(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("SIFT (must equal the store's settings)")
+    d = PAPER_SIFT
+    g.add_argument("--sift-features", type=int, default=d.n_features, help="keypoints kept per image, 0 = all (default %(default)s)")
+    g.add_argument("--sift-octave-layers", type=int, default=d.n_octave_layers, help="default %(default)s")
+    g.add_argument("--sift-contrast", type=float, default=d.contrast_threshold, help="contrast threshold (default %(default)s)")
+    g.add_argument("--sift-edge", type=float, default=d.edge_threshold, help="edge threshold (default %(default)s)")
+    g.add_argument("--sift-sigma", type=float, default=d.sigma, help="default %(default)s")
+
+
+def _sift(a: argparse.Namespace) -> SiftParams:
+    return SiftParams(n_features=a.sift_features, n_octave_layers=a.sift_octave_layers,
+                      contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma)
+
+
+def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
+    g = p.add_argument_group("matching, retrieval and filter (defaults: the paper's Table 1)")
+    g.add_argument("--tau1", type=float, default=PAPER_MATCH.tau1, help="Lowe ratio threshold, eq. (1), in (0, 1] (default %(default)s)")
+    g.add_argument("--tau2", type=float, default=PAPER_MATCH.tau2, help="cosine similarity threshold, eq. (2), in [-1, 1] (default %(default)s)")
+    g.add_argument("--window-s", type=float, default=retrieval.window_s, help="search +-this around the previous best match, s (default %(default)s)")
+    g.add_argument("--exclusion-s", type=float, default=retrieval.exclusion_s,
+                   help="ignore database images closer in time to the query than this, s (default %(default)s)")
+    f = PAPER_FILTER
+    g.add_argument("--dt-s", type=float, default=f.dt_s, help="time between queries, s (default %(default)s)")
+    g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2, help="R: measurement variance, m^2 (default %(default).1f = (0.0001 deg)^2)")
+    g.add_argument("--accel-var-m2-s4", type=float, default=f.accel_var_m2_s4, help="Q: white acceleration variance, m^2/s^4 (default %(default)s)")
+    g.add_argument("--init-var", type=float, default=f.init_var, help="P0 = this * I, m^2 and m^2/s^2 (default %(default)s)")
+
+
+def _method(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, FilterParams]:
+    return (MatchParams(tau1=a.tau1, tau2=a.tau2),
+            RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s),
+            FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var))
+
+
+def _add_source(p: argparse.ArgumentParser, camera_help: str, camera_default: str, *, multiple: bool = False) -> None:
+    p.add_argument("source", nargs="?", type=Path, default=None,
+                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
+    p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001 (needed if the root holds several)")
+    if multiple:
+        p.add_argument("--camera", action="append", default=None, help=camera_help + f" (repeatable; default {camera_default})")
+    else:
+        p.add_argument("--camera", default=camera_default, help=camera_help + " (default %(default)s)")
+
+
+def _add_db(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
+
+
+def _open_sequence(source: Path | None, drive: str | None, camera: str):
+    from visloc.sources import open_source
+
+    return open_source(source or default_data_root(), drive=drive, camera=camera)
+
+
+def _progress(total: int, desc: str):
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit="img", disable=None, file=sys.stderr, leave=False)
+
+
+def _ingest_sequence(store: FeatureStore, seq, sift: SiftParams, workers: int | None, limit: int | None = None):
+    from visloc.ingest import ingest
+
+    todo = len(seq) - len(store.stored_frames(seq.source, seq.camera))
+    with _progress(todo if limit is None else min(todo, limit), f"SIFT {seq.source}/{seq.camera}") as bar:
+        return ingest(store, seq, sift, workers=workers, progress=bar.update, limit=limit)
+
+
+# -- commands ------------------------------------------------------------------------
+
+def cmd_ingest(a: argparse.Namespace) -> int:
+    sift = _sift(a)
+    with FeatureStore(a.db, create=True) as store:
+        for camera in a.camera or ["image_01"]:
+            seq = _open_sequence(a.source, a.drive, camera)
+            try:
+                report = _ingest_sequence(store, seq, sift, a.workers, a.limit)
+            except KeyboardInterrupt:
+                n = store.image_count(seq.source, seq.camera)
+                print(f"visloc: interrupted; {a.db} keeps {n} images of {seq.source}/{seq.camera}", file=sys.stderr)
+                return 130
+            print(f"{a.db}: {seq.source}/{seq.camera}: {report.n_added} added, {report.n_skipped} already stored, "
+                  f"{len(seq)} frames ({report.images_per_s:.1f} images/s)")
+    return 0
+
+
+def _choose_database(store: FeatureStore, query_source: str, db_source: str | None, db_camera: str) -> str:
+    sources = store.sources()
+    if db_source:
+        return db_source
+    if any(s["source"] == query_source and s["camera"] == db_camera for s in sources):
+        return query_source
+    with_camera = sorted({s["source"] for s in sources if s["camera"] == db_camera})
+    if len(with_camera) == 1:
+        return with_camera[0]
+    have = ", ".join(f"{s['source']}/{s['camera']}" for s in sources) or "nothing"
+    raise InputError(f"{store.label}: choose the database with --db-source (it holds {have})")
+
+
+def cmd_localize(a: argparse.Namespace) -> int:
+    from visloc.database import load_database
+    from visloc.evaluation import QuerySet, series_schedule, step_record
+    from visloc.features import extract_sift, make_sift
+    from visloc.localizer import Localizer, Query
+    from visloc.report import series_tables, write_json
+    from visloc.sources import load_gray
+
+    sift = _sift(a)
+    match, retrieval, filt = _method(a)
+    seq = _open_sequence(a.source, a.drive, a.camera)
+    with FeatureStore(a.db) as store:
+        db = load_database(store, _choose_database(store, seq.source, a.db_source, a.db_camera), a.db_camera, sift)
+    times = seq.timestamps_s
+    start = a.start_frame
+    if not 0 <= start < len(seq):
+        raise InputError(f"--start-frame {start}: the query sequence has frames 0..{len(seq) - 1}")
+    schedule = [s for s in series_schedule(times[start:], filt.dt_s, a.steps) if s[0] == 0]
+    if not schedule:
+        raise InputError(f"--start-frame {start}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
+                         f"{times[-1] - times[start]:.1f} s left of {seq.source}/{seq.camera}")
+    indices = [start + i for i in schedule[0]]
+    localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match, retrieval, filt)
+    sift_engine = make_sift(sift)
+    records = []
+    for k, i in enumerate(indices):
+        fr = seq.frames[i]
+        gray = load_gray(fr.image_path)
+        t0 = time.perf_counter()
+        feats = extract_sift(gray, sift, sift=sift_engine, name=str(fr.image_path))
+        sift_ms = (time.perf_counter() - t0) * 1000.0
+        result = localizer.step(Query(feats.descriptors_u8, fr.timestamp_s, key=i))
+        one = QuerySet(seq.source, seq.camera, np.array([fr.frame]), np.array([fr.timestamp_s]), np.array([fr.lat_deg]),
+                       np.array([fr.lon_deg]), (feats.descriptors_u8,), np.array([sift_ms]))
+        records.append(step_record(k, result, 0, one, db, db.frame, sift_ms + result.compute_ms, keep_counts=True))
+    print(f"queries: {seq.source}/{seq.camera} frames {[seq.frames[i].frame for i in indices]}   "
+          f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s\n")
+    print(series_tables(records))
+    if a.json:
+        write_json(a.json, {"queries": f"{seq.source}/{seq.camera}", "database": f"{db.source}/{db.camera}",
+                            "steps": records, "params": {"match": match.as_dict(), "retrieval": retrieval.as_dict(),
+                                                         "filter": filt.as_dict(), "sift": sift.as_dict()}})
+        print(f"\nwrote {a.json}")
+    return 0
+
+
+def load_query_set(store: FeatureStore, source: str, camera: str, sift: SiftParams):
+    from visloc.database import load_images
+    from visloc.evaluation import QuerySet
+
+    images, _, descriptors = load_images(store, source, camera, sift)
+    return QuerySet(
+        source=source, camera=camera, frames=np.array([im.frame for im in images]),
+        timestamps_s=np.array([im.timestamp_s for im in images]), lat_deg=np.array([im.lat_deg for im in images]),
+        lon_deg=np.array([im.lon_deg for im in images]), descriptors_u8=descriptors,
+        sift_ms=np.array([np.nan if im.sift_ms is None else im.sift_ms for im in images]),
+        paths=tuple(im.path for im in images),
+    )
+
+
+def cmd_evaluate(a: argparse.Namespace) -> int:
+    from visloc.database import load_database
+    from visloc.evaluation import evaluate, series_schedule
+    from visloc.report import save_error_plot, summary_text, write_json
+
+    sift = _sift(a)
+    match, retrieval, filt = _method(a)
+    root = a.root or default_data_root()
+    for path in (a.json, a.plot):
+        if path is not None and not Path(path).resolve().parent.is_dir():
+            raise InputError(f"{path}: folder does not exist")
+    db_seq = _open_sequence(root, a.drive, a.db_camera)
+    query_seq = _open_sequence(root, a.drive, a.query_camera)
+    with FeatureStore(a.db, create=True) as store:
+        for seq in {(s.source, s.camera): s for s in (db_seq, query_seq)}.values():
+            _ingest_sequence(store, seq, sift, a.workers)
+        db = load_database(store, db_seq.source, db_seq.camera, sift)
+        queries = load_query_set(store, query_seq.source, query_seq.camera, sift)
+    starts = None
+    if a.start_frames:
+        try:
+            wanted = {int(v) for v in a.start_frames.split(",")}
+        except ValueError:
+            raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
+        starts = [i for i, f in enumerate(queries.frames) if f in wanted]
+    n_series = len(series_schedule(queries.timestamps_s, filt.dt_s, a.steps))
+    if n_series == 0:
+        raise InputError(f"{query_seq.source}/{query_seq.camera}: too short for {a.steps} queries {filt.dt_s} s apart")
+    with _progress(len(starts) if starts is not None else n_series, "series") as bar:
+        result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, start_indices=starts,
+                          progress=lambda n: bar.update(n))
+    if not result.series:
+        raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at these frames")
+    summary = result.summary()
+    summary["params"]["sift"] = sift.as_dict()
+    print(summary_text(summary))
+    if a.json:
+        write_json(a.json, {**summary, "series": result.series})
+        print(f"wrote {a.json}")
+    plot = a.plot or (Path(a.json).with_suffix(".png") if a.json else None)
+    if plot:
+        title = (f"{db.source}: queries {queries.camera}, database {db.camera}, exclusion "
+                 f"{retrieval.exclusion_s:g} s, {summary['n_series']} series")
+        save_error_plot(summary, plot, title)
+        print(f"wrote {plot}")
+    return 0
+
+
+def cmd_info(a: argparse.Namespace) -> int:
+    from visloc.ingest import stored_sift_params
+
+    with FeatureStore(a.db) as store:
+        print(f"{a.db}: {store.image_count()} images")
+        params = stored_sift_params(store)
+        print(f"SIFT settings: {params.as_dict() if params else 'none yet'}")
+        for s in store.sources():
+            span = s["last_timestamp_s"] - s["first_timestamp_s"]
+            cam = store.get_camera(s["source"], s["camera"])
+            calib = "P_rect known" if cam and cam.P_rect is not None else "no calibration"
+            print(f"  {s['source']}/{s['camera']}: {s['n_images']} images over {span:.1f} s, "
+                  f"{s['mean_keypoints']:.0f} keypoints per image, {calib}")
+    return 0
+
+
+# -- parser ----------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="visloc",
+        description="Localize a vehicle from one camera against a database of geotagged images (SIFT + Kalman filter).")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("ingest", help="build or extend a store: SIFT features and geotags of every image",
+                       description="Extract SIFT from every image of a drive (or CSV) and store features and geotags. "
+                                   "Re-running skips what is stored; an interruption loses nothing committed.")
+    _add_source(p, "KITTI camera to store", "image_01", multiple=True)
+    _add_db(p)
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes (default: number of cores)")
+    p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
+    _add_sift(p)
+    p.set_defaults(func=cmd_ingest)
+
+    p = sub.add_parser("localize", help="localize one query series against a store; print the paper's Tables 2 and 3",
+                       description="Run one series of queries (one every --dt-s seconds) against the database and "
+                                   "print the paper's Tables 2 and 3 for it.")
+    _add_source(p, "query camera", "image_00")
+    _add_db(p)
+    p.add_argument("--db-camera", default="image_01", help="database camera in the store (default %(default)s)")
+    p.add_argument("--db-source", default=None, help="database drive/dataset in the store (default: the query's drive)")
+    p.add_argument("--start-frame", type=int, default=0, help="query frame of the first step, t-5 (default %(default)s)")
+    p.add_argument("--steps", type=int, default=6, help="number of queries (default %(default)s)")
+    p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
+    _add_method(p, PAPER_RETRIEVAL)
+    _add_sift(p)
+    p.set_defaults(func=cmd_localize)
+
+    p = sub.add_parser("evaluate", help="the paper's evaluation protocol on a KITTI drive",
+                       description="Every series of --steps queries one --dt-s apart that fits in the drive; "
+                                   "per-step mean measurement and estimate errors (Figure 4), final error, latency. "
+                                   "Ingests both cameras into --db first (skipping what is stored).")
+    p.add_argument("root", nargs="?", type=Path, default=None, help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
+    p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001")
+    _add_db(p)
+    p.add_argument("--query-camera", default="image_00", help="queries (default %(default)s, left gray)")
+    p.add_argument("--db-camera", default="image_01", help="database (default %(default)s, right gray)")
+    p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
+    p.add_argument("--start-frames", default=None, help="only series starting at these query frames, e.g. 0,20,40")
+    p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
+    p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    _add_method(p, PAPER_EVAL_RETRIEVAL)
+    _add_sift(p)
+    p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
+    _add_db(p)
+    p.set_defaults(func=cmd_info)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for name in ("steps", "workers", "limit"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            print(f"visloc: error: --{name} {value}: must be >= 1", file=sys.stderr)
+            return 2
+    try:
+        return args.func(args)
+    except (VislocError, StoreError) as exc:
+        print(f"visloc: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("visloc: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,79 @@
+"""SIFT extraction (OpenCV), as pure functions over images held in numpy arrays."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from visloc.errors import InputError
+from visloc.params import SiftParams
+
+KEYPOINT_COLUMNS = ("x_px", "y_px", "size_px", "angle_deg", "response", "octave")
+
+
+@dataclass(frozen=True)
+class Features:
+    """SIFT features of one image.
+
+    keypoints_f32:  (N, 6) float32, columns ``KEYPOINT_COLUMNS``.
+    descriptors_u8: (N, 128) uint8. OpenCV's SIFT descriptors are whole numbers
+                    0..255, so uint8 holds them exactly.
+    """
+
+    keypoints_f32: np.ndarray
+    descriptors_u8: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.descriptors_u8.shape[0])
+
+    @property
+    def xy_px(self) -> np.ndarray:
+        return self.keypoints_f32[:, :2]
+
+
+def make_sift(params: SiftParams) -> "cv2.SIFT":
+    # Every argument by keyword: positionally, descriptorType lands in the wrong slot.
+    return cv2.SIFT_create(
+        nfeatures=params.n_features,
+        nOctaveLayers=params.n_octave_layers,
+        contrastThreshold=params.contrast_threshold,
+        edgeThreshold=params.edge_threshold,
+        sigma=params.sigma,
+        descriptorType=cv2.CV_8U,
+    )
+
+
+def extract_sift(gray_u8: np.ndarray, params: SiftParams, *, sift: "cv2.SIFT | None" = None,
+                 name: str = "image") -> Features:
+    """SIFT keypoints and descriptors of a 2-D uint8 image.
+
+    ``name`` only labels errors. Raises ``InputError`` when the image has no
+    keypoints at all (blank, black or saturated).
+    """
+    if gray_u8.ndim != 2 or gray_u8.dtype != np.uint8:
+        raise InputError(f"{name}: expected a 2-D uint8 gray image, got {gray_u8.dtype} {gray_u8.shape}")
+    sift = sift or make_sift(params)
+    keypoints, descriptors = sift.detectAndCompute(gray_u8, None)
+    if not keypoints:
+        raise InputError(f"{name}: no SIFT keypoints found (blank or featureless image)")
+    kp = np.array(
+        [(k.pt[0], k.pt[1], k.size, k.angle, k.response, k.octave) for k in keypoints], dtype=np.float32
+    )
+    return Features(keypoints_f32=kp, descriptors_u8=np.ascontiguousarray(descriptors, dtype=np.uint8))
+
+
+def to_gray_u8(image: np.ndarray, *, name: str = "image") -> np.ndarray:
+    """Gray uint8 from a gray, BGR or BGRA image (8 or 16 bit)."""
+    if image.dtype == np.uint16:
+        image = (image >> 8).astype(np.uint8)
+    if image.dtype != np.uint8:
+        raise InputError(f"{name}: unsupported pixel type {image.dtype}")
+    if image.ndim == 2:
+        return image
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    raise InputError(f"{name}: unsupported image shape {image.shape}")

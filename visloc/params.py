@@ -1,0 +1,136 @@
+"""Typed, validated parameters of every stage, with the paper's values as presets.
+
+Every class is a frozen dataclass that checks itself in ``__post_init__`` and
+raises ``ParameterError`` naming the parameter. Units are in the field names.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, fields, replace
+
+from visloc.errors import ParameterError
+
+# One degree of great-circle arc on the mean Earth sphere (IUGG R = 6 371 008.8 m), metres.
+METRES_PER_DEGREE = 2 * math.pi * 6_371_008.8 / 360.0
+
+
+def _check(name: str, value: float, ok: bool, rule: str) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
+        raise ParameterError(f"{name}={value!r}: must be {rule}")
+
+
+class _Params:
+    def as_dict(self) -> dict:
+        return asdict(self)  # type: ignore[call-overload]
+
+    def replace(self, **changes):
+        names = {f.name for f in fields(self)}  # type: ignore[arg-type]
+        unknown = set(changes) - names
+        if unknown:
+            raise ParameterError(f"unknown parameter {sorted(unknown)[0]!r} for {type(self).__name__}")
+        return replace(self, **changes)  # type: ignore[type-var]
+
+
+@dataclass(frozen=True)
+class SiftParams(_Params):
+    """OpenCV SIFT settings. A store records them; queries must use the same ones.
+
+    ``n_features = 0`` keeps every keypoint (the paper: about 3200 per KITTI frame).
+    """
+
+    n_features: int = 0
+    n_octave_layers: int = 3
+    contrast_threshold: float = 0.04
+    edge_threshold: float = 10.0
+    sigma: float = 1.6
+
+    def __post_init__(self) -> None:
+        _check("n_features", self.n_features, isinstance(self.n_features, int) and self.n_features >= 0,
+               "an integer >= 0 (0 keeps every keypoint)")
+        _check("n_octave_layers", self.n_octave_layers,
+               isinstance(self.n_octave_layers, int) and self.n_octave_layers >= 1, "an integer >= 1")
+        _check("contrast_threshold", self.contrast_threshold, self.contrast_threshold >= 0, ">= 0")
+        _check("edge_threshold", self.edge_threshold, self.edge_threshold > 0, "> 0")
+        _check("sigma", self.sigma, self.sigma > 0, "> 0")
+
+
+@dataclass(frozen=True)
+class MatchParams(_Params):
+    """Correspondence tests of the paper's section 3.1.
+
+    tau1: Lowe's ratio, equation (1): d1^2 / d2^2 < tau1^2, tau1 in (0, 1].
+    tau2: cosine similarity, equation (2): cos(g, f) > tau2, tau2 in [-1, 1].
+    """
+
+    tau1: float = 0.8
+    tau2: float = 0.97
+
+    def __post_init__(self) -> None:
+        _check("tau1", self.tau1, 0 < self.tau1 <= 1, "in (0, 1]")
+        _check("tau2", self.tau2, -1 <= self.tau2 <= 1, "in [-1, 1]")
+
+
+@dataclass(frozen=True)
+class RetrievalParams(_Params):
+    """Which database images a query is compared with.
+
+    window_s:    later queries search database images within +-window_s of the
+                 previous best match's timestamp (the paper: 20 s). The first
+                 query, and any query after one without a match, scans everything.
+    exclusion_s: database images closer in time to the query than this are
+                 removed (0 = off, normal use; 1 s in the paper's evaluation,
+                 where database and queries come from the same drive).
+    """
+
+    window_s: float = 20.0
+    exclusion_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        _check("window_s", self.window_s, self.window_s > 0, "> 0")
+        _check("exclusion_s", self.exclusion_s, self.exclusion_s >= 0, ">= 0")
+
+
+@dataclass(frozen=True)
+class FilterParams(_Params):
+    """Constant-velocity Kalman filter, equations (3)-(7), in a local metric frame.
+
+    dt_s:                time between queries, s (Table 1: 1 s). The query sequence
+                         is sampled at this interval too.
+    meas_var_m2:         R = meas_var_m2 * I2, measurement noise variance, m^2.
+    accel_var_m2_s4:     Q = accel_var_m2_s4 * G G^T with G = [dt^2/2, dt] per axis
+                         (piecewise-constant white acceleration), m^2/s^4.
+    init_var:            P0 = init_var * I4 (m^2 on position, m^2/s^2 on velocity).
+
+    See ``PAPER_FILTER`` for how Table 1's values map onto these.
+    """
+
+    dt_s: float = 1.0
+    meas_var_m2: float = (1e-4 * METRES_PER_DEGREE) ** 2
+    accel_var_m2_s4: float = 1.0
+    init_var: float = 1000.0
+
+    def __post_init__(self) -> None:
+        _check("dt_s", self.dt_s, self.dt_s > 0, "> 0")
+        _check("meas_var_m2 (R)", self.meas_var_m2, self.meas_var_m2 >= 0, ">= 0")
+        _check("accel_var_m2_s4 (Q)", self.accel_var_m2_s4, self.accel_var_m2_s4 >= 0, ">= 0")
+        _check("init_var (P0)", self.init_var, self.init_var >= 0, ">= 0")
+
+
+# The paper's Table 1, mapped onto our parameters:
+#  tau1 = 0.8, tau2 = 0.97: as printed.
+#  R = 0.0001 decimal degree: read as the standard deviation of the measured
+#      position, 0.0001 deg of arc = 11.12 m, so R = 11.12^2 = 123.6 m^2 on each
+#      axis. (Read as a variance in deg^2 it would be a 1.1 km standard deviation,
+#      which would make the filter ignore measurements that are ~10 m off.)
+#  "Q = I x 1000, initial state prediction noise": the initial uncertainty P0 =
+#      1000 * I (m^2, m^2/s^2): 31.6 m and 31.6 m/s, "much higher than the
+#      measurement noise", as section 4 says.
+#  The paper gives no process noise; we use white acceleration of 1 m/s^2
+#      standard deviation, an ordinary car's.
+#  dt = 1 s.
+PAPER_SIFT = SiftParams()
+PAPER_MATCH = MatchParams(tau1=0.8, tau2=0.97)
+PAPER_RETRIEVAL = RetrievalParams(window_s=20.0, exclusion_s=0.0)
+PAPER_EVAL_RETRIEVAL = RetrievalParams(window_s=20.0, exclusion_s=1.0)
+PAPER_FILTER = FilterParams(dt_s=1.0, meas_var_m2=(1e-4 * METRES_PER_DEGREE) ** 2, accel_var_m2_s4=1.0, init_var=1000.0)

@@ -1,0 +1,116 @@
+"""Text tables and plots of results: the paper's Tables 2 and 3 and Figure 4."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+from visloc.evaluation import StepRecord
+
+PAPER_FINAL_ERROR_M = 1.85  # section 4, Figure 4
+PAPER_TABLE3_MEASUREMENT_ERROR_M = [18.99, 18.99, 17.57, 16.52, 17.57, 16.19]
+
+
+def _cell(value: float | None, fmt: str) -> str:
+    return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt)
+
+
+def step_labels(n: int) -> list[str]:
+    return [f"t-{n - 1 - k}" if k < n - 1 else "t" for k in range(n)]
+
+
+def series_tables(records: list[StepRecord]) -> str:
+    """Tables 2 and 3 of the paper for one series (inaccuracies by the Haversine formula, as there)."""
+    labels = step_labels(len(records))
+    head = f"{'':34}" + "".join(f"{lab:>11}" for lab in labels)
+
+    def row(name: str, values: list, fmt: str) -> str:
+        return f"{name:34}" + "".join(f"{_cell(v, fmt):>11}" for v in values)
+
+    lines = [
+        "Table 2: output of the image retrieval step",
+        head,
+        row("Geotag of the best match  lon", [r.measurement_lon_deg for r in records], ".5f"),
+        row("                          lat", [r.measurement_lat_deg for r in records], ".5f"),
+        row("Actual GPS coordinates    lon", [r.truth_lon_deg for r in records], ".5f"),
+        row("                          lat", [r.truth_lat_deg for r in records], ".5f"),
+        row("Best match: database frame", [r.best_db_frame for r in records], "d"),
+        row("            correspondences", [r.best_count for r in records], "d"),
+        row("            time offset (s)", [r.best_offset_s for r in records], "+.2f"),
+        "",
+        "Table 3: Kalman filter estimation of the vehicle location",
+        head,
+        row("Kalman filter estimates   lon", [r.estimate_lon_deg for r in records], ".5f"),
+        row("                          lat", [r.estimate_lat_deg for r in records], ".5f"),
+        row("Measurement inaccuracy (m)", [r.measurement_error_haversine_m for r in records], ".2f"),
+        row("Estimation inaccuracy (m)", [r.estimate_error_haversine_m for r in records], ".2f"),
+        row("Estimate 1-sigma, largest axis (m)", [r.estimate_sigma_m for r in records], ".2f"),
+        row("Latency (ms)", [r.latency_ms for r in records], ".0f"),
+    ]
+    return "\n".join(lines)
+
+
+def summary_text(summary: dict) -> str:
+    labels = summary["steps"]
+    lines = [
+        f"series evaluated: {summary['n_series']}   database: {summary['params']['database']}   "
+        f"queries: {summary['params']['queries']}   exclusion: {summary['params']['retrieval']['exclusion_s']} s",
+        f"{'step':28}" + "".join(f"{lab:>9}" for lab in labels),
+        f"{'mean measurement error (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["measurement_error_m"]),
+        f"{'mean estimate error (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["estimate_error_m"]),
+        "final estimate error (m): mean {mean}  median {median}  p90 {p90}".format(
+            **{k: _cell(v, ".2f") for k, v in summary["final_error_m"].items()}),
+        "latency per query (ms): p50 {p50}  p95 {p95}".format(
+            **{k: _cell(v, ".0f") for k, v in summary["latency_ms"].items()}),
+        "best match vs query time: median offset {m} s, ahead {a}, behind {b}".format(
+            m=_cell(summary["best_match_offset_s"]["median"], "+.2f"),
+            a=_cell(summary["best_match_offset_s"]["fraction_ahead"], ".0%"),
+            b=_cell(summary["best_match_offset_s"]["fraction_behind"], ".0%")),
+        f"paper (drive 0001): measurement about 18 m, final {PAPER_FINAL_ERROR_M} m",
+    ]
+    return "\n".join(lines)
+
+
+def write_json(path: Path, payload: dict) -> None:
+    def default(obj):
+        if dataclasses.is_dataclass(obj):
+            return dataclasses.asdict(obj)
+        if hasattr(obj, "tolist"):
+            return obj.tolist()
+        raise TypeError(type(obj).__name__)
+
+    Path(path).write_text(json.dumps(payload, indent=1, default=default))
+
+
+def save_error_plot(summary: dict, path: Path, title: str) -> None:
+    """Figure 4: mean measurement and estimate error per step."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = summary["steps"]
+    x = list(range(len(labels)))
+    nan = float("nan")
+    meas = [nan if v is None else v for v in summary["measurement_error_m"]]
+    est = [nan if v is None else v for v in summary["estimate_error_m"]]
+    fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
+    ax.plot(x, meas, "o-", color="tab:orange", label="measurement (best-match geotag)")
+    ax.plot(x, est, "s-", color="tab:blue", label="Kalman estimate")
+    ax.plot([x[-1]], [PAPER_FINAL_ERROR_M], "k*", markersize=11, label=f"paper's final estimate ({PAPER_FINAL_ERROR_M} m)")
+    for xi, v in zip(x, est):
+        if not math.isnan(v):
+            ax.annotate(f"{v:.1f}", (xi, v), textcoords="offset points", xytext=(0, -14), ha="center", fontsize=8,
+                        color="tab:blue")
+    ax.set_xticks(x, labels)
+    ax.set_xlabel("query step")
+    ax.set_ylabel("mean error over series (m)")
+    ax.set_ylim(bottom=0)
+    ax.grid(alpha=0.3)
+    ax.set_title(title, fontsize=9)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

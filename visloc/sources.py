@@ -1,0 +1,240 @@
+"""Image sequences with geotags: KITTI raw drives and a generic folder + CSV.
+
+A ``Sequence`` is a list of ``Frame`` (image file, timestamp, geotag) from one
+camera, plus the camera's rectified projection matrix when known. Nothing here
+computes anything; it reads files and checks that they agree.
+
+KITTI raw layout: ``ROOT/<date>/<date>_drive_<NNNN>_sync/`` with ``image_0X/data/*.png``,
+``image_0X/timestamps.txt`` (falls back to ``oxts/timestamps.txt``), ``oxts/data/*.txt``
+(lat, lon, alt, roll, pitch, yaw, ...) and ``ROOT/<date>/calib_cam_to_cam.txt``
+(``P_rect_0X``). Timestamps are read as UTC and kept as Unix seconds.
+
+CSV: a header with ``file,timestamp,lat,lon`` and optionally ``alt``, ``heading``
+(compass degrees, 0 = north, clockwise); ``file`` is relative to the CSV's folder;
+``timestamp`` is seconds (any epoch) or ISO 8601.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from visloc.errors import InputError
+from visloc.features import to_gray_u8
+from visloc.geo import yaw_enu_to_heading_deg
+
+KITTI_CAMERAS = ("image_00", "image_01", "image_02", "image_03")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class Frame:
+    frame: int
+    image_path: Path
+    timestamp_s: float
+    lat_deg: float
+    lon_deg: float
+    alt_m: float | None = None
+    heading_deg: float | None = None
+
+
+@dataclass(frozen=True)
+class Sequence:
+    source: str  # drive or dataset name
+    camera: str
+    frames: tuple[Frame, ...]
+    P_rect: np.ndarray | None = None  # (3, 4) rectified projection matrix, pixels
+    image_size_px: tuple[int, int] | None = None  # (width, height)
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    @property
+    def timestamps_s(self) -> np.ndarray:
+        return np.array([f.timestamp_s for f in self.frames])
+
+
+def load_gray(path: Path) -> np.ndarray:
+    """Read an image file as 2-D uint8 gray; ``InputError`` naming the file if it is missing or corrupt."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: image file not found")
+    data = np.fromfile(path, dtype=np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if image is None:
+        raise InputError(f"{path}: cannot decode image (corrupt or not an image)")
+    return to_gray_u8(image, name=str(path))
+
+
+# -- KITTI raw -------------------------------------------------------------------
+
+def kitti_drives(root: Path) -> list[str]:
+    """Names of the ``*_sync`` drive folders under a KITTI raw root."""
+    root = Path(root)
+    if not root.is_dir():
+        raise InputError(f"{root}: KITTI data root not found (set it with the ROOT argument or VISLOC_DATA)")
+    return sorted(p.name for p in root.glob("*/*_drive_*_sync") if p.is_dir())
+
+
+def resolve_drive(root: Path, drive: str | None) -> Path:
+    """Folder of ``drive`` (with or without the ``_sync`` suffix); the only drive if None."""
+    drives = kitti_drives(root)
+    if not drives:
+        raise InputError(f"{root}: no KITTI drive folders (<date>/<date>_drive_NNNN_sync) found")
+    if drive is None:
+        if len(drives) > 1:
+            raise InputError(f"{root}: holds {len(drives)} drives, choose one with --drive ({', '.join(drives)})")
+        drive = drives[0]
+    name = drive if drive.endswith("_sync") else drive + "_sync"
+    match = re.match(r"(\d{4}_\d{2}_\d{2})_drive_\d{4}_sync$", name)
+    if not match:
+        raise InputError(f"--drive {drive!r}: expected a name like 2011_09_26_drive_0001")
+    folder = Path(root) / match.group(1) / name
+    if not folder.is_dir():
+        raise InputError(f"{folder}: drive not found (available: {', '.join(drives)})")
+    return folder
+
+
+def _read_timestamps(path: Path) -> list[float]:
+    out = []
+    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line:
+            continue
+        try:
+            # KITTI writes nanoseconds; datetime takes microseconds.
+            day, _, frac = line.partition(".")
+            stamp = _dt.datetime.strptime(day, "%Y-%m-%d %H:%M:%S").replace(tzinfo=_dt.timezone.utc)
+            out.append(stamp.timestamp() + (float("0." + frac) if frac else 0.0))
+        except ValueError:
+            raise InputError(f"{path}:{line_no}: not a timestamp: {line[:40]!r}") from None
+    return out
+
+
+def _read_oxts(path: Path) -> tuple[float, float, float, float]:
+    """(lat_deg, lon_deg, alt_m, heading_deg) of one OXTS record."""
+    try:
+        values = [float(v) for v in path.read_text().split()]
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: unreadable OXTS record ({exc})") from None
+    if len(values) < 6 or not all(math.isfinite(v) for v in values[:6]):
+        raise InputError(f"{path}: OXTS record needs at least 6 numbers (lat lon alt roll pitch yaw)")
+    lat, lon, alt, _roll, _pitch, yaw = values[:6]
+    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        raise InputError(f"{path}: lat/lon out of range ({lat}, {lon})")
+    return lat, lon, alt, yaw_enu_to_heading_deg(yaw)
+
+
+def read_kitti_calibration(calib_path: Path, camera: str) -> np.ndarray | None:
+    """``P_rect_0X`` (3x4) from ``calib_cam_to_cam.txt``, or None if the file is absent."""
+    if not calib_path.is_file():
+        return None
+    key = "P_rect_" + camera[-2:] + ":"
+    for line in calib_path.read_text().splitlines():
+        if line.startswith(key):
+            try:
+                values = np.array([float(v) for v in line[len(key):].split()])
+            except ValueError:
+                values = np.array([])
+            if values.size != 12:
+                raise InputError(f"{calib_path}: {key[:-1]} must hold 12 numbers")
+            return values.reshape(3, 4)
+    raise InputError(f"{calib_path}: no {key[:-1]} entry")
+
+
+def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
+    """One camera of a KITTI raw drive, every frame checked for an image and an OXTS record."""
+    if camera not in KITTI_CAMERAS:
+        raise InputError(f"--camera {camera!r}: must be one of {', '.join(KITTI_CAMERAS)}")
+    folder = resolve_drive(Path(root), drive)
+    image_dir = folder / camera / "data"
+    oxts_dir = folder / "oxts" / "data"
+    if not image_dir.is_dir():
+        raise InputError(f"{image_dir}: image folder not found")
+    if not oxts_dir.is_dir():
+        raise InputError(f"{oxts_dir}: OXTS folder not found (geotags are required)")
+    images = sorted(p for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+    oxts = sorted(oxts_dir.glob("*.txt"))
+    if not images:
+        raise InputError(f"{image_dir}: no images")
+    if len(images) != len(oxts):
+        raise InputError(f"{folder}: {len(images)} images in {camera} but {len(oxts)} OXTS records; counts must match")
+    stamps_path = folder / camera / "timestamps.txt"
+    if not stamps_path.is_file():
+        stamps_path = folder / "oxts" / "timestamps.txt"
+    if not stamps_path.is_file():
+        raise InputError(f"{folder / camera / 'timestamps.txt'}: no timestamps (nor oxts/timestamps.txt)")
+    stamps = _read_timestamps(stamps_path)
+    if len(stamps) != len(images):
+        raise InputError(f"{stamps_path}: {len(stamps)} timestamps for {len(images)} images; counts must match")
+    frames = []
+    for i, (img, rec, t) in enumerate(zip(images, oxts, stamps)):
+        if img.stem != rec.stem:
+            raise InputError(f"{rec}: OXTS record does not pair with image {img.name}")
+        lat, lon, alt, heading = _read_oxts(rec)
+        frames.append(Frame(frame=i, image_path=img, timestamp_s=t, lat_deg=lat, lon_deg=lon, alt_m=alt,
+                            heading_deg=heading))
+    calib = read_kitti_calibration(folder.parent / "calib_cam_to_cam.txt", camera)
+    return Sequence(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib)
+
+
+# -- folder of images + CSV ------------------------------------------------------
+
+def _parse_time(text: str) -> float:
+    try:
+        return float(text)
+    except ValueError:
+        stamp = _dt.datetime.fromisoformat(text.strip())
+        if stamp.tzinfo is None:
+            stamp = stamp.replace(tzinfo=_dt.timezone.utc)
+        return stamp.timestamp()
+
+
+def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera") -> Sequence:
+    """A drive brought as images plus a CSV of geotags (see the module docstring)."""
+    csv_path = Path(csv_path)
+    if not csv_path.is_file():
+        raise InputError(f"{csv_path}: CSV file not found")
+    with csv_path.open(newline="") as fh:
+        reader = csv.DictReader(fh)
+        header = [h.strip() for h in (reader.fieldnames or [])]
+        missing = {"file", "timestamp", "lat", "lon"} - set(header)
+        if missing:
+            raise InputError(f"{csv_path}: missing column(s) {', '.join(sorted(missing))} (need file,timestamp,lat,lon)")
+        rows = list(reader)
+    if not rows:
+        raise InputError(f"{csv_path}: no rows")
+    parsed = []
+    for line_no, row in enumerate(rows, 2):
+        row = {k.strip(): (v or "").strip() for k, v in row.items() if k}
+        try:
+            t = _parse_time(row["timestamp"])
+            lat, lon = float(row["lat"]), float(row["lon"])
+            alt = float(row["alt"]) if row.get("alt") else None
+            heading = float(row["heading"]) % 360.0 if row.get("heading") else None
+        except ValueError as exc:
+            raise InputError(f"{csv_path}:{line_no}: {exc}") from None
+        if not (-90 <= lat <= 90 and -180 <= lon <= 180 and math.isfinite(t)):
+            raise InputError(f"{csv_path}:{line_no}: lat/lon out of range ({lat}, {lon})")
+        if not row["file"]:
+            raise InputError(f"{csv_path}:{line_no}: empty file name")
+        # frame = data row number, so appending rows to the CSV keeps earlier frames' identity
+        parsed.append(Frame(frame=line_no - 2, image_path=csv_path.parent / row["file"], timestamp_s=t,
+                            lat_deg=lat, lon_deg=lon, alt_m=alt, heading_deg=heading))
+    frames = tuple(sorted(parsed, key=lambda f: (f.timestamp_s, f.frame)))
+    return Sequence(source=source or csv_path.parent.name, camera=camera, frames=frames)
+
+
+def open_source(path: Path, *, drive: str | None = None, camera: str = "image_01") -> Sequence:
+    """A CSV file gives a generic sequence; a folder is read as a KITTI raw root."""
+    path = Path(path)
+    if path.suffix.lower() == ".csv":
+        return open_csv(path)
+    return open_kitti(path, drive, camera)
