@@ -10,6 +10,8 @@ Tables
 ``images``         per (source, camera, frame): geotag, timestamp, original path,
                    SIFT keypoints (float32, N x 6: x_px, y_px, size_px, angle_deg,
                    response, octave) and descriptors (uint8, N x 128) as BLOBs.
+``pair_counts``    a cache: correspondences between a query image and a database
+                   image for given (tau1, tau2), and how long computing it took.
 
 Writes happen in transactions (``FeatureStore.add_images`` commits a batch at
 once), the journal is in WAL mode, and an interrupted write rolls back: a store
@@ -32,7 +34,7 @@ SCHEMA_VERSION = 1
 KEYPOINT_COLUMNS = 6  # x_px, y_px, size_px, angle_deg, response, octave
 DESCRIPTOR_DIM = 128
 
-_TABLES = {"visloc_schema", "settings", "cameras", "images"}
+_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # pair_counts, a cache, is added when missing
 
 
 class StoreError(Exception):
@@ -152,6 +154,9 @@ class FeatureStore:
                 raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}")
         if on_disk and db.journal_mode != "wal":
             db.enable_wal()
+        if "pair_counts" not in db.table_names():
+            with db.atomic():
+                self._create_pair_counts()
 
     def _create_schema(self) -> None:
         db = self.db
@@ -186,8 +191,16 @@ class FeatureStore:
                 pk="id",
                 not_null={"source", "camera", "frame", "timestamp_s", "lat_deg", "lon_deg", "n_keypoints"},
             )
+            self._create_pair_counts()
             db["images"].create_index(["source", "camera", "frame"], unique=True)
             db["images"].create_index(["source", "camera", "timestamp_s"])
+
+    def _create_pair_counts(self) -> None:
+        self.db["pair_counts"].create(
+            {"query_image_id": int, "db_image_id": int, "tau1": float, "tau2": float,
+             "n_correspondences": int, "match_ms": float},
+            pk=("query_image_id", "db_image_id", "tau1", "tau2"),
+        )
 
     def close(self) -> None:
         self.db.close()
@@ -317,6 +330,30 @@ class FeatureStore:
         if missing:
             raise StoreError(f"{self.label}: no image with id {sorted(missing)[:5]}")
         return out
+
+    # -- cached correspondence counts ----------------------------------------------
+
+    def pair_counts(self, query_image_ids: Iterable[int], tau1: float, tau2: float
+                    ) -> dict[tuple[int, int], tuple[int, float]]:
+        """(query_image_id, db_image_id) -> (n_correspondences, match_ms) cached for (tau1, tau2)."""
+        out = {}
+        ids = [int(i) for i in query_image_ids]
+        for start in range(0, len(ids), 500):
+            chunk = ids[start : start + 500]
+            marks = ",".join("?" * len(chunk))
+            for r in self.db.query(
+                "SELECT query_image_id, db_image_id, n_correspondences, match_ms FROM pair_counts "
+                f"WHERE tau1 = ? AND tau2 = ? AND query_image_id IN ({marks})", [tau1, tau2, *chunk]
+            ):
+                out[(r["query_image_id"], r["db_image_id"])] = (r["n_correspondences"], r["match_ms"])
+        return out
+
+    def add_pair_counts(self, counts: dict[tuple[int, int], tuple[int, float]], tau1: float, tau2: float) -> None:
+        rows = [{"query_image_id": q, "db_image_id": d, "tau1": tau1, "tau2": tau2, "n_correspondences": int(n),
+                 "match_ms": float(ms)} for (q, d), (n, ms) in counts.items()]
+        if rows:
+            with self.db.atomic():
+                self.db["pair_counts"].insert_all(rows, replace=True)
 
     def sources(self) -> list[dict]:
         """One dict per (source, camera): image count, time span, keypoint statistics."""

@@ -65,7 +65,8 @@ def write_csv_drive(folder: Path, n_frames: int = 12, *, step_px: int = 120, off
     """A synthetic drive: frame i is a crop of a panorama at x = i*step_px + offset_px, geotagged
     on a straight line east of the origin at 1 m per frame. Returns the CSV path."""
     folder.mkdir(parents=True, exist_ok=True)
-    pano = panorama(seed, width_px=n_frames * step_px + crop_px + offset_px + 1)
+    assert 0 <= offset_px <= 200
+    pano = panorama(seed, width_px=n_frames * step_px + crop_px + 200)  # same strip whatever the offset
     lines = ["file,timestamp,lat,lon,heading"]
     for i in range(n_frames):
         x = i * step_px + offset_px

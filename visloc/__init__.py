@@ -7,9 +7,9 @@ measurement of a constant-velocity Kalman filter.
 Public API (the dashboard and scripts use only these names):
 """
 
-from visloc.database import GeoDatabase, load_database
+from visloc.database import GeoDatabase, QuerySet, load_database, load_query_set
 from visloc.errors import InputError, ParameterError, VislocError
-from visloc.evaluation import Evaluation, QuerySet, StepRecord, evaluate, series_schedule
+from visloc.evaluation import Evaluation, StepRecord, evaluate, series_schedule
 from visloc.features import Features, extract_sift, make_sift
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
 from visloc.ingest import IngestReport, ingest
@@ -38,6 +38,6 @@ __all__ = [
     "PAPER_FILTER", "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PairCountCache", "ParameterError", "Query",
     "QuerySet", "Retrieval", "RetrievalParams", "Sequence", "SiftParams", "StepRecord", "StepResult", "VislocError",
     "candidate_mask", "correspondence_mask", "correspondences", "count_correspondences", "evaluate", "extract_sift",
-    "geodesic_distance_m", "haversine_distance_m", "ingest", "load_database", "load_gray", "make_sift",
+    "geodesic_distance_m", "haversine_distance_m", "ingest", "load_database", "load_query_set", "load_gray", "make_sift",
     "nearest_two", "open_csv", "open_kitti", "open_source", "retrieve", "run_filter", "series_schedule",
 ]

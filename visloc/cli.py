@@ -87,6 +87,12 @@ def _add_source(p: argparse.ArgumentParser, camera_help: str, camera_default: st
         p.add_argument("--camera", default=camera_default, help=camera_help + " (default %(default)s)")
 
 
+def _add_sampling(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sampling", choices=("stride", "time"), default="stride",
+                   help="stride: every round(dt/frame interval)-th frame, as the paper (every 10th on KITTI); "
+                        "time: the frame nearest to each multiple of dt (default %(default)s)")
+
+
 def _add_db(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
 
@@ -143,8 +149,8 @@ def _choose_database(store: FeatureStore, query_source: str, db_source: str | No
 
 
 def cmd_localize(a: argparse.Namespace) -> int:
-    from visloc.database import load_database
-    from visloc.evaluation import QuerySet, series_schedule, step_record
+    from visloc.database import QuerySet, load_database
+    from visloc.evaluation import series_schedule, step_record
     from visloc.features import extract_sift, make_sift
     from visloc.localizer import Localizer, Query
     from visloc.report import series_tables, write_json
@@ -159,7 +165,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
     start = a.start_frame
     if not 0 <= start < len(seq):
         raise InputError(f"--start-frame {start}: the query sequence has frames 0..{len(seq) - 1}")
-    schedule = [s for s in series_schedule(times[start:], filt.dt_s, a.steps) if s[0] == 0]
+    schedule = [s for s in series_schedule(times[start:], filt.dt_s, a.steps, a.sampling) if s[0] == 0]
     if not schedule:
         raise InputError(f"--start-frame {start}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
                          f"{times[-1] - times[start]:.1f} s left of {seq.source}/{seq.camera}")
@@ -188,23 +194,9 @@ def cmd_localize(a: argparse.Namespace) -> int:
     return 0
 
 
-def load_query_set(store: FeatureStore, source: str, camera: str, sift: SiftParams):
-    from visloc.database import load_images
-    from visloc.evaluation import QuerySet
-
-    images, _, descriptors = load_images(store, source, camera, sift)
-    return QuerySet(
-        source=source, camera=camera, frames=np.array([im.frame for im in images]),
-        timestamps_s=np.array([im.timestamp_s for im in images]), lat_deg=np.array([im.lat_deg for im in images]),
-        lon_deg=np.array([im.lon_deg for im in images]), descriptors_u8=descriptors,
-        sift_ms=np.array([np.nan if im.sift_ms is None else im.sift_ms for im in images]),
-        paths=tuple(im.path for im in images),
-    )
-
-
 def cmd_evaluate(a: argparse.Namespace) -> int:
-    from visloc.database import load_database
-    from visloc.evaluation import evaluate, series_schedule
+    from visloc.database import load_database, load_query_set
+    from visloc.localizer import PairCountCache
     from visloc.report import save_error_plot, summary_text, write_json
 
     sift = _sift(a)
@@ -215,26 +207,21 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
             raise InputError(f"{path}: folder does not exist")
     db_seq = _open_sequence(root, a.drive, a.db_camera)
     query_seq = _open_sequence(root, a.drive, a.query_camera)
-    with FeatureStore(a.db, create=True) as store:
+    store = FeatureStore(a.db, create=True)
+    try:
         for seq in {(s.source, s.camera): s for s in (db_seq, query_seq)}.values():
             _ingest_sequence(store, seq, sift, a.workers)
         db = load_database(store, db_seq.source, db_seq.camera, sift)
         queries = load_query_set(store, query_seq.source, query_seq.camera, sift)
-    starts = None
-    if a.start_frames:
+        # correspondence counts computed by earlier runs with the same tau1, tau2
+        cache = PairCountCache(db.descriptors_u8, match, db_keys=[im.image_id for im in db.images],
+                               known=store.pair_counts(queries.image_ids, match.tau1, match.tau2))
         try:
-            wanted = {int(v) for v in a.start_frames.split(",")}
-        except ValueError:
-            raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
-        starts = [i for i, f in enumerate(queries.frames) if f in wanted]
-    n_series = len(series_schedule(queries.timestamps_s, filt.dt_s, a.steps))
-    if n_series == 0:
-        raise InputError(f"{query_seq.source}/{query_seq.camera}: too short for {a.steps} queries {filt.dt_s} s apart")
-    with _progress(len(starts) if starts is not None else n_series, "series") as bar:
-        result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, start_indices=starts,
-                          progress=lambda n: bar.update(n))
-    if not result.series:
-        raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at these frames")
+            result = _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq)
+        finally:  # keep what was computed, also when interrupted
+            store.add_pair_counts(cache.new_entries(), match.tau1, match.tau2)
+    finally:
+        store.close()
     summary = result.summary()
     summary["params"]["sift"] = sift.as_dict()
     print(summary_text(summary))
@@ -248,6 +235,27 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         save_error_plot(summary, plot, title)
         print(f"wrote {plot}")
     return 0
+
+
+def _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq):
+    from visloc.evaluation import evaluate, series_schedule
+
+    starts = None
+    if a.start_frames:
+        try:
+            wanted = {int(v) for v in a.start_frames.split(",")}
+        except ValueError:
+            raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
+        starts = [i for i, f in enumerate(queries.frames) if f in wanted]
+    n_series = len(series_schedule(queries.timestamps_s, filt.dt_s, a.steps, a.sampling))
+    if n_series == 0:
+        raise InputError(f"{query_seq.source}/{query_seq.camera}: too short for {a.steps} queries {filt.dt_s} s apart")
+    with _progress(len(starts) if starts is not None else n_series, "series") as bar:
+        result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, sampling=a.sampling,
+                          start_indices=starts, cache=cache, progress=lambda n: bar.update(n))
+    if not result.series:
+        raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at these frames")
+    return result
 
 
 def cmd_info(a: argparse.Namespace) -> int:
@@ -293,6 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--db-source", default=None, help="database drive/dataset in the store (default: the query's drive)")
     p.add_argument("--start-frame", type=int, default=0, help="query frame of the first step, t-5 (default %(default)s)")
     p.add_argument("--steps", type=int, default=6, help="number of queries (default %(default)s)")
+    _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
     _add_method(p, PAPER_RETRIEVAL)
     _add_sift(p)
@@ -309,6 +318,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--db-camera", default="image_01", help="database (default %(default)s, right gray)")
     p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
     p.add_argument("--start-frames", default=None, help="only series starting at these query frames, e.g. 0,20,40")
+    _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")

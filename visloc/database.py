@@ -67,3 +67,34 @@ def load_database(store: FeatureStore, source: str, camera: str, sift: SiftParam
         keypoints_f32=keypoints, descriptors_u8=descriptors,
         calibration=store.get_camera(source, camera), frame=frame,
     )
+
+
+@dataclass(frozen=True)
+class QuerySet:
+    """Query images of one camera with their ground truth, in time order."""
+
+    source: str
+    camera: str
+    frames: np.ndarray  # (N,) frame numbers
+    timestamps_s: np.ndarray  # (N,)
+    lat_deg: np.ndarray  # (N,) ground truth
+    lon_deg: np.ndarray
+    descriptors_u8: tuple[np.ndarray, ...]
+    sift_ms: np.ndarray  # (N,) time SIFT took on each query image, ms (NaN if unknown)
+    image_ids: tuple[int, ...] = ()  # store ids, keys of cached correspondence counts
+    paths: tuple[str, ...] = ()
+
+    def key(self, index: int) -> int:
+        return self.image_ids[index] if self.image_ids else index
+
+
+def load_query_set(store: FeatureStore, source: str, camera: str, sift: SiftParams) -> QuerySet:
+    """Stored images of (source, camera) as queries, with their geotags as ground truth."""
+    images, _, descriptors = load_images(store, source, camera, sift)
+    return QuerySet(
+        source=source, camera=camera, frames=np.array([im.frame for im in images]),
+        timestamps_s=np.array([im.timestamp_s for im in images]), lat_deg=np.array([im.lat_deg for im in images]),
+        lon_deg=np.array([im.lon_deg for im in images]), descriptors_u8=descriptors,
+        sift_ms=np.array([np.nan if im.sift_ms is None else im.sift_ms for im in images]),
+        image_ids=tuple(im.image_id for im in images), paths=tuple(im.path for im in images),
+    )

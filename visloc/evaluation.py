@@ -1,9 +1,8 @@
 """The paper's evaluation protocol (section 4) and its statistics.
 
-A series is ``n_steps`` queries one ``dt_s`` apart (t-5 ... t for six steps). The
-query of step k is the frame nearest in time to t0 + k*dt_s; it must lie within half
-a frame interval of that time. Every start frame whose series fits in the drive is
-evaluated. Errors are distances between a geotag (the measurement, i.e. the best
+A series is ``n_steps`` queries about ``dt_s`` apart (t-5 ... t for six steps),
+sampled as ``series_schedule`` describes. Every start frame whose series fits in
+the drive is evaluated. Errors are distances between a geotag (the measurement, i.e. the best
 match's geotag, or the filter's estimate) and the query's own ground-truth geotag.
 """
 
@@ -14,35 +13,37 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visloc.database import GeoDatabase
+from visloc.database import GeoDatabase, QuerySet
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
 from visloc.localizer import Localizer, PairCountCache, Query, StepResult
+from visloc.errors import ParameterError
 from visloc.params import FilterParams, MatchParams, RetrievalParams
 
 
-@dataclass(frozen=True)
-class QuerySet:
-    """Query images of one camera with their ground truth, in time order."""
-
-    source: str
-    camera: str
-    frames: np.ndarray  # (N,) frame numbers
-    timestamps_s: np.ndarray  # (N,)
-    lat_deg: np.ndarray  # (N,) ground truth
-    lon_deg: np.ndarray
-    descriptors_u8: tuple[np.ndarray, ...]
-    sift_ms: np.ndarray  # (N,) time SIFT took on each query image, ms (NaN if unknown)
-    paths: tuple[str, ...] = ()
+SAMPLINGS = ("stride", "time")
 
 
-def series_schedule(timestamps_s: np.ndarray, dt_s: float, n_steps: int) -> list[list[int]]:
-    """Indices of the queries of every series that fits: for each start index, the
-    frames nearest to t0 + k*dt_s, k = 0..n_steps-1, each within half a frame interval."""
+def series_schedule(timestamps_s: np.ndarray, dt_s: float, n_steps: int, sampling: str = "stride") -> list[list[int]]:
+    """Indices of the queries of every series that fits in the sequence, one list per start index.
+
+    sampling="stride" (the paper's protocol): every m-th frame, m = round(dt_s / median
+        frame interval); on KITTI (9.7 Hz) every 10th frame, so queries are 1.03 s apart,
+        as in the paper's Table 2 (frames 0, 10, ..., 50).
+    sampling="time": the frame nearest to t0 + k*dt_s, which must lie within half a
+        frame interval of it; queries are dt_s apart to within +-0.05 s on KITTI.
+    """
+    if sampling not in SAMPLINGS:
+        raise ParameterError(f"sampling={sampling!r}: must be one of {', '.join(SAMPLINGS)}")
     t = np.asarray(timestamps_s, float)
     if t.size < 2:
         return []
-    tolerance_s = 0.5 * float(np.median(np.diff(t)))
+    frame_interval_s = float(np.median(np.diff(t)))
     out = []
+    if sampling == "stride":
+        stride = max(1, int(round(dt_s / frame_interval_s)))
+        span = stride * (n_steps - 1)
+        return [list(range(start, start + span + 1, stride)) for start in range(t.size - span)]
+    tolerance_s = 0.5 * frame_interval_s
     for start in range(t.size):
         targets = t[start] + dt_s * np.arange(n_steps)
         if targets[-1] > t[-1] + tolerance_s:
@@ -165,20 +166,23 @@ def evaluate(
     filter_params: FilterParams,
     *,
     n_steps: int = 6,
+    sampling: str = "stride",
     start_indices: Sequence[int] | None = None,
+    cache: PairCountCache | None = None,
     progress=None,
 ) -> Evaluation:
     """Run every series (or those starting at ``start_indices``, indices into ``queries``).
 
     Latency of a query = its SIFT time (measured at ingest) + the time its
     candidate comparisons took when first computed + the filter step. Pairs are
-    computed once and reused across series that share a query image.
+    computed once and reused across series that share a query image; pass a
+    ``cache`` keyed by query and database image ids to reuse them across runs.
     """
-    schedule = series_schedule(queries.timestamps_s, filter_params.dt_s, n_steps)
+    schedule = series_schedule(queries.timestamps_s, filter_params.dt_s, n_steps, sampling)
     if start_indices is not None:
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
-    cache = PairCountCache(db.descriptors_u8, match_params)
+    cache = cache or PairCountCache(db.descriptors_u8, match_params)
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
                           filter_params, counter=cache)
     series = []
@@ -186,8 +190,9 @@ def evaluate(
         localizer.reset()
         records = []
         for k, q in enumerate(indices):
-            result = localizer.step(Query(queries.descriptors_u8[q], float(queries.timestamps_s[q]), key=q))
-            match_ms = cache.cost_ms(q, result.retrieval.candidates)
+            key = queries.key(q)
+            result = localizer.step(Query(queries.descriptors_u8[q], float(queries.timestamps_s[q]), key=key))
+            match_ms = cache.cost_ms(key, result.retrieval.candidates)
             sift_ms = float(queries.sift_ms[q]) if np.isfinite(queries.sift_ms[q]) else 0.0
             # compute_ms covers retrieval + filter, including any pair computed afresh in this step;
             # take that fresh work out and add the recorded cost of every candidate pair instead
@@ -198,6 +203,6 @@ def evaluate(
             progress(1)
     params = {
         "match": match_params.as_dict(), "retrieval": retrieval_params.as_dict(), "filter": filter_params.as_dict(),
-        "n_steps": n_steps, "database": f"{db.source}/{db.camera}", "queries": f"{queries.source}/{queries.camera}",
+        "n_steps": n_steps, "sampling": sampling, "database": f"{db.source}/{db.camera}", "queries": f"{queries.source}/{queries.camera}",
     }
     return Evaluation(series=series, params=params)

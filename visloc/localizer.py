@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from visloc.params import FilterParams, MatchParams, RetrievalParams
+from visloc.matching import count_correspondences
 from visloc.retrieval import CountFn, Retrieval, brute_force_counts, retrieve
 from visloc.tracking import ConstantVelocityKalman, FilterStep
 
@@ -87,16 +88,23 @@ class Localizer:
 
 
 class PairCountCache:
-    """Memoised correspondence counts per (query key, database index), for evaluations
+    """Memoised correspondence counts per (query key, database key), for evaluations
     where the same query image appears in many series. Remembers how long each pair
     took the first time, so latency can still be reported as if computed afresh.
+
+    ``db_keys`` names the database images (default: their indices); ``known`` seeds
+    the cache, e.g. with counts persisted by an earlier run; ``new_entries()`` returns
+    what was computed here, to persist.
     """
 
-    def __init__(self, db_descriptors: Sequence[np.ndarray], match_params: MatchParams):
+    def __init__(self, db_descriptors: Sequence[np.ndarray], match_params: MatchParams, *,
+                 db_keys: Sequence[Hashable] | None = None,
+                 known: dict[tuple[Hashable, Hashable], tuple[int, float]] | None = None):
         self.db_descriptors = db_descriptors
         self.match_params = match_params
-        self._count: dict[tuple[Hashable, int], int] = {}
-        self._ms: dict[tuple[Hashable, int], float] = {}
+        self.db_keys = list(range(len(db_descriptors))) if db_keys is None else list(db_keys)
+        self._entries: dict[tuple[Hashable, Hashable], tuple[int, float]] = dict(known or {})
+        self._new: dict[tuple[Hashable, Hashable], tuple[int, float]] = {}
         self.fresh_ms = 0.0  # matching time spent in the latest query's counter
 
     def __call__(self, query: Query) -> CountFn:
@@ -107,18 +115,21 @@ class PairCountCache:
         def counts(candidates: np.ndarray) -> np.ndarray:
             out = np.empty(len(candidates), np.int64)
             for j, i in enumerate(candidates):
-                pair = (query.key, int(i))
-                if pair not in self._count:
+                pair = (query.key, self.db_keys[int(i)])
+                if pair not in self._entries:
                     t0 = time.perf_counter()
-                    self._count[pair] = brute_force_counts(query.descriptors_u8, self.db_descriptors,
-                                                           self.match_params)(np.array([i]))[0]
-                    self._ms[pair] = (time.perf_counter() - t0) * 1000.0
-                    self.fresh_ms += self._ms[pair]
-                out[j] = self._count[pair]
+                    n = count_correspondences(query.descriptors_u8, self.db_descriptors[int(i)], self.match_params)
+                    ms = (time.perf_counter() - t0) * 1000.0
+                    self._entries[pair] = self._new[pair] = (n, ms)
+                    self.fresh_ms += ms
+                out[j] = self._entries[pair][0]
             return out
 
         return counts
 
     def cost_ms(self, key: Hashable, candidates: np.ndarray) -> float:
         """Time the first computation of these pairs took, ms."""
-        return float(sum(self._ms[(key, int(i))] for i in candidates))
+        return float(sum(self._entries[(key, self.db_keys[int(i)])][1] for i in candidates))
+
+    def new_entries(self) -> dict[tuple[Hashable, Hashable], tuple[int, float]]:
+        return dict(self._new)

@@ -1,0 +1,176 @@
+"""The visloc command, run as a user runs it: in a fresh process, reading its output."""
+
+import hashlib
+import json
+import sqlite3
+
+import cv2
+import numpy as np
+import pytest
+
+from visloc.cli import build_parser
+
+from conftest import run_cli, write_csv_drive
+
+
+def one_line_error(result, *fragments):
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("visloc: error: ")
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+def test_every_command_and_option_has_help_text():
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command")
+    assert set(sub.choices) == {"ingest", "localize", "evaluate", "info"}
+    for name, cmd in sub.choices.items():
+        assert cmd.description, name
+        for action in cmd._actions:
+            if action.dest != "help":
+                assert action.help, f"visloc {name}: {action.dest} has no help"
+    for name in sub.choices:
+        result = run_cli(name, "--help")
+        assert result.returncode == 0 and "usage: visloc " + name in result.stdout
+
+
+@pytest.fixture(scope="module")
+def synthetic(tmp_path_factory):
+    """A database drive and a query drive of the same strip, queries shifted by a quarter frame."""
+    tmp = tmp_path_factory.mktemp("cli")
+    db_csv = write_csv_drive(tmp / "dbdrive", n_frames=10)
+    query_csv = write_csv_drive(tmp / "querydrive", n_frames=10, offset_px=30)
+    store = tmp / "store.sqlite"
+    result = run_cli("ingest", db_csv, "--db", store, "--workers", "1")
+    assert result.returncode == 0, result.stderr
+    assert "dbdrive/camera: 10 added, 0 already stored, 10 frames" in result.stdout
+    return tmp, db_csv, query_csv, store
+
+
+def test_reingest_reports_everything_skipped(synthetic):
+    _, db_csv, _, store = synthetic
+    result = run_cli("ingest", db_csv, "--db", store)
+    assert result.returncode == 0 and "0 added, 10 already stored" in result.stdout
+
+
+def test_localize_prints_tables_2_and_3_and_finds_the_right_images(synthetic, tmp_path):
+    _, _, query_csv, store = synthetic
+    out = tmp_path / "series.json"
+    result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "4",
+                     "--start-frame", "1", "--json", out)
+    assert result.returncode == 0, result.stderr
+    assert "Table 2: output of the image retrieval step" in result.stdout
+    assert "Table 3: Kalman filter estimation of the vehicle location" in result.stdout
+    steps = json.loads(out.read_text())["steps"]
+    # 2 frames per second, one query per second: frames 1, 3, 5, 7 each find their own database frame
+    assert [s["query_frame"] for s in steps] == [1, 3, 5, 7]
+    assert [s["best_db_frame"] for s in steps] == [1, 3, 5, 7]
+    assert all(s["measurement_error_m"] < 0.05 for s in steps)  # same geotags up to rounding
+    assert all(s["best_count"] > 20 for s in steps)
+
+
+def test_localize_with_exclusion_skips_the_own_frame(synthetic, tmp_path):
+    _, _, query_csv, store = synthetic
+    out = tmp_path / "series.json"
+    result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "3",
+                     "--start-frame", "2", "--exclusion-s", "0.25", "--json", out)
+    assert result.returncode == 0, result.stderr
+    for s in json.loads(out.read_text())["steps"]:
+        assert s["best_db_frame"] != s["query_frame"] and abs(s["best_offset_s"]) >= 0.25
+
+
+def test_info_describes_the_store(synthetic):
+    _, _, _, store = synthetic
+    result = run_cli("info", "--db", store)
+    assert result.returncode == 0
+    assert "10 images" in result.stdout and "dbdrive/camera: 10 images" in result.stdout
+    assert "'n_features': 0" in result.stdout
+
+
+@pytest.mark.parametrize("flag,value,name", [
+    ("--tau1", "0", "tau1=0.0: must be in (0, 1]"),
+    ("--tau1", "1.5", "tau1=1.5"),
+    ("--tau2", "2", "tau2=2.0: must be in [-1, 1]"),
+    ("--meas-var-m2", "-1", "meas_var_m2 (R)=-1.0: must be >= 0"),
+    ("--accel-var-m2-s4", "-1", "accel_var_m2_s4 (Q)=-1.0"),
+    ("--init-var", "-1", "init_var (P0)=-1.0"),
+    ("--dt-s", "0", "dt_s=0.0"),
+    ("--steps", "0", "--steps 0: must be >= 1"),
+])
+def test_out_of_range_parameters_are_refused(synthetic, flag, value, name):
+    _, _, query_csv, store = synthetic
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", flag, value), name)
+
+
+def test_database_built_with_other_sift_settings_is_refused(synthetic):
+    _, _, query_csv, store = synthetic
+    result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--sift-features", "500")
+    one_line_error(result, str(store), "built with other SIFT settings", "n_features: store 0, asked 500")
+    result = run_cli("ingest", query_csv, "--db", store, "--sift-contrast", "0.02")
+    one_line_error(result, "contrast_threshold: store 0.04, asked 0.02")
+
+
+def test_empty_missing_and_foreign_database_files_are_refused_untouched(synthetic, tmp_path):
+    _, _, query_csv, _ = synthetic
+    empty = tmp_path / "empty.sqlite"
+    empty.write_bytes(b"")
+    one_line_error(run_cli("localize", query_csv, "--db", empty), "empty.sqlite: empty database file")
+    one_line_error(run_cli("localize", query_csv, "--db", tmp_path / "none.sqlite"), "none.sqlite: database file does not exist")
+    assert not (tmp_path / "none.sqlite").exists()
+    foreign = tmp_path / "foreign.sqlite"
+    conn = sqlite3.connect(foreign)
+    conn.execute("CREATE TABLE orders (id INTEGER)")
+    conn.commit()
+    conn.close()
+    digest = hashlib.sha256(foreign.read_bytes()).hexdigest()
+    for cmd in (("localize", query_csv), ("ingest", query_csv), ("info",)):
+        one_line_error(run_cli(*cmd, "--db", foreign), "foreign.sqlite: SQLite database but not a visloc store")
+    assert hashlib.sha256(foreign.read_bytes()).hexdigest() == digest
+    text = tmp_path / "text.sqlite"
+    text.write_text("hello\n" * 100)
+    one_line_error(run_cli("info", "--db", text), "text.sqlite: not a SQLite database")
+
+
+def test_store_without_the_database_camera_is_named(synthetic):
+    _, _, query_csv, store = synthetic
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "image_01"),
+                   "choose the database with --db-source", "dbdrive/camera")
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--db-source", "elsewhere"),
+                   "no images of elsewhere/camera")
+
+
+def test_bad_query_images_are_named(synthetic, tmp_path):
+    tmp, _, _, store = synthetic
+    query_csv = write_csv_drive(tmp_path / "q", n_frames=10, offset_px=30)
+    (query_csv.parent / "frame_0002.png").unlink()
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--db-source", "dbdrive", "--steps", "3"),
+                   "frame_0002.png: image file not found")
+    cv2.imwrite(str(query_csv.parent / "frame_0002.png"), np.full((240, 320), 128, np.uint8))
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--db-source", "dbdrive", "--steps", "3"),
+                   "frame_0002.png: no SIFT keypoints")
+
+
+def test_series_that_does_not_fit_is_refused(synthetic):
+    _, _, query_csv, store = synthetic
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--start-frame", "8"),
+                   "--start-frame 8: 6 queries 1.0 s apart do not fit")
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--start-frame", "99"),
+                   "--start-frame 99: the query sequence has frames 0..9")
+
+
+def test_ingest_of_a_broken_drive_keeps_what_was_stored(tmp_path):
+    csv_path = write_csv_drive(tmp_path / "d", n_frames=10)
+    (csv_path.parent / "frame_0006.png").write_bytes(b"\x89PNG broken")
+    store = tmp_path / "s.sqlite"
+    one_line_error(run_cli("ingest", csv_path, "--db", store, "--workers", "1"), "frame_0006.png: cannot decode image")
+    conn = sqlite3.connect(store)
+    assert conn.execute("SELECT count(*) FROM images").fetchone()[0] == 6
+    conn.close()
+
+
+def test_missing_data_root_is_named(tmp_path):
+    one_line_error(run_cli("evaluate", tmp_path / "no_kitti", "--db", tmp_path / "s.sqlite"),
+                   "no_kitti: KITTI data root not found")
+    one_line_error(run_cli("ingest", tmp_path / "no_kitti", "--db", tmp_path / "s.sqlite"), "KITTI data root not found")

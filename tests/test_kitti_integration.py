@@ -1,0 +1,89 @@
+"""The paper's protocol on the real drive (KITTI raw 2011_09_26_drive_0001): are the numbers sane?
+
+Runs ``visloc evaluate`` on three series (start frames 0, 25, 50) of left-camera
+queries against the right-camera database with the 1 s exclusion, then
+``visloc localize`` for one series, as a user would.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import KITTI_DRIVE, run_cli
+
+pytestmark = [pytest.mark.kitti, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def evaluation(kitti_root, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("kitti")
+    out = tmp / "eval.json"
+    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
+                     "--start-frames", "0,25,50", "--json", out, timeout=1800)
+    assert result.returncode == 0, result.stderr
+    return tmp, json.loads(out.read_text()), result.stdout
+
+
+def test_evaluation_writes_the_documented_keys(evaluation):
+    tmp, report, stdout = evaluation
+    for key in ("series", "steps", "measurement_error_m", "estimate_error_m", "final_error_m", "latency_ms", "params"):
+        assert key in report
+    assert report["steps"] == ["t-5", "t-4", "t-3", "t-2", "t-1", "t"]
+    assert set(report["final_error_m"]) == {"mean", "median", "p90"}
+    assert set(report["latency_ms"]) == {"p50", "p95"}
+    assert report["params"]["match"] == {"tau1": 0.8, "tau2": 0.97}
+    assert report["params"]["retrieval"]["exclusion_s"] == 1.0
+    assert (tmp / "eval.png").stat().st_size > 10_000
+    assert "final estimate error (m)" in stdout
+
+
+def test_series_follow_the_protocol(evaluation):
+    _, report, _ = evaluation
+    assert [s[0]["query_frame"] for s in report["series"]] == [0, 25, 50]
+    for series in report["series"]:
+        times = [step["query_timestamp_s"] for step in series]
+        np.testing.assert_allclose(np.diff(times), 1.0, atol=0.06)  # one query per second
+        for step in series:
+            # the 1 s exclusion holds, and every query found a match
+            assert step["best_offset_s"] is not None and abs(step["best_offset_s"]) >= 1.0
+            assert step["best_count"] > 0
+
+
+def test_errors_are_physically_sane(evaluation):
+    _, report, _ = evaluation
+    meas = np.array(report["measurement_error_m"])
+    est = np.array(report["estimate_error_m"])
+    # At ~10 m/s with database images at least 1 s away from the query, a correct best
+    # match is 4-14 m away; a wrong place would be tens of metres off.
+    assert np.all((meas > 3.0) & (meas < 25.0)), meas
+    assert np.all(est < 40.0), est
+    for series in report["series"]:
+        for step in series:
+            assert abs(step["best_offset_s"]) < 3.0  # the best match is a nearby image, not a random one
+    # geodesic and Haversine agree to half a percent at this range
+    np.testing.assert_allclose(report["measurement_error_haversine_m"], meas, rtol=5e-3)
+    assert report["latency_ms"]["p50"] > 0
+
+
+def test_localize_prints_the_tables_for_one_series(evaluation, kitti_root):
+    tmp, _, _ = evaluation
+    result = run_cli("localize", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
+                     "--start-frame", "25", "--exclusion-s", "1", "--json", tmp / "series.json")
+    assert result.returncode == 0, result.stderr
+    assert "Table 2" in result.stdout and "Table 3" in result.stdout
+    steps = json.loads((tmp / "series.json").read_text())["steps"]
+    _, report, _ = evaluation
+    # the same series through localize (fresh SIFT) and evaluate (stored SIFT) agree
+    assert [s["best_db_frame"] for s in steps] == [s["best_db_frame"] for s in report["series"][1]]
+
+
+def test_same_camera_without_exclusion_finds_the_query_image_itself(evaluation, kitti_root):
+    tmp, _, _ = evaluation
+    result = run_cli("localize", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
+                     "--camera", "image_01", "--db-camera", "image_01", "--start-frame", "30", "--steps", "2",
+                     "--json", tmp / "self.json")
+    assert result.returncode == 0, result.stderr
+    steps = json.loads((tmp / "self.json").read_text())["steps"]
+    assert [s["best_db_frame"] for s in steps] == [s["query_frame"] for s in steps]
+    assert all(s["measurement_error_m"] == 0.0 for s in steps)

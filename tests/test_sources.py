@@ -1,0 +1,119 @@
+"""Reading KITTI raw drives and CSV drives, and refusing inconsistent ones."""
+
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from visloc.errors import InputError
+from visloc.sources import load_gray, open_csv, open_kitti, open_source
+
+from conftest import make_fake_kitti, write_csv_drive
+
+
+def test_fake_kitti_reads_geotags_timestamps_and_calibration(tmp_path):
+    make_fake_kitti(tmp_path, n_frames=3)
+    seq = open_kitti(tmp_path, "2011_09_26_drive_0001", "image_01")
+    assert seq.source == "2011_09_26_drive_0001_sync" and seq.camera == "image_01" and len(seq) == 3
+    assert seq.frames[1].lat_deg == pytest.approx(49.015003823272 - 1e-5)
+    assert seq.frames[2].timestamp_s - seq.frames[0].timestamp_s == pytest.approx(0.2, abs=1e-6)
+    assert seq.P_rect[0, 3] == pytest.approx(-387.5744)
+    # yaw -2.6 rad = -148.969 deg (ENU, 0 = east) is compass heading 90 + 148.969 = 238.969 deg
+    assert seq.frames[0].heading_deg == pytest.approx(238.969, abs=0.001)
+
+
+def test_the_only_drive_is_chosen_without_drive_flag(tmp_path):
+    make_fake_kitti(tmp_path)
+    assert open_source(tmp_path, camera="image_00").source == "2011_09_26_drive_0001_sync"
+
+
+def test_timestamps_fall_back_to_oxts(tmp_path):
+    drive = make_fake_kitti(tmp_path)
+    (drive / "image_00" / "timestamps.txt").unlink()
+    seq = open_kitti(tmp_path, None, "image_00")
+    assert seq.frames[1].timestamp_s - seq.frames[0].timestamp_s == pytest.approx(0.1, abs=1e-6)
+
+
+def test_missing_calibration_is_allowed(tmp_path):
+    make_fake_kitti(tmp_path, with_calib=False)
+    assert open_kitti(tmp_path, None, "image_00").P_rect is None
+
+
+def test_colour_and_16_bit_images_become_8_bit_gray(tmp_path):
+    rgb = np.zeros((8, 8, 3), np.uint8)
+    rgb[..., 2] = 255  # red in BGR
+    cv2.imwrite(str(tmp_path / "c.png"), rgb)
+    cv2.imwrite(str(tmp_path / "w.png"), np.full((8, 8), 65535, np.uint16))
+    assert load_gray(tmp_path / "c.png").shape == (8, 8) and load_gray(tmp_path / "c.png")[0, 0] == 76
+    assert load_gray(tmp_path / "w.png")[0, 0] == 255
+
+
+@pytest.mark.parametrize("breakage,message", [
+    ("no_oxts", "oxts/data: OXTS folder not found"),
+    ("unequal", "3 images in image_00 but 2 OXTS records"),
+    ("no_images", "image_00/data: image folder not found"),
+    ("bad_oxts", "0000000001.txt: unreadable OXTS record"),
+    ("bad_timestamps", "timestamps.txt:2: not a timestamp"),
+])
+def test_broken_kitti_drives_are_refused_naming_the_file(tmp_path, breakage, message):
+    drive = make_fake_kitti(tmp_path, n_frames=3, with_oxts=breakage != "no_oxts")
+    if breakage == "unequal":
+        (drive / "oxts" / "data" / "0000000002.txt").unlink()
+    elif breakage == "no_images":
+        shutil.rmtree(drive / "image_00")
+    elif breakage == "bad_oxts":
+        (drive / "oxts" / "data" / "0000000001.txt").write_text("49.0 eight")
+    elif breakage == "bad_timestamps":
+        (drive / "image_00" / "timestamps.txt").write_text("2011-09-26 13:02:25.0\nyesterday\n2011-09-26 13:02:25.2\n")
+    with pytest.raises(InputError, match=message) as err:
+        open_kitti(tmp_path, None, "image_00")
+    assert "\n" not in str(err.value)
+
+
+def test_unknown_drive_and_camera_are_named(tmp_path):
+    make_fake_kitti(tmp_path)
+    with pytest.raises(InputError, match="2011_09_26_drive_0009_sync: drive not found"):
+        open_kitti(tmp_path, "2011_09_26_drive_0009", "image_00")
+    with pytest.raises(InputError, match="--camera 'image_07'"):
+        open_kitti(tmp_path, None, "image_07")
+    with pytest.raises(InputError, match="KITTI data root not found"):
+        open_kitti(tmp_path / "nowhere", None, "image_00")
+
+
+def test_missing_and_corrupt_images_are_named(tmp_path):
+    with pytest.raises(InputError, match="gone.png: image file not found"):
+        load_gray(tmp_path / "gone.png")
+    (tmp_path / "bad.png").write_bytes(b"\x89PNG\r\n\x1a\nthis is not really a png")
+    with pytest.raises(InputError, match="bad.png: cannot decode image"):
+        load_gray(tmp_path / "bad.png")
+
+
+def test_csv_drive_sorted_by_time_with_row_numbers_as_frames(tmp_path):
+    csv_path = write_csv_drive(tmp_path / "d", n_frames=4)
+    lines = csv_path.read_text().splitlines()
+    csv_path.write_text("\n".join([lines[0], lines[3], lines[1], lines[2], lines[4]]) + "\n")
+    seq = open_csv(csv_path)
+    assert [f.frame for f in seq.frames] == [1, 2, 0, 3]
+    assert np.all(np.diff(seq.timestamps_s) > 0)
+    assert seq.frames[0].heading_deg == 90.0 and seq.source == "d"
+
+
+@pytest.mark.parametrize("content,message", [
+    ("file,timestamp,lat\nx.png,1,49\n", "missing column"),
+    ("file,timestamp,lat,lon\n", "no rows"),
+    ("file,timestamp,lat,lon\nx.png,1,95,8\n", r"geotags.csv:2: lat/lon out of range"),
+    ("file,timestamp,lat,lon\nx.png,soon,49,8\n", r"geotags.csv:2:"),
+])
+def test_bad_csv_is_refused_naming_the_line(tmp_path, content, message):
+    path = tmp_path / "geotags.csv"
+    path.write_text(content)
+    with pytest.raises(InputError, match=message):
+        open_csv(path)
+
+
+def test_iso_timestamps_are_accepted(tmp_path):
+    path = tmp_path / "g.csv"
+    path.write_text("file,timestamp,lat,lon\na.png,2011-09-26T13:02:25.5,49,8\nb.png,2011-09-26T13:02:26.5,49,8\n")
+    seq = open_csv(path)
+    assert seq.frames[1].timestamp_s - seq.frames[0].timestamp_s == pytest.approx(1.0)

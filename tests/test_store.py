@@ -1,0 +1,144 @@
+"""The SQLite store: round trip, schema, and refusing what is not ours."""
+
+import hashlib
+import sqlite3
+
+import numpy as np
+import pytest
+
+from db import (CameraRecord, EmptyStoreError, FeatureStore, ImageRecord, NotAStoreError, SettingsMismatchError,
+                StoreError)
+
+
+def record(frame: int, **kw) -> ImageRecord:
+    base = dict(source="drive", camera="image_01", frame=frame, path=f"/x/{frame}.png", timestamp_s=100.0 + frame,
+                lat_deg=49.0 + frame * 1e-5, lon_deg=8.4, alt_m=116.0, heading_deg=250.0, width_px=64,
+                height_px=32, sift_ms=12.5)
+    base.update(kw)
+    return ImageRecord(**base)
+
+
+def features(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    return rng.random((n, 6), dtype=np.float32) * 100, rng.integers(0, 256, (n, 128), dtype=np.uint8)
+
+
+def sha(path):
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_round_trip_keeps_every_bit(tmp_path):
+    path = tmp_path / "s.sqlite"
+    stored = {}
+    with FeatureStore(path, create=True) as store:
+        batch = []
+        for frame in range(5):
+            kp, desc = features(50 + frame, frame)
+            stored[frame] = (kp, desc)
+            batch.append((record(frame), kp, desc))
+        assert store.add_images(batch) == 5
+        store.set_camera(CameraRecord("drive", "image_01", np.arange(12.0).reshape(3, 4), 64, 32))
+    with FeatureStore(path) as store:  # reopened from disk
+        images = store.images("drive", "image_01")
+        assert [im.frame for im in images] == list(range(5))
+        assert images[2].lat_deg == 49.0 + 2e-5 and images[2].heading_deg == 250.0 and images[2].sift_ms == 12.5
+        got = store.features(im.image_id for im in images)
+        for im in images:
+            kp, desc = got[im.image_id]
+            np.testing.assert_array_equal(kp, stored[im.frame][0])
+            np.testing.assert_array_equal(desc, stored[im.frame][1])
+            assert desc.dtype == np.uint8 and desc.flags.writeable
+        cam = store.get_camera("drive", "image_01")
+        np.testing.assert_array_equal(cam.P_rect, np.arange(12.0).reshape(3, 4))
+        assert store.db.journal_mode == "wal"
+
+
+def test_adding_an_image_twice_keeps_the_first(memory_store):
+    kp, desc = features(10, 0)
+    assert memory_store.add_images([(record(0), kp, desc)]) == 1
+    kp2, desc2 = features(10, 1)
+    assert memory_store.add_images([(record(0), kp2, desc2)]) == 0
+    (image,) = memory_store.images()
+    np.testing.assert_array_equal(memory_store.features([image.image_id])[image.image_id][1], desc)
+
+
+def test_a_bad_row_rolls_back_the_whole_batch(memory_store):
+    kp, desc = features(10, 0)
+    with pytest.raises(StoreError, match="/x/1.png: descriptors must be uint8"):
+        memory_store.add_images([(record(0), kp, desc), (record(1), kp, desc.astype(np.float32))])
+    assert memory_store.image_count() == 0
+
+
+def test_settings_are_recorded_and_a_different_set_is_refused(memory_store):
+    memory_store.require_setting("sift", {"n_features": 0, "sigma": 1.6})
+    memory_store.require_setting("sift", {"n_features": 0, "sigma": 1.6})
+    with pytest.raises(SettingsMismatchError, match="n_features: store 0, asked 500"):
+        memory_store.require_setting("sift", {"n_features": 500, "sigma": 1.6})
+
+
+def test_missing_file_is_not_created_when_reading(tmp_path):
+    path = tmp_path / "nope.sqlite"
+    with pytest.raises(StoreError, match="nope.sqlite: database file does not exist"):
+        FeatureStore(path)
+    assert not path.exists()
+
+
+def test_empty_file_is_refused_for_reading_and_initialised_for_writing(tmp_path):
+    path = tmp_path / "empty.sqlite"
+    path.write_bytes(b"")
+    with pytest.raises(EmptyStoreError, match="empty.sqlite: empty database file"):
+        FeatureStore(path)
+    with FeatureStore(path, create=True) as store:
+        assert store.image_count() == 0
+
+
+def test_non_sqlite_file_is_refused_and_left_untouched(tmp_path):
+    path = tmp_path / "notes.sqlite"
+    path.write_text("these are my notes, not a database\n" * 20)
+    before = sha(path)
+    for create in (False, True):
+        with pytest.raises(NotAStoreError, match="notes.sqlite: not a SQLite database"):
+            FeatureStore(path, create=create)
+    assert sha(path) == before
+
+
+def test_foreign_sqlite_database_is_refused_and_left_untouched(tmp_path):
+    path = tmp_path / "other.db"
+    conn = sqlite3.connect(path)
+    conn.execute("CREATE TABLE customers (id INTEGER, name TEXT)")
+    conn.execute("INSERT INTO customers VALUES (1, 'Ada')")
+    conn.commit()
+    conn.close()
+    before = sha(path)
+    with pytest.raises(NotAStoreError, match=r"other.db: SQLite database but not a visloc store \(its tables: customers\)"):
+        FeatureStore(path, create=True)
+    assert sha(path) == before
+    assert not (tmp_path / "other.db-wal").exists()
+
+
+def test_newer_schema_is_refused(tmp_path):
+    path = tmp_path / "s.sqlite"
+    FeatureStore(path, create=True).close()
+    conn = sqlite3.connect(path)
+    conn.execute("UPDATE visloc_schema SET version = 99")
+    conn.commit()
+    conn.close()
+    with pytest.raises(NotAStoreError, match="schema version 99"):
+        FeatureStore(path)
+
+
+def test_sources_summarise_per_camera(memory_store):
+    kp, desc = features(20, 0)
+    memory_store.add_images([(record(i), kp, desc) for i in range(3)] +
+                            [(record(i, camera="image_00"), kp, desc) for i in range(2)])
+    rows = {(r["source"], r["camera"]): r for r in memory_store.sources()}
+    assert rows[("drive", "image_01")]["n_images"] == 3 and rows[("drive", "image_00")]["n_images"] == 2
+    assert rows[("drive", "image_01")]["last_timestamp_s"] - rows[("drive", "image_01")]["first_timestamp_s"] == 2.0
+
+
+def test_pair_counts_cache_round_trip_per_threshold(memory_store):
+    memory_store.add_pair_counts({(1, 2): (17, 25.0), (1, 3): (0, 30.5)}, 0.8, 0.97)
+    memory_store.add_pair_counts({(1, 2): (30, 26.0)}, 0.9, 0.97)
+    assert memory_store.pair_counts([1], 0.8, 0.97) == {(1, 2): (17, 25.0), (1, 3): (0, 30.5)}
+    assert memory_store.pair_counts([1], 0.9, 0.97) == {(1, 2): (30, 26.0)}
+    assert memory_store.pair_counts([2], 0.8, 0.97) == {}
