@@ -39,6 +39,7 @@ def test_every_series_finds_its_own_frame_without_exclusion(drives):
     assert summary["final_error_m"]["mean"] < 0.2
     assert summary["latency_ms"]["p50"] > 0
     assert summary["best_match_offset_s"]["median"] == pytest.approx(0.0)
+    assert max(summary["nearest_candidate_error_m"]) < 0.01
 
 
 def test_exclusion_pushes_the_match_to_a_neighbour(drives):
@@ -48,6 +49,8 @@ def test_exclusion_pushes_the_match_to_a_neighbour(drives):
     assert min(offsets) >= 0.5
     # the neighbouring frame 0.5 s away shares most of the view: 1 m off
     assert np.mean(result.summary()["measurement_error_m"]) == pytest.approx(1.0, abs=0.05)
+    # and that is the floor: no allowed image is closer to the truth
+    np.testing.assert_allclose(result.summary()["nearest_candidate_error_m"], 1.0, atol=0.05)
 
 
 def test_cached_counts_give_identical_results(drives):

@@ -30,7 +30,7 @@ def test_evaluation_writes_the_documented_keys(evaluation):
     for key in ("series", "steps", "measurement_error_m", "estimate_error_m", "final_error_m", "latency_ms", "params"):
         assert key in report
     assert report["steps"] == ["t-5", "t-4", "t-3", "t-2", "t-1", "t"]
-    assert set(report["final_error_m"]) == {"mean", "median", "p90"}
+    assert set(report["final_error_m"]) == {"mean", "median", "p90", "min", "max"}
     assert set(report["latency_ms"]) == {"p50", "p95"}
     assert report["params"]["match"] == {"tau1": 0.8, "tau2": 0.97}
     assert report["params"]["retrieval"]["exclusion_s"] == 1.0
@@ -61,6 +61,9 @@ def test_errors_are_physically_sane(evaluation):
     for series in report["series"]:
         for step in series:
             assert abs(step["best_offset_s"]) < 3.0  # the best match is a nearby image, not a random one
+    # retrieval is near its floor: the candidate nearest to the truth is at most a few metres better
+    floor = np.array(report["nearest_candidate_error_m"])
+    assert np.all(meas >= floor - 1e-9) and np.all(meas - floor < 3.0), (meas, floor)
     # geodesic and Haversine agree to half a percent at this range
     np.testing.assert_allclose(report["measurement_error_haversine_m"], meas, rtol=5e-3)
     assert report["latency_ms"]["p50"] > 0

@@ -77,6 +77,7 @@ class StepRecord:
     measurement_error_haversine_m: float | None
     estimate_error_haversine_m: float | None
     latency_ms: float
+    nearest_candidate_error_m: float | None = None  # floor: the candidate geotag closest to the truth
     counts: list[int] = field(default_factory=list, repr=False)
     candidate_frames: list[int] = field(default_factory=list, repr=False)
 
@@ -91,6 +92,10 @@ def step_record(step: int, result: StepResult, q: int, queries: QuerySet, db: Ge
         m_lat, m_lon = float(db.lat_deg[best]), float(db.lon_deg[best])
         m_err = float(geodesic_distance_m(m_lat, m_lon, *truth))
         m_hav = float(haversine_distance_m(m_lat, m_lon, *truth))
+    candidates = result.retrieval.candidates
+    floor = None
+    if candidates.size:
+        floor = float(geodesic_distance_m(db.lat_deg[candidates], db.lon_deg[candidates], *truth).min())
     if np.all(np.isfinite(result.filter.x)):
         lat, lon = frame.to_geo(result.filter.x[:2])
         e_lat, e_lon = float(lat), float(lon)
@@ -105,6 +110,7 @@ def step_record(step: int, result: StepResult, q: int, queries: QuerySet, db: Ge
         measurement_lat_deg=m_lat, measurement_lon_deg=m_lon, estimate_lat_deg=e_lat, estimate_lon_deg=e_lon,
         estimate_sigma_m=sigma, measurement_error_m=m_err, estimate_error_m=e_err,
         measurement_error_haversine_m=m_hav, estimate_error_haversine_m=e_hav, latency_ms=latency_ms,
+        nearest_candidate_error_m=floor,
         counts=[int(c) for c in result.retrieval.counts] if keep_counts else [],
         candidate_frames=[int(db.images[i].frame) for i in result.retrieval.candidates] if keep_counts else [],
     )
@@ -126,6 +132,14 @@ class Evaluation:
             out.append(float(np.mean(vals)) if vals else None)
         return out
 
+    def _final_by_steps_ahead(self) -> dict[str, dict]:
+        groups: dict[int, list[float]] = {}
+        for s in self.series:
+            if s[-1].estimate_error_m is not None:
+                ahead = sum(1 for r in s if r.best_offset_s is not None and r.best_offset_s > 0)
+                groups.setdefault(ahead, []).append(s[-1].estimate_error_m)
+        return {str(k): {"n_series": len(v), "mean": float(np.mean(v))} for k, v in sorted(groups.items())}
+
     def summary(self) -> dict:
         finals = np.array([s[-1].estimate_error_m for s in self.series if s[-1].estimate_error_m is not None])
         latency = np.array([r.latency_ms for s in self.series for r in s])
@@ -135,18 +149,23 @@ class Evaluation:
         def stats(values: np.ndarray, *names: str) -> dict:
             if values.size == 0:
                 return {n: None for n in names}
-            table = {"mean": np.mean, "median": np.median, "p50": lambda v: np.percentile(v, 50),
+            table = {"mean": np.mean, "median": np.median, "min": np.min, "max": np.max, "p50": lambda v: np.percentile(v, 50),
                      "p90": lambda v: np.percentile(v, 90), "p95": lambda v: np.percentile(v, 95)}
             return {n: float(table[n](values)) for n in names}
 
         return {
             "n_series": len(self.series),
+            "n_steps": self.n_steps,
             "steps": [f"t-{self.n_steps - 1 - k}" if k < self.n_steps - 1 else "t" for k in range(self.n_steps)],
             "measurement_error_m": self._per_step("measurement_error_m"),
             "estimate_error_m": self._per_step("estimate_error_m"),
             "measurement_error_haversine_m": self._per_step("measurement_error_haversine_m"),
             "estimate_error_haversine_m": self._per_step("estimate_error_haversine_m"),
-            "final_error_m": stats(finals, "mean", "median", "p90"),
+            # the best a retrieval could do: the candidate image nearest to the truth
+            "nearest_candidate_error_m": self._per_step("nearest_candidate_error_m"),
+            "final_error_m": {**stats(finals, "mean", "median", "p90"), **stats(finals, "min", "max")},
+            # series grouped by how many of their best matches lie ahead of the query in time
+            "final_error_m_by_steps_ahead": self._final_by_steps_ahead(),
             "latency_ms": stats(latency, "p50", "p95"),
             "best_match_offset_s": {
                 **stats(offsets, "median"),

@@ -60,7 +60,8 @@ def summary_text(summary: dict) -> str:
         f"{'step':28}" + "".join(f"{lab:>9}" for lab in labels),
         f"{'mean measurement error (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["measurement_error_m"]),
         f"{'mean estimate error (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["estimate_error_m"]),
-        "final estimate error (m): mean {mean}  median {median}  p90 {p90}".format(
+        f"{'nearest candidate (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["nearest_candidate_error_m"]),
+        "final estimate error (m): mean {mean}  median {median}  p90 {p90}  min {min}  max {max}".format(
             **{k: _cell(v, ".2f") for k, v in summary["final_error_m"].items()}),
         "latency per query (ms): p50 {p50}  p95 {p95}".format(
             **{k: _cell(v, ".0f") for k, v in summary["latency_ms"].items()}),
@@ -68,6 +69,9 @@ def summary_text(summary: dict) -> str:
             m=_cell(summary["best_match_offset_s"]["median"], "+.2f"),
             a=_cell(summary["best_match_offset_s"]["fraction_ahead"], ".0%"),
             b=_cell(summary["best_match_offset_s"]["fraction_behind"], ".0%")),
+        "final estimate error (m) by best matches ahead of the query: " + "  ".join(
+            f"{k}/{summary['n_steps']} ahead: {v['mean']:.2f} ({v['n_series']} series)"
+            for k, v in summary["final_error_m_by_steps_ahead"].items()),
         f"paper (drive 0001): measurement about 18 m, final {PAPER_FINAL_ERROR_M} m",
     ]
     return "\n".join(lines)
