@@ -1,8 +1,14 @@
 #!/usr/bin/env bash
 # Create .venv (if needed) and install visloc with its test dependencies into it.
+# pip's output goes to .venv/install.log and is shown only if the install fails.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 python3 -m venv .venv
-.venv/bin/python -m pip install --quiet --upgrade pip 2>&1 | grep -v "^WARNING: Location" || true
-.venv/bin/python -m pip install --quiet -e '.[test]' 2>&1 | grep -v "^WARNING: Location" || true
-.venv/bin/python -c "import visloc, filterpy, pytest" # fail here, not later, if the install did not work
+log=.venv/install.log
+if ! { .venv/bin/python -m pip install --upgrade pip && .venv/bin/python -m pip install -e '.[test]'; } >"$log" 2>&1; then
+    cat "$log" >&2
+    echo "setup: pip install failed (log above, also in $log)" >&2
+    exit 1
+fi
+.venv/bin/python -c "import visloc, db, filterpy, pytest"  # fail here, not later, if the install is broken
+echo "setup: .venv ready ($(.venv/bin/python -c 'import visloc; print("visloc", visloc.__version__)'))"

@@ -12,7 +12,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 
 from db import FeatureStore, StoreError
 from visloc.errors import InputError, VislocError
@@ -149,7 +148,7 @@ def _choose_database(store: FeatureStore, query_source: str, db_source: str | No
 
 
 def cmd_localize(a: argparse.Namespace) -> int:
-    from visloc.database import QuerySet, load_database
+    from visloc.database import load_database
     from visloc.evaluation import series_schedule, step_record
     from visloc.features import extract_sift, make_sift
     from visloc.localizer import Localizer, Query
@@ -180,9 +179,8 @@ def cmd_localize(a: argparse.Namespace) -> int:
         feats = extract_sift(gray, sift, sift=sift_engine, name=str(fr.image_path))
         sift_ms = (time.perf_counter() - t0) * 1000.0
         result = localizer.step(Query(feats.descriptors_u8, fr.timestamp_s, key=i))
-        one = QuerySet(seq.source, seq.camera, np.array([fr.frame]), np.array([fr.timestamp_s]), np.array([fr.lat_deg]),
-                       np.array([fr.lon_deg]), (feats.descriptors_u8,), np.array([sift_ms]))
-        records.append(step_record(k, result, 0, one, db, db.frame, sift_ms + result.compute_ms, keep_counts=True))
+        records.append(step_record(k, result, db, query_frame=fr.frame, truth_lat_deg=fr.lat_deg,
+                                   truth_lon_deg=fr.lon_deg, latency_ms=sift_ms + result.compute_ms, keep_counts=True))
     print(f"queries: {seq.source}/{seq.camera} frames {[seq.frames[i].frame for i in indices]}   "
           f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s\n")
     print(series_tables(records))

@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from visloc.database import GeoDatabase, QuerySet
-from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
+from visloc.geo import geodesic_distance_m, haversine_distance_m
 from visloc.localizer import Localizer, PairCountCache, Query, StepResult
 from visloc.errors import ParameterError
 from visloc.params import FilterParams, MatchParams, RetrievalParams
@@ -82,9 +82,10 @@ class StepRecord:
     candidate_frames: list[int] = field(default_factory=list, repr=False)
 
 
-def step_record(step: int, result: StepResult, q: int, queries: QuerySet, db: GeoDatabase, frame: LocalFrame,
-                latency_ms: float, keep_counts: bool = False) -> StepRecord:
-    truth = (float(queries.lat_deg[q]), float(queries.lon_deg[q]))
+def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: int, truth_lat_deg: float,
+                truth_lon_deg: float, latency_ms: float, keep_counts: bool = False) -> StepRecord:
+    """Everything about one localized query, in geotags and metres, against its ground truth."""
+    truth = (float(truth_lat_deg), float(truth_lon_deg))
     best = result.best_index
     m_lat = m_lon = e_lat = e_lon = sigma = None
     m_err = e_err = m_hav = e_hav = None
@@ -97,16 +98,16 @@ def step_record(step: int, result: StepResult, q: int, queries: QuerySet, db: Ge
     if candidates.size:
         floor = float(geodesic_distance_m(db.lat_deg[candidates], db.lon_deg[candidates], *truth).min())
     if np.all(np.isfinite(result.filter.x)):
-        lat, lon = frame.to_geo(result.filter.x[:2])
+        lat, lon = db.frame.to_geo(result.filter.x[:2])
         e_lat, e_lon = float(lat), float(lon)
         e_err = float(geodesic_distance_m(e_lat, e_lon, *truth))
         e_hav = float(haversine_distance_m(e_lat, e_lon, *truth))
         sigma = float(np.sqrt(np.linalg.eigvalsh(result.filter.position_cov_m2).max()))
     return StepRecord(
-        step=step, query_frame=int(queries.frames[q]), query_timestamp_s=float(queries.timestamps_s[q]),
+        step=step, query_frame=int(query_frame), query_timestamp_s=float(result.query_timestamp_s),
         truth_lat_deg=truth[0], truth_lon_deg=truth[1], n_candidates=int(result.retrieval.candidates.size),
         best_db_frame=None if best is None else int(db.images[best].frame), best_count=result.retrieval.best_count,
-        best_offset_s=None if best is None else float(db.timestamps_s[best] - queries.timestamps_s[q]),
+        best_offset_s=None if best is None else float(db.timestamps_s[best] - result.query_timestamp_s),
         measurement_lat_deg=m_lat, measurement_lon_deg=m_lon, estimate_lat_deg=e_lat, estimate_lon_deg=e_lon,
         estimate_sigma_m=sigma, measurement_error_m=m_err, estimate_error_m=e_err,
         measurement_error_haversine_m=m_hav, estimate_error_haversine_m=e_hav, latency_ms=latency_ms,
@@ -216,7 +217,9 @@ def evaluate(
             # compute_ms covers retrieval + filter, including any pair computed afresh in this step;
             # take that fresh work out and add the recorded cost of every candidate pair instead
             latency = sift_ms + match_ms + max(result.compute_ms - cache.fresh_ms, 0.0)
-            records.append(step_record(k, result, q, queries, db, db.frame, latency))
+            records.append(step_record(k, result, db, query_frame=int(queries.frames[q]),
+                                       truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
+                                       latency_ms=latency))
         series.append(records)
         if progress:
             progress(1)

@@ -175,7 +175,7 @@ def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
     if len(stamps) != len(images):
         raise InputError(f"{stamps_path}: {len(stamps)} timestamps for {len(images)} images; counts must match")
     frames = []
-    for i, (img, rec, t) in enumerate(zip(images, oxts, stamps)):
+    for i, (img, rec, t) in enumerate(zip(images, oxts, stamps, strict=True)):
         if img.stem != rec.stem:
             raise InputError(f"{rec}: OXTS record does not pair with image {img.name}")
         lat, lon, alt, heading = _read_oxts(rec)
