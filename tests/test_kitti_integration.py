@@ -90,3 +90,19 @@ def test_same_camera_without_exclusion_finds_the_query_image_itself(evaluation, 
     steps = json.loads((tmp / "self.json").read_text())["steps"]
     assert [s["best_db_frame"] for s in steps] == [s["query_frame"] for s in steps]
     assert all(s["measurement_error_m"] == 0.0 for s in steps)
+
+
+def test_readme_python_example_runs(evaluation, kitti_root, capsys):
+    from conftest import REPO
+
+    readme = (REPO / "README.md").read_text()
+    code = readme.split("## Python API", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    tmp, report, _ = evaluation
+    code = code.replace('"out/visloc.sqlite"', repr(str(tmp / "kitti.sqlite")))
+    code = code.replace('"../shared/data/kitti"', repr(str(kitti_root)))
+    exec(compile(code, "README.md", "exec"), {})
+    lines = capsys.readouterr().out.splitlines()
+    assert [line.split(":")[0] for line in lines] == ["frame 0", "frame 10", "frame 20"]
+    # the same best matches as the evaluation's series starting at frame 0
+    first = next(s for s in report["series"] if s[0]["query_frame"] == 0)
+    assert [f"best match {s['best_db_frame']}," in line for s, line in zip(first, lines)] == [True] * 3
