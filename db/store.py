@@ -128,7 +128,7 @@ class FeatureStore:
             conn = sqlite3.connect(label, timeout=30.0)
             conn.execute("SELECT name FROM sqlite_master LIMIT 1").fetchall()
         except sqlite3.DatabaseError as exc:
-            raise NotAStoreError(f"{label}: not a SQLite database ({exc})") from None
+            raise NotAStoreError(f"{label}: not a SQLite database, or a damaged one ({exc})") from None
         return conn
 
     def _open(self, db: sqlite_utils.Database, label: str, *, create: bool, on_disk: bool) -> None:

@@ -215,3 +215,13 @@ def test_broken_kitti_drive_through_the_cli(tmp_path, breakage, message):
     if breakage == "unequal":
         (drive / "oxts" / "data" / "0000000004.txt").unlink()
     one_line_error(run_cli("ingest", tmp_path / "kitti", "--db", tmp_path / "s.sqlite"), message)
+
+
+def test_damaged_store_file_is_a_one_line_error(synthetic, tmp_path):
+    _, _, query_csv, store = synthetic
+    damaged = tmp_path / "damaged.sqlite"
+    data = bytearray(store.read_bytes())
+    data[4096:] = b"\xff" * (len(data) - 4096)  # keep the header page, wreck the rest
+    damaged.write_bytes(bytes(data))
+    result = run_cli("localize", query_csv, "--db", damaged, "--db-camera", "camera", "--steps", "2")
+    one_line_error(result, "damaged.sqlite")

@@ -59,11 +59,11 @@ def test_cached_counts_give_identical_results(drives):
     keys = [im.image_id for im in db.images]
     cold = PairCountCache(db.descriptors_u8, match, db_keys=keys)
     first = evaluate(queries, db, match, RetrievalParams(), PAPER_FILTER, n_steps=3, cache=cold)
-    store.add_pair_counts(cold.new_entries(), match.tau1, match.tau2)
+    store.add_pair_counts(cold.take_new_entries(), match.tau1, match.tau2)
     warm = PairCountCache(db.descriptors_u8, match, db_keys=keys,
                           known=store.pair_counts(queries.image_ids, match.tau1, match.tau2))
     second = evaluate(queries, db, match, RetrievalParams(), PAPER_FILTER, n_steps=3, cache=warm)
-    assert warm.new_entries() == {}
+    assert warm.take_new_entries() == {}
     for a, b in zip(first.series, second.series):
         assert [r.best_db_frame for r in a] == [r.best_db_frame for r in b]
         assert [r.estimate_error_m for r in a] == [r.estimate_error_m for r in b]

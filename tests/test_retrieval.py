@@ -61,13 +61,14 @@ def test_pair_cache_computes_each_pair_once_and_seeds_from_known_counts():
     cache = PairCountCache(descriptors, MatchParams(0.8, 0.9), db_keys=[100, 101, 102, 103, 104])
     counts = cache(Query(descriptors[2], 0.0, key="q"))
     first = counts(np.arange(5))
-    assert first[2] == 40 and len(cache.new_entries()) == 5
+    entries = cache.take_new_entries()
+    assert first[2] == 40 and len(entries) == 5 and cache.take_new_entries() == {}
     again = cache(Query(descriptors[2], 0.0, key="q"))(np.arange(5))
     assert again.tolist() == first.tolist() and cache.fresh_ms == 0.0
     seeded = PairCountCache(descriptors, MatchParams(0.8, 0.9), db_keys=[100, 101, 102, 103, 104],
-                            known=cache.new_entries())
+                            known=entries)
     assert seeded(Query(descriptors[2], 0.0, key="q"))(np.arange(5)).tolist() == first.tolist()
-    assert seeded.new_entries() == {}
+    assert seeded.take_new_entries() == {}
     assert seeded.cost_ms("q", np.arange(5)) == pytest.approx(cache.cost_ms("q", np.arange(5)))
 
 

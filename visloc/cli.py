@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import sqlite3
 import sys
 import time
 from pathlib import Path
@@ -214,10 +215,13 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         # correspondence counts computed by earlier runs with the same tau1, tau2
         cache = PairCountCache(db.descriptors_u8, match, db_keys=[im.image_id for im in db.images],
                                known=store.pair_counts(queries.image_ids, match.tau1, match.tau2))
-        try:
-            result = _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq)
-        finally:  # keep what was computed, also when interrupted
-            store.add_pair_counts(cache.new_entries(), match.tau1, match.tau2)
+        def save_counts() -> None:
+            store.add_pair_counts(cache.take_new_entries(), match.tau1, match.tau2)
+
+        try:  # counts are saved after every series, so an interrupted run loses at most one
+            result = _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq, save_counts)
+        finally:
+            save_counts()
     finally:
         store.close()
     summary = result.summary()
@@ -235,7 +239,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     return 0
 
 
-def _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq):
+def _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq, after_series):
     from visloc.evaluation import evaluate, series_schedule
 
     starts = None
@@ -250,7 +254,7 @@ def _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq):
         raise InputError(f"{query_seq.source}/{query_seq.camera}: too short for {a.steps} queries {filt.dt_s} s apart")
     with _progress(len(starts) if starts is not None else n_series, "series") as bar:
         result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, sampling=a.sampling,
-                          start_indices=starts, cache=cache, progress=lambda n: bar.update(n))
+                          start_indices=starts, cache=cache, progress=lambda n: (bar.update(n), after_series()))
     if not result.series:
         raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at these frames")
     return result
@@ -342,6 +346,9 @@ def main(argv: list[str] | None = None) -> int:
         return args.func(args)
     except (VislocError, StoreError) as exc:
         print(f"visloc: error: {exc}", file=sys.stderr)
+        return 2
+    except sqlite3.Error as exc:  # locked, read-only or damaged store file
+        print(f"visloc: error: {getattr(args, 'db', 'database')}: SQLite: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("visloc: interrupted", file=sys.stderr)

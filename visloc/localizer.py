@@ -93,8 +93,8 @@ class PairCountCache:
     took the first time, so latency can still be reported as if computed afresh.
 
     ``db_keys`` names the database images (default: their indices); ``known`` seeds
-    the cache, e.g. with counts persisted by an earlier run; ``new_entries()`` returns
-    what was computed here, to persist.
+    the cache, e.g. with counts persisted by an earlier run; ``take_new_entries()``
+    hands over what was computed since it was last called, to persist.
     """
 
     def __init__(self, db_descriptors: Sequence[np.ndarray], match_params: MatchParams, *,
@@ -131,5 +131,6 @@ class PairCountCache:
         """Time the first computation of these pairs took, ms."""
         return float(sum(self._entries[(key, self.db_keys[int(i)])][1] for i in candidates))
 
-    def new_entries(self) -> dict[tuple[Hashable, Hashable], tuple[int, float]]:
-        return dict(self._new)
+    def take_new_entries(self) -> dict[tuple[Hashable, Hashable], tuple[int, float]]:
+        new, self._new = self._new, {}
+        return new
