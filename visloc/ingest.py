@@ -61,9 +61,10 @@ def stored_sift_params(store: FeatureStore) -> SiftParams | None:
 _worker_sift = None
 
 
-def _init_worker(params: SiftParams) -> None:
+def _init_worker(params: SiftParams, single_thread: bool = True) -> None:
     global _worker_sift
-    cv2.setNumThreads(1)  # parallelism comes from processes
+    if single_thread:
+        cv2.setNumThreads(1)  # in worker processes: parallelism comes from the processes
     _worker_sift = make_sift(params)
 
 
@@ -79,7 +80,7 @@ def _extract_frame(item: tuple[Frame, SiftParams]) -> tuple[Frame, np.ndarray, n
 def _extracted(todo: list[Frame], params: SiftParams, workers: int) -> Iterator[tuple]:
     items = [(f, params) for f in todo]
     if workers <= 1 or len(todo) <= 1:
-        _init_worker(params)
+        _init_worker(params, single_thread=False)  # in this process: leave OpenCV's threading alone
         yield from map(_extract_frame, items)
         return
     ctx = mp.get_context("spawn")  # fork after OpenCV has started threads can deadlock
