@@ -157,7 +157,7 @@ def test_series_that_does_not_fit_is_refused(synthetic):
     one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--start-frame", "8"),
                    "--start-frame 8: 6 queries 1.0 s apart do not fit")
     one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--start-frame", "99"),
-                   "--start-frame 99: the query sequence has frames 0..9")
+                   "--start-frame 99: querydrive/camera has frames 0..9")
 
 
 def test_ingest_of_a_broken_drive_keeps_what_was_stored(tmp_path):
@@ -198,8 +198,10 @@ def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):
         return [[{k: v for k, v in step.items() if k != "latency_ms"} for step in s] for s in series]
 
     assert without_latency(json.loads(out.read_text())["series"]) == without_latency(report["series"])
-    one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--start-frames", "x"),
+    one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "2", "--start-frames", "x"),
                    "--start-frames 'x'")
+    one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "2",
+                           "--start-frames", "20,21"), "no series of 2 queries starts there (allowed start frames: 0..13)")
     one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "9"),
                    "too short for 9 queries")
 

@@ -162,12 +162,13 @@ def cmd_localize(a: argparse.Namespace) -> int:
     with FeatureStore(a.db) as store:
         db = load_database(store, _choose_database(store, seq.source, a.db_source, a.db_camera), a.db_camera, sift)
     times = seq.timestamps_s
-    start = a.start_frame
-    if not 0 <= start < len(seq):
-        raise InputError(f"--start-frame {start}: the query sequence has frames 0..{len(seq) - 1}")
+    start = next((i for i, f in enumerate(seq.frames) if f.frame == a.start_frame), None)
+    if start is None:
+        frames = sorted(f.frame for f in seq.frames)
+        raise InputError(f"--start-frame {a.start_frame}: {seq.source}/{seq.camera} has frames {frames[0]}..{frames[-1]}")
     schedule = [s for s in series_schedule(times[start:], filt.dt_s, a.steps, a.sampling) if s[0] == 0]
     if not schedule:
-        raise InputError(f"--start-frame {start}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
+        raise InputError(f"--start-frame {a.start_frame}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
                          f"{times[-1] - times[start]:.1f} s left of {seq.source}/{seq.camera}")
     indices = [start + i for i in schedule[0]]
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match, retrieval, filt)
@@ -195,6 +196,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
     from visloc.database import load_database, load_query_set
+    from visloc.evaluation import evaluate, series_schedule
     from visloc.localizer import PairCountCache
     from visloc.report import save_error_plot, summary_text, write_json
 
@@ -206,20 +208,39 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
             raise InputError(f"{path}: folder does not exist")
     db_seq = _open_sequence(root, a.drive, a.db_camera)
     query_seq = _open_sequence(root, a.drive, a.query_camera)
+    # check the series before any slow work
+    schedule = series_schedule(query_seq.timestamps_s, filt.dt_s, a.steps, a.sampling)
+    if not schedule:
+        raise InputError(f"{query_seq.source}/{query_seq.camera}: too short for {a.steps} queries {filt.dt_s} s apart")
+    wanted = None
+    if a.start_frames:
+        try:
+            wanted = {int(v) for v in a.start_frames.split(",")}
+        except ValueError:
+            raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
+        allowed = {query_seq.frames[s[0]].frame for s in schedule}
+        if not wanted & allowed:
+            raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts there "
+                             f"(allowed start frames: {min(allowed)}..{max(allowed)})")
     store = FeatureStore(a.db, create=True)
     try:
         for seq in {(s.source, s.camera): s for s in (db_seq, query_seq)}.values():
             _ingest_sequence(store, seq, sift, a.workers)
         db = load_database(store, db_seq.source, db_seq.camera, sift)
         queries = load_query_set(store, query_seq.source, query_seq.camera, sift)
+        starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
         # correspondence counts computed by earlier runs with the same tau1, tau2
         cache = PairCountCache(db.descriptors_u8, match, db_keys=[im.image_id for im in db.images],
                                known=store.pair_counts(queries.image_ids, match.tau1, match.tau2))
+
         def save_counts() -> None:
             store.add_pair_counts(cache.take_new_entries(), match.tau1, match.tau2)
 
         try:  # counts are saved after every series, so an interrupted run loses at most one
-            result = _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq, save_counts)
+            with _progress(len(starts) if starts is not None else len(schedule), "series") as bar:
+                result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, sampling=a.sampling,
+                                  start_indices=starts, cache=cache,
+                                  progress=lambda n: (bar.update(n), save_counts()))
         finally:
             save_counts()
     finally:
@@ -237,27 +258,6 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         save_error_plot(summary, plot, title)
         print(f"wrote {plot}")
     return 0
-
-
-def _run_evaluation(a, queries, db, match, retrieval, filt, cache, query_seq, after_series):
-    from visloc.evaluation import evaluate, series_schedule
-
-    starts = None
-    if a.start_frames:
-        try:
-            wanted = {int(v) for v in a.start_frames.split(",")}
-        except ValueError:
-            raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
-        starts = [i for i, f in enumerate(queries.frames) if f in wanted]
-    n_series = len(series_schedule(queries.timestamps_s, filt.dt_s, a.steps, a.sampling))
-    if n_series == 0:
-        raise InputError(f"{query_seq.source}/{query_seq.camera}: too short for {a.steps} queries {filt.dt_s} s apart")
-    with _progress(len(starts) if starts is not None else n_series, "series") as bar:
-        result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, sampling=a.sampling,
-                          start_indices=starts, cache=cache, progress=lambda n: (bar.update(n), after_series()))
-    if not result.series:
-        raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at these frames")
-    return result
 
 
 def cmd_info(a: argparse.Namespace) -> int:
