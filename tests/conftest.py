@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -115,8 +114,3 @@ def run_cli(*args: str, timeout: float = 600, cwd: Path | None = None) -> subpro
     """Run the visloc command as a user would, in a fresh process."""
     return subprocess.run([sys.executable, "-m", "visloc", *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, cwd=cwd or REPO, env={**os.environ, "PYTHONUNBUFFERED": "1"})
-
-
-def copy_tree(src: Path, dst: Path) -> Path:
-    shutil.copytree(src, dst)
-    return dst
