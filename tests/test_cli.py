@@ -201,7 +201,8 @@ def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):
     one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "2", "--start-frames", "x"),
                    "--start-frames 'x'")
     one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "2",
-                           "--start-frames", "20,21"), "no series of 2 queries starts there (allowed start frames: 0..13)")
+                           "--start-frames", "3,20,21"),
+                   "no series of 2 queries starts at [20, 21] (allowed start frames: 0..13)")
     one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "9"),
                    "too short for 9 queries")
 

@@ -82,3 +82,12 @@ def test_reports_are_written(drives, tmp_path):
     assert loaded["series"][0][0]["query_frame"] == 2
     save_error_plot(summary, tmp_path / "r.png", "test")
     assert (tmp_path / "r.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_a_cache_for_other_thresholds_is_refused(drives):
+    from visloc.errors import ParameterError
+
+    _, _, db, queries = drives
+    cache = PairCountCache(db.descriptors_u8, MatchParams(tau1=0.7))
+    with pytest.raises(ParameterError, match="cache holds counts for"):
+        evaluate(queries, db, MatchParams(), RetrievalParams(), PAPER_FILTER, n_steps=3, cache=cache)

@@ -180,7 +180,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         feats = extract_sift(gray, sift, sift=sift_engine, name=str(fr.image_path))
         sift_ms = (time.perf_counter() - t0) * 1000.0
-        result = localizer.step(Query(feats.descriptors_u8, fr.timestamp_s, key=i))
+        result = localizer.step(Query(feats.descriptors_u8, fr.timestamp_s))
         records.append(step_record(k, result, db, query_frame=fr.frame, truth_lat_deg=fr.lat_deg,
                                    truth_lon_deg=fr.lon_deg, latency_ms=sift_ms + result.compute_ms, keep_counts=True))
     print(f"queries: {seq.source}/{seq.camera} frames {[seq.frames[i].frame for i in indices]}   "
@@ -219,9 +219,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         except ValueError:
             raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
         allowed = {query_seq.frames[s[0]].frame for s in schedule}
-        if not wanted & allowed:
-            raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts there "
-                             f"(allowed start frames: {min(allowed)}..{max(allowed)})")
+        if wanted - allowed:
+            raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at "
+                             f"{sorted(wanted - allowed)[:5]} (allowed start frames: {min(allowed)}..{max(allowed)})")
     store = FeatureStore(a.db, create=True)
     try:
         for seq in {(s.source, s.camera): s for s in (db_seq, query_seq)}.values():

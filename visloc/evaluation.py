@@ -23,6 +23,11 @@ from visloc.params import FilterParams, MatchParams, RetrievalParams
 SAMPLINGS = ("stride", "time")
 
 
+def step_labels(n_steps: int) -> list[str]:
+    """The paper's step names: t-5, ..., t-1, t for six steps."""
+    return [f"t-{n_steps - 1 - k}" if k < n_steps - 1 else "t" for k in range(n_steps)]
+
+
 def series_schedule(timestamps_s: np.ndarray, dt_s: float, n_steps: int, sampling: str = "stride") -> list[list[int]]:
     """Indices of the queries of every series that fits in the sequence, one list per start index.
 
@@ -38,12 +43,12 @@ def series_schedule(timestamps_s: np.ndarray, dt_s: float, n_steps: int, samplin
     if t.size < 2:
         return []
     frame_interval_s = float(np.median(np.diff(t)))
-    out = []
     if sampling == "stride":
         stride = max(1, int(round(dt_s / frame_interval_s)))
         span = stride * (n_steps - 1)
         return [list(range(start, start + span + 1, stride)) for start in range(t.size - span)]
     tolerance_s = 0.5 * frame_interval_s
+    out = []
     for start in range(t.size):
         targets = t[start] + dt_s * np.arange(n_steps)
         if targets[-1] > t[-1] + tolerance_s:
@@ -150,21 +155,22 @@ class Evaluation:
         def stats(values: np.ndarray, *names: str) -> dict:
             if values.size == 0:
                 return {n: None for n in names}
-            table = {"mean": np.mean, "median": np.median, "min": np.min, "max": np.max, "p50": lambda v: np.percentile(v, 50),
-                     "p90": lambda v: np.percentile(v, 90), "p95": lambda v: np.percentile(v, 95)}
+            table = {"mean": np.mean, "median": np.median, "min": np.min, "max": np.max,
+                     "p50": lambda v: np.percentile(v, 50), "p90": lambda v: np.percentile(v, 90),
+                     "p95": lambda v: np.percentile(v, 95)}
             return {n: float(table[n](values)) for n in names}
 
         return {
             "n_series": len(self.series),
             "n_steps": self.n_steps,
-            "steps": [f"t-{self.n_steps - 1 - k}" if k < self.n_steps - 1 else "t" for k in range(self.n_steps)],
+            "steps": step_labels(self.n_steps),
             "measurement_error_m": self._per_step("measurement_error_m"),
             "estimate_error_m": self._per_step("estimate_error_m"),
             "measurement_error_haversine_m": self._per_step("measurement_error_haversine_m"),
             "estimate_error_haversine_m": self._per_step("estimate_error_haversine_m"),
             # the best a retrieval could do: the candidate image nearest to the truth
             "nearest_candidate_error_m": self._per_step("nearest_candidate_error_m"),
-            "final_error_m": {**stats(finals, "mean", "median", "p90"), **stats(finals, "min", "max")},
+            "final_error_m": stats(finals, "mean", "median", "p90", "min", "max"),
             # series grouped by how many of their best matches lie ahead of the query in time
             "final_error_m_by_steps_ahead": self._final_by_steps_ahead(),
             "latency_ms": stats(latency, "p50", "p95"),
@@ -202,7 +208,10 @@ def evaluate(
     if start_indices is not None:
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
-    cache = cache or PairCountCache(db.descriptors_u8, match_params)
+    if cache is None:
+        cache = PairCountCache(db.descriptors_u8, match_params)
+    elif cache.match_params != match_params:
+        raise ParameterError(f"cache holds counts for {cache.match_params}, not {match_params}")
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
                           filter_params, counter=cache)
     series = []
@@ -225,6 +234,7 @@ def evaluate(
             progress(1)
     params = {
         "match": match_params.as_dict(), "retrieval": retrieval_params.as_dict(), "filter": filter_params.as_dict(),
-        "n_steps": n_steps, "sampling": sampling, "database": f"{db.source}/{db.camera}", "queries": f"{queries.source}/{queries.camera}",
+        "n_steps": n_steps, "sampling": sampling, "database": f"{db.source}/{db.camera}",
+        "queries": f"{queries.source}/{queries.camera}",
     }
     return Evaluation(series=series, params=params)

@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from visloc.evaluation import StepRecord
+from visloc.evaluation import StepRecord, step_labels
 
 PAPER_FINAL_ERROR_M = 1.85  # section 4, Figure 4
 PAPER_TABLE3_MEASUREMENT_ERROR_M = [18.99, 18.99, 17.57, 16.52, 17.57, 16.19]
@@ -15,10 +15,6 @@ PAPER_TABLE3_MEASUREMENT_ERROR_M = [18.99, 18.99, 17.57, 16.52, 17.57, 16.19]
 
 def _cell(value: float | None, fmt: str) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt)
-
-
-def step_labels(n: int) -> list[str]:
-    return [f"t-{n - 1 - k}" if k < n - 1 else "t" for k in range(n)]
 
 
 def series_tables(records: list[StepRecord]) -> str:
