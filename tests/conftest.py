@@ -44,6 +44,21 @@ def kitti_root() -> Path:
     return root
 
 
+@pytest.fixture(scope="session")
+def kitti_evaluation(kitti_root, tmp_path_factory):
+    """``visloc evaluate`` on three series (start frames 0, 25, 50) of the real drive, as a user
+    runs it: (folder holding kitti.sqlite and eval.json, the JSON report, stdout). The store then
+    holds both cameras' features and the counts of every query frame 0, 10, ..., 100."""
+    import json
+
+    tmp = tmp_path_factory.mktemp("kitti")
+    out = tmp / "eval.json"
+    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
+                     "--start-frames", "0,25,50", "--json", out, timeout=1800)
+    assert result.returncode == 0, result.stderr
+    return tmp, json.loads(out.read_text()), result.stdout
+
+
 def panorama(seed: int = 7, width_px: int = 2400, height_px: int = 240) -> np.ndarray:
     """A textured strip: blurred noise plus random shapes, rich in SIFT keypoints."""
     rng = np.random.default_rng(seed)

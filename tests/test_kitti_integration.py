@@ -15,14 +15,9 @@ from conftest import KITTI_DRIVE, run_cli
 pytestmark = [pytest.mark.kitti, pytest.mark.slow]
 
 
-@pytest.fixture(scope="module")
-def evaluation(kitti_root, tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("kitti")
-    out = tmp / "eval.json"
-    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
-                     "--start-frames", "0,25,50", "--json", out, timeout=1800)
-    assert result.returncode == 0, result.stderr
-    return tmp, json.loads(out.read_text()), result.stdout
+@pytest.fixture
+def evaluation(kitti_evaluation):
+    return kitti_evaluation
 
 
 def test_evaluation_writes_the_documented_keys(evaluation):

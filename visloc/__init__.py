@@ -8,9 +8,11 @@ Public API (the dashboard and scripts use only these names):
 """
 
 from visloc.database import GeoDatabase, QuerySet, load_database, load_query_set
+from visloc.drive import DriveMatches, MatchCancelled, drive_query_indices, drive_summary, match_drive, track_drive
 from visloc.errors import InputError, ParameterError, VislocError
 from visloc.evaluation import Evaluation, StepRecord, evaluate, series_schedule
 from visloc.features import Features, extract_sift, make_sift
+from visloc.figures import correspondence_figure
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
 from visloc.ingest import IngestReport, ingest
 from visloc.localizer import Localizer, PairCountCache, Query, StepResult
@@ -28,12 +30,14 @@ from visloc.params import (
 )
 from visloc.retrieval import Retrieval, candidate_mask, retrieve
 from visloc.sources import Frame, Sequence, load_gray, open_csv, open_kitti, open_source
-from visloc.tracking import ConstantVelocityKalman, FilterStep, run_filter
+from visloc.tracking import ConstantVelocityKalman, FilterStep, covariance_ellipse_m, run_filter
+from visloc.workspace import Dataset, Workspace
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "ConstantVelocityKalman", "Evaluation", "Features", "FilterParams", "FilterStep", "Frame", "GeoDatabase",
+    "ConstantVelocityKalman", "Dataset", "DriveMatches", "MatchCancelled", "Workspace", "correspondence_figure",
+    "covariance_ellipse_m", "drive_query_indices", "drive_summary", "match_drive", "track_drive", "Evaluation", "Features", "FilterParams", "FilterStep", "Frame", "GeoDatabase",
     "IngestReport", "InputError", "LocalFrame", "Localizer", "MatchParams", "NearestTwo", "PAPER_EVAL_RETRIEVAL",
     "PAPER_FILTER", "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PairCountCache", "ParameterError", "Query",
     "QuerySet", "Retrieval", "RetrievalParams", "Sequence", "SiftParams", "StepRecord", "StepResult", "VislocError",

@@ -260,6 +260,16 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_dashboard(a: argparse.Namespace) -> int:
+    if not 1 <= a.port <= 65535:
+        raise InputError(f"--port {a.port}: must be in 1..65535")
+    from dashboard import serve
+
+    serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera, query_camera=a.query_camera,
+          announce=lambda text: print(text, flush=True))
+    return 0
+
+
 def cmd_info(a: argparse.Namespace) -> int:
     from visloc.ingest import stored_sift_params
 
@@ -327,6 +337,17 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method(p, PAPER_EVAL_RETRIEVAL)
     _add_sift(p)
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("dashboard", help="browser dashboard: scrub through a drive, tune the method live",
+                       description="Serve the viser dashboard for a store built by 'visloc ingest' or 'visloc "
+                                   "evaluate'. Prints the URL actually served (viser moves to the next free port "
+                                   "when --port is taken). A missing or bad store is reported in the page.")
+    _add_db(p)
+    p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default %(default)s, this machine only)")
+    p.add_argument("--port", type=int, default=8080, help="port to try first (default %(default)s)")
+    p.add_argument("--db-camera", default="image_01", help="database camera to show first (default %(default)s)")
+    p.add_argument("--query-camera", default="image_00", help="query camera to show first (default %(default)s)")
+    p.set_defaults(func=cmd_dashboard)
 
     p = sub.add_parser("info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)

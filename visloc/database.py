@@ -82,7 +82,9 @@ class QuerySet:
     descriptors_u8: tuple[np.ndarray, ...]
     sift_ms: np.ndarray  # (N,) time SIFT took on each query image, ms (NaN if unknown)
     image_ids: tuple[int, ...] = ()  # store ids, keys of cached correspondence counts
-    paths: tuple[str, ...] = ()
+    paths: tuple[str, ...] = ()  # original image files (may be unreachable)
+    keypoints_f32: tuple[np.ndarray, ...] = ()  # (N, 6) per image: x_px, y_px, size, angle, response, octave
+    heading_deg: np.ndarray | None = None  # (N,) ground-truth compass heading, NaN if unknown
 
     def key(self, index: int) -> int:
         return self.image_ids[index] if self.image_ids else index
@@ -90,11 +92,13 @@ class QuerySet:
 
 def load_query_set(store: FeatureStore, source: str, camera: str, sift: SiftParams) -> QuerySet:
     """Stored images of (source, camera) as queries, with their geotags as ground truth."""
-    images, _, descriptors = load_images(store, source, camera, sift)
+    images, keypoints, descriptors = load_images(store, source, camera, sift)
     return QuerySet(
         source=source, camera=camera, frames=np.array([im.frame for im in images]),
         timestamps_s=np.array([im.timestamp_s for im in images]), lat_deg=np.array([im.lat_deg for im in images]),
         lon_deg=np.array([im.lon_deg for im in images]), descriptors_u8=descriptors,
         sift_ms=np.array([np.nan if im.sift_ms is None else im.sift_ms for im in images]),
         image_ids=tuple(im.image_id for im in images), paths=tuple(im.path for im in images),
+        keypoints_f32=keypoints,
+        heading_deg=np.array([np.nan if im.heading_deg is None else im.heading_deg for im in images]),
     )

@@ -83,6 +83,7 @@ class StepRecord:
     estimate_error_haversine_m: float | None
     latency_ms: float
     nearest_candidate_error_m: float | None = None  # floor: the candidate geotag closest to the truth
+    estimate_cov_m2: list[list[float]] | None = None  # 2x2 east/north position covariance of the estimate
     counts: list[int] = field(default_factory=list, repr=False)
     candidate_frames: list[int] = field(default_factory=list, repr=False)
 
@@ -93,7 +94,7 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
     truth = (float(truth_lat_deg), float(truth_lon_deg))
     best = result.best_index
     m_lat = m_lon = e_lat = e_lon = sigma = None
-    m_err = e_err = m_hav = e_hav = None
+    m_err = e_err = m_hav = e_hav = cov = None
     if best is not None:
         m_lat, m_lon = float(db.lat_deg[best]), float(db.lon_deg[best])
         m_err = float(geodesic_distance_m(m_lat, m_lon, *truth))
@@ -108,6 +109,7 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         e_err = float(geodesic_distance_m(e_lat, e_lon, *truth))
         e_hav = float(haversine_distance_m(e_lat, e_lon, *truth))
         sigma = float(np.sqrt(np.linalg.eigvalsh(result.filter.position_cov_m2).max()))
+        cov = result.filter.position_cov_m2.tolist()
     return StepRecord(
         step=step, query_frame=int(query_frame), query_timestamp_s=float(result.query_timestamp_s),
         truth_lat_deg=truth[0], truth_lon_deg=truth[1], n_candidates=int(result.retrieval.candidates.size),
@@ -116,7 +118,7 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         measurement_lat_deg=m_lat, measurement_lon_deg=m_lon, estimate_lat_deg=e_lat, estimate_lon_deg=e_lon,
         estimate_sigma_m=sigma, measurement_error_m=m_err, estimate_error_m=e_err,
         measurement_error_haversine_m=m_hav, estimate_error_haversine_m=e_hav, latency_ms=latency_ms,
-        nearest_candidate_error_m=floor,
+        nearest_candidate_error_m=floor, estimate_cov_m2=cov,
         counts=[int(c) for c in result.retrieval.counts] if keep_counts else [],
         candidate_frames=[int(db.images[i].frame) for i in result.retrieval.candidates] if keep_counts else [],
     )

@@ -138,3 +138,20 @@ def run_filter(measurements_m: list[np.ndarray | None], params: FilterParams) ->
     """Filter a whole sequence of measurements (east_m, north_m) or None."""
     kf = ConstantVelocityKalman(params)
     return [kf.step(z) for z in measurements_m]
+
+
+def covariance_ellipse_m(center_m: np.ndarray, cov_m2: np.ndarray, n_sigma: float = 2.0,
+                         n_points: int = 48) -> np.ndarray:
+    """(n_points, 2) points on the n_sigma ellipse of a 2x2 position covariance around center_m.
+
+    The ellipse is {c + n_sigma * L u : |u| = 1} with L L^T = cov (eigen decomposition),
+    so a 2-sigma ellipse holds about 86% of a 2-D Gaussian's mass.
+    """
+    cov = np.asarray(cov_m2, float)
+    if cov.shape != (2, 2) or not np.all(np.isfinite(cov)):
+        raise ValueError(f"covariance must be a finite 2x2 matrix, got {cov.shape}")
+    eigval, eigvec = np.linalg.eigh(0.5 * (cov + cov.T))
+    radii_m = n_sigma * np.sqrt(np.clip(eigval, 0.0, None))
+    angle = np.linspace(0.0, 2.0 * np.pi, n_points, endpoint=False)
+    unit = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    return np.asarray(center_m, float)[None, :2] + (unit * radii_m) @ eigvec.T

@@ -1,0 +1,328 @@
+"""The dashboard as a person uses it: ``visloc dashboard`` in a subprocess, driven in headless
+Chromium (Debian's, through playwright's ``executable_path``) on the real KITTI drive.
+
+Screenshots go to ``out/screenshots/`` in the checkout, to be looked at.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO, run_cli
+
+pytestmark = [pytest.mark.browser, pytest.mark.kitti, pytest.mark.slow]
+
+CHROMIUM = Path("/usr/bin/chromium")
+SCREENSHOTS = REPO / "out" / "screenshots"
+URL_LINE = re.compile(r"visloc dashboard: (http://\S+)")
+
+
+class DashboardProcess:
+    """``visloc dashboard`` started as a user starts it; ``url`` is the URL it printed."""
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "visloc", "dashboard", *args], cwd=REPO,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.output: list[str] = []
+        found = threading.Event()
+        self.url = None
+
+        def read() -> None:
+            for line in self.proc.stdout:
+                self.output.append(line)
+                m = URL_LINE.search(line)
+                if m and self.url is None:
+                    self.url = m.group(1)
+                    found.set()
+
+        threading.Thread(target=read, daemon=True).start()
+        if not found.wait(60):
+            self.stop()
+            raise AssertionError("dashboard printed no URL:\n" + "".join(self.output))
+
+    @property
+    def port(self) -> int:
+        return int(self.url.rsplit(":", 1)[1])
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self) -> None:
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+@pytest.fixture(scope="session")
+def browser():
+    if not CHROMIUM.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"{CHROMIUM} missing: scripts/test.sh installs it (scripts/install_chromium.sh)")
+        pytest.skip(f"{CHROMIUM} not installed (bash scripts/install_chromium.sh)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True,
+                              args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                                    "--disable-background-networking", "--disable-component-update",
+                                    "--no-first-run"])
+        yield b
+        b.close()
+
+
+@pytest.fixture(scope="module")
+def dashboard(kitti_evaluation):
+    """The dashboard on the store the KITTI evaluation built (features + cached counts)."""
+    tmp, _, _ = kitti_evaluation
+    proc = DashboardProcess("--db", str(tmp / "kitti.sqlite"), "--port", "8340")
+    yield proc
+    proc.stop()
+
+
+def status_text(page) -> str:
+    return page.locator("text=/^(⚠|Ready|Matching|Loading|Starting)/").first.inner_text()
+
+
+def row(page, name: str) -> str:
+    """The value in the step table's row ``name``."""
+    return page.locator("tr", has=page.get_by_text(name, exact=True)).first.locator("td").nth(1).inner_text()
+
+
+def control(page, label: str):
+    return page.get_by_text(label, exact=True).locator("xpath=../../..")
+
+
+def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.25):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll_s)
+    raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+
+
+def run_number(page) -> int:
+    m = re.search(r"Ready \(run (\d+)\)", status_text(page))
+    return int(m.group(1)) if m else 0
+
+
+def open_page(browser, url: str):
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.goto(url)
+    page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for(timeout=30000)
+    wait_for(lambda: run_number(page) > 0, 240, "the first run to be ready")
+    page.get_by_text("Step", exact=True).first.wait_for()
+    return page
+
+
+def dismiss_webgl_notice(page) -> None:
+    # Software rendering (swiftshader) makes viser show a notice that would cover the scene
+    notice = page.get_by_text("Software WebGL rendering detected")
+    if notice.count():
+        notice.first.locator("xpath=../..").locator("button").first.click()
+        time.sleep(0.3)
+
+
+def screenshot(page, name: str) -> Path:
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    path = SCREENSHOTS / name
+    page.screenshot(path=str(path))
+    return path
+
+
+def reset(page) -> None:
+    before = run_number(page)
+    page.get_by_role("button", name="Paper's parameters").click()
+    wait_for(lambda: run_number(page) > before, 120, "the reset run")
+
+
+def go_to_step(page, step: int) -> None:
+    """Type a step into the slider's number box, as a user may."""
+    box = control(page, "Step").locator("input:not([type=hidden])")
+    box.fill(str(step))
+    box.press("Enter")
+    page.get_by_text(re.compile(rf"^Step {step + 1} of \d+$")).wait_for(timeout=10000)
+
+
+def test_page_loads_with_its_controls_and_panels(dashboard, browser):
+    page = open_page(browser, dashboard.url)
+    try:
+        dismiss_webgl_notice(page)
+        for label in ("Step", "Play", "Speed", "τ1 (Lowe ratio)", "τ2 (cosine)", "R: meas. σ (m)",
+                      "Q: accel. σ (m/s²)", "P0: initial σ", "Query rate (Hz)", "Start time (s)", "Exclusion (s)"):
+            assert page.get_by_text(label, exact=True).count() >= 1, label
+        assert page.get_by_text("Step 1 of 11", exact=True).is_visible()  # 1 Hz over the 11 s drive
+        assert "image_00 frame 0" in row(page, "query")
+        assert re.match(r"image_01 frame \d+ \([+-]\d\.\d\d s\), \d+ correspondences", row(page, "best match"))
+        assert row(page, "measurement error").endswith(" m")
+        assert "Ready (run 1)" in status_text(page)
+        time.sleep(2)  # let the scene's images arrive
+        assert screenshot(page, "dashboard_loaded.png").stat().st_size > 50_000
+        assert dashboard.alive()
+    finally:
+        page.close()
+
+
+def test_scrubbing_moves_the_highlighted_step(dashboard, browser):
+    page = open_page(browser, dashboard.url)
+    try:
+        dismiss_webgl_notice(page)
+        go_to_step(page, 0)
+        time.sleep(1.5)
+        canvas = page.locator("canvas").first
+        before = canvas.screenshot()
+        thumb = control(page, "Step").locator("[role=slider]")
+        thumb.focus()
+        for _ in range(3):
+            thumb.press("ArrowRight")
+        page.get_by_text("Step 4 of 11", exact=True).wait_for(timeout=10000)
+        assert "frame 30" in row(page, "query")
+        page.get_by_role("button", name="Next ▶").click()
+        page.get_by_text("Step 5 of 11", exact=True).wait_for(timeout=10000)
+        assert "frame 40" in row(page, "query")
+        time.sleep(1.5)
+        after = canvas.screenshot()
+        screenshot(page, "dashboard_step5.png")
+        # the highlight, the frustums and their images moved: the 3D view changed
+        import cv2
+
+        a = cv2.imdecode(np.frombuffer(before, np.uint8), cv2.IMREAD_GRAYSCALE).astype(int)
+        b = cv2.imdecode(np.frombuffer(after, np.uint8), cv2.IMREAD_GRAYSCALE).astype(int)
+        assert a.shape == b.shape
+        assert np.mean(np.abs(a - b) > 30) > 0.002, "the 3D view did not change when the step moved"
+    finally:
+        page.close()
+
+
+def test_changing_R_refilters_without_rematching(dashboard, browser):
+    page = open_page(browser, dashboard.url)
+    try:
+        reset(page)
+        go_to_step(page, 5)
+        status, measurement, estimate = status_text(page), row(page, "measurement error"), row(page, "estimate error")
+        box = control(page, "R: meas. σ (m)").locator("input:not([type=hidden])")
+        box.fill("2")
+        box.press("Enter")
+        wait_for(lambda: row(page, "estimate error") != estimate, 10, "the estimate to change with R")
+        # the measurement (the best match) is the same and no matching run started
+        assert row(page, "measurement error") == measurement
+        assert status_text(page) == status
+        screenshot(page, "dashboard_R_2m.png")
+    finally:
+        reset(page)
+        page.close()
+
+
+def test_moving_tau1_rematches_in_the_background(dashboard, browser):
+    page = open_page(browser, dashboard.url)
+    try:
+        go_to_step(page, 2)
+        runs = run_number(page)
+        best_before = row(page, "best match")
+        count_before = int(re.search(r"(\d+) correspondences", best_before).group(1))
+        thumb = control(page, "τ1 (Lowe ratio)").locator("[role=slider]")
+        thumb.focus()
+        for _ in range(10):  # 0.80 -> 0.90, one run per key press, each superseding the one before
+            thumb.press("ArrowRight")
+            time.sleep(0.2)
+        assert control(page, "τ1 (Lowe ratio)").locator("input:not([type=hidden])").input_value() == "0.9"
+        wait_for(lambda: "Matching" in status_text(page), 15, "matching to start")
+        # the page stays responsive while the worker matches
+        page.get_by_role("button", name="Next ▶").click()
+        page.get_by_text("Step 4 of 11", exact=True).wait_for(timeout=10000)
+        screenshot(page, "dashboard_matching.png")
+        wait_for(lambda: run_number(page) > runs, 600, "the run with τ1 = 0.9")
+        assert run_number(page) == runs + 1, "superseded runs must not complete"
+        assert "τ1 0.9, τ2 0.97)" in status_text(page)
+        go_to_step(page, 2)
+        count_after = int(re.search(r"(\d+) correspondences", row(page, "best match")).group(1))
+        assert count_after != count_before
+        assert count_after >= count_before  # a looser ratio test admits a superset of pairs for the same image
+        screenshot(page, "dashboard_tau1_090.png")
+    finally:
+        reset(page)
+        page.close()
+
+
+def test_two_tabs_see_the_same_session(dashboard, browser):
+    a, b = open_page(browser, dashboard.url), open_page(browser, dashboard.url)
+    try:
+        go_to_step(a, 6)
+        b.get_by_text("Step 7 of 11", exact=True).wait_for(timeout=10000)
+        assert row(b, "query") == row(a, "query")
+    finally:
+        a.close()
+        b.close()
+
+
+def test_a_bad_store_is_reported_in_the_page_and_the_server_lives_on(dashboard, browser, tmp_path):
+    page = open_page(browser, dashboard.url)
+    try:
+        go_to_step(page, 1)
+        query = row(page, "query")
+        page.get_by_text("Data", exact=True).click()
+        missing = tmp_path / "missing.sqlite"
+        box = control(page, "Other store").locator("input, textarea").first
+        box.fill(str(missing))
+        page.get_by_role("button", name="Open", exact=True).click()
+        message = wait_for(lambda: "⚠" in status_text(page) and status_text(page), 10, "an error message")
+        assert str(missing) in message and "does not exist" in message
+        not_a_store = tmp_path / "notes.sqlite"
+        not_a_store.write_text("not a database")
+        box.fill(str(not_a_store))
+        page.get_by_role("button", name="Open", exact=True).click()
+        wait_for(lambda: "not a SQLite database" in status_text(page), 10, "the second error message")
+        assert not_a_store.read_text() == "not a database"  # nothing written to the bad file
+        screenshot(page, "dashboard_bad_store.png")
+        # the data already shown stays, and the server still answers
+        assert row(page, "query") == query
+        assert dashboard.alive()
+    finally:
+        page.close()
+
+
+def test_a_missing_store_at_start_shows_a_message(browser, tmp_path):
+    proc = DashboardProcess("--db", str(tmp_path / "nothing_here.sqlite"), "--port", "8360")
+    try:
+        page = browser.new_page(viewport={"width": 1400, "height": 900})
+        page.goto(proc.url)
+        page.get_by_text(re.compile("nothing_here.sqlite: database file does not exist")).wait_for(timeout=30000)
+        screenshot(page, "dashboard_missing_store.png")
+        page.close()
+        assert proc.alive()
+    finally:
+        proc.stop()
+
+
+def test_a_taken_port_moves_and_the_printed_url_says_where(dashboard):
+    second = DashboardProcess("--db", "unused.sqlite", "--port", str(dashboard.port))
+    try:
+        assert second.port != dashboard.port
+        import urllib.request
+
+        with urllib.request.urlopen(second.url, timeout=10) as response:
+            assert response.status == 200
+    finally:
+        second.stop()
+
+
+def test_bad_port_is_a_one_line_error():
+    result = run_cli("dashboard", "--port", "70000")
+    assert result.returncode == 2
+    assert result.stderr.strip() == "visloc: error: --port 70000: must be in 1..65535"
