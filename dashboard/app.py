@@ -121,6 +121,8 @@ class Dashboard:
             self.gui_play = gui.add_checkbox("Play", False, hint="Step through the drive")
             self.gui_speed = gui.add_dropdown("Speed", SPEEDS, initial_value="1x",
                                               hint="1x: one step per query interval, as the car drove")
+            self.gui_follow = gui.add_checkbox("Camera follows", False,
+                                               hint="Keep the 3D view centred on the current step")
         with gui.add_folder("Matching (re-matches in the background)"):
             p = visloc.PAPER_MATCH
             self.gui_tau1 = gui.add_slider("τ1 (Lowe ratio)", min=0.5, max=1.0, step=0.01, initial_value=p.tau1,
@@ -206,7 +208,8 @@ class Dashboard:
     def _status_html(text: str, *, error: bool = False) -> str:
         color = "#b00020" if error else "#333"
         weight = "600" if error else "400"
-        return f'<div style="font-size:13px;color:{color};font-weight:{weight};padding:2px 0">{html.escape(text)}</div>'
+        return (f'<div style="font-size:13px;color:{color};font-weight:{weight};padding:2px 0;overflow-wrap:anywhere">'
+                f'{html.escape(text)}</div>')
 
     def _show_status(self, text: str) -> None:
         self.gui_status.content = self._status_html(text)
@@ -397,10 +400,16 @@ class Dashboard:
         s.add_point_cloud("/database/geotags", np.c_[db.east_north_m, np.full(len(db), scene.TRACK_HEIGHT_M)],
                           colors=scene.DATABASE_RGB, point_size=0.6, point_shape="circle")
         s.add_line_segments("/truth/track", scene.polyline_segments(truth_xy), colors=scene.TRUTH_RGB, thickness=0.25)
+        # look from behind the start and to one side, from above: the whole track in view, and the
+        # camera frustums (which face along the track) seen from behind so their images show
         cam = self.server.initial_camera
         span = max(float(max(hi - lo)), 20.0)
+        along = truth_xy[-1] - truth_xy[0]
+        along = along / np.linalg.norm(along) if np.linalg.norm(along) > 0 else np.array([0.0, 1.0])
+        across = np.array([along[1], -along[0]])  # to the right of the direction of travel
+        eye = center + span * (-0.75 * along + 0.55 * across)
         cam.look_at = (float(center[0]), float(center[1]), 0.0)
-        cam.position = (float(center[0]) - 0.25 * span, float(center[1]) - 0.6 * span, 0.5 * span)
+        cam.position = (float(eye[0]), float(eye[1]), 0.75 * span)
         cam.up = (0.0, 0.0, 1.0)
         for client in self.server.get_clients().values():
             client.camera.look_at = cam.look_at
@@ -493,10 +502,21 @@ class Dashboard:
                     s.add_icosphere("/current/estimate", radius=0.9, color=scene.ESTIMATE_RGB,
                                     position=(float(est[0]), float(est[1]), z + 0.04))
                 self._draw_cameras(k, rec, q_index, retrieval, truth, meas)
+            if self.gui_follow.value:
+                self._follow(truth)
             self.gui_figure.image = self._figure(k, q_index, retrieval)
             self.gui_numbers.content = self._numbers(rec, q_index)
             self._plot_counts(retrieval, rec)
             self._plot_errors(k)
+
+    def _follow(self, target_xy: np.ndarray) -> None:
+        """Move every tab's view so it looks at the current step, keeping its viewing angle."""
+        target = np.array([float(target_xy[0]), float(target_xy[1]), 0.0])
+        for client in self.server.get_clients().values():
+            offset = np.asarray(client.camera.position) - np.asarray(client.camera.look_at)
+            with client.atomic():
+                client.camera.look_at = target
+                client.camera.position = target + offset
 
     def _draw_cameras(self, k, rec, q_index, retrieval, truth, meas) -> None:
         db, queries = self.db, self.queries

@@ -118,7 +118,7 @@ def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.25):
 
 
 def run_number(page) -> int:
-    m = re.search(r"Ready \(run (\d+)\)", status_text(page))
+    m = re.search(r"Ready \(run (\d+),", status_text(page))
     return int(m.group(1)) if m else 0
 
 
@@ -171,7 +171,7 @@ def test_page_loads_with_its_controls_and_panels(dashboard, browser):
         assert "image_00 frame 0" in row(page, "query")
         assert re.match(r"image_01 frame \d+ \([+-]\d\.\d\d s\), \d+ correspondences", row(page, "best match"))
         assert row(page, "measurement error").endswith(" m")
-        assert "Ready (run 1)" in status_text(page)
+        assert status_text(page).startswith("Ready (run 1, τ1 0.8, τ2 0.97): 11 queries of image_00")
         time.sleep(2)  # let the scene's images arrive
         assert screenshot(page, "dashboard_loaded.png").stat().st_size > 50_000
         assert dashboard.alive()

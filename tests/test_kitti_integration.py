@@ -101,3 +101,18 @@ def test_readme_python_example_runs(evaluation, kitti_root, capsys):
     # the same best matches as the evaluation's series starting at frame 0
     first = next(s for s in report["series"] if s[0]["query_frame"] == 0)
     assert [f"best match {s['best_db_frame']}," in line for s, line in zip(first, lines)] == [True] * 3
+
+
+def test_readme_drive_example_runs(evaluation, capsys):
+    from conftest import REPO
+
+    readme = (REPO / "README.md").read_text()
+    code = readme.split("## Dashboard", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    tmp, report, _ = evaluation
+    code = code.replace('"out/visloc.sqlite"', repr(str(tmp / "kitti.sqlite")))
+    exec(compile(code, "README.md", "exec"), {})
+    errors = eval(capsys.readouterr().out.strip().splitlines()[-1])
+    assert len(errors) == 11  # frames 0, 10, ..., 100 of the 108-frame drive
+    # the drive run's first six steps are the evaluation's series starting at frame 0
+    first = next(s for s in report["series"] if s[0]["query_frame"] == 0)
+    assert errors[:6] == [round(step["estimate_error_m"], 2) for step in first]
