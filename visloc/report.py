@@ -90,6 +90,8 @@ def summary_text(summary: dict) -> str:
             f"{'mean measurement 1-sigma (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["measurement_sigma_m"]),
             f"geometry NEES mean {_cell(nees.get('mean'), '.2f')} (2 if honest), within 95 %: "
             f"{_cell(nees.get('fraction_within_95'), '.0%')}",
+            "of the latency, the measurement (ms): p50 {p50}  p95 {p95}".format(
+                **{k: _cell(v, ".0f") for k, v in summary["measurement_latency_ms"].items()}),
         ]
         if summary["fallback_reasons"]:
             lines.append("fallback reasons: " + "; ".join(f"{k}: {v}" for k, v in summary["fallback_reasons"].items()))
