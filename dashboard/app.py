@@ -83,6 +83,7 @@ class Dashboard:
         self.db: visloc.GeoDatabase | None = None
         self.queries: visloc.QuerySet | None = None
         self.caches: dict[tuple[float, float], visloc.PairCountCache] = {}
+        self.structures = visloc.StructureCache()  # refined mode: database-side 3D structure, per database
         self.matches: visloc.DriveMatches | None = None
         self.records: list[visloc.StepRecord] = []
         self._figure_cache: dict[tuple, np.ndarray] = {}
@@ -103,7 +104,7 @@ class Dashboard:
         gui.set_panel_label("visloc")
         legend = "".join(f"<div>{item}</div>" for item in [
             scene.swatch_html(scene.TRUTH_RGB, "ground truth"),
-            scene.swatch_html(scene.MEASUREMENT_RGB, "measurement (geotag)"),
+            scene.swatch_html(scene.MEASUREMENT_RGB, "measurement"),
             scene.swatch_html(scene.ESTIMATE_RGB, "Kalman estimate"),
             scene.swatch_html(scene.ELLIPSE_RGB, "2σ ellipse"),
             scene.swatch_html(scene.DATABASE_RGB, "database images"),
@@ -124,6 +125,9 @@ class Dashboard:
             self.gui_follow = gui.add_checkbox("Camera follows", False,
                                                hint="Keep the 3D view centred on the current step")
         with gui.add_folder("Matching (re-matches in the background)"):
+            self.gui_mode = gui.add_dropdown("Mode", visloc.MODES, initial_value="paper",
+                                             hint="paper: the best match's geotag; refined: a metric pose from the "
+                                                  "database's geometry (PnP), geotag as fallback")
             p = visloc.PAPER_MATCH
             self.gui_tau1 = gui.add_slider("τ1 (Lowe ratio)", min=0.5, max=1.0, step=0.01, initial_value=p.tau1,
                                            hint="Equation (1): d1²/d2² < τ1²")
@@ -133,13 +137,18 @@ class Dashboard:
             f = visloc.PAPER_FILTER
             self.gui_r = gui.add_slider("R: meas. σ (m)", min=0.1, max=40.0, step=0.01,
                                         initial_value=round(float(np.sqrt(f.meas_var_m2)), 2),
-                                        hint="R = σ² I; the paper's 0.0001° is 11.12 m")
+                                        hint="R = σ² I for geotag measurements (the paper's 0.0001° is 11.12 m); "
+                                             "refined poses bring their own R")
             self.gui_q = gui.add_slider("Q: accel. σ (m/s²)", min=0.0, max=5.0, step=0.05,
                                         initial_value=round(float(np.sqrt(f.accel_var_m2_s4)), 2),
                                         hint="White-acceleration process noise")
             self.gui_p0 = gui.add_slider("P0: initial σ", min=1.0, max=100.0, step=0.1,
                                          initial_value=round(float(np.sqrt(f.init_var)), 1),
                                          hint="P0 = σ² I (m, m/s); the paper's 1000·I is σ = 31.6")
+            self.gui_gate = gui.add_slider("Gate χ² (refined)", min=0.0, max=50.0, step=0.01,
+                                           initial_value=visloc.REFINED.gate_chi2,
+                                           hint="Refined mode: skip a measurement whose squared Mahalanobis distance "
+                                                "to the prediction exceeds this (13.82 = 99.9 %); 0 = off")
         with gui.add_folder("Queries"):
             self.gui_rate = gui.add_dropdown("Query rate (Hz)", RATES_HZ, initial_value="1",
                                              hint="One query every 1/rate s; also the filter's Δt")
@@ -190,9 +199,10 @@ class Dashboard:
 
         self.gui_step.on_update(lambda _: self._render_step())
         self.gui_prev_next.on_click(self._on_prev_next)
-        for h in (self.gui_tau1, self.gui_tau2, self.gui_rate, self.gui_start, self.gui_exclusion, self.gui_window):
+        for h in (self.gui_mode, self.gui_tau1, self.gui_tau2, self.gui_rate, self.gui_start, self.gui_exclusion,
+                  self.gui_window):
             h.on_update(lambda _: self._schedule_match())
-        for h in (self.gui_r, self.gui_q, self.gui_p0):
+        for h in (self.gui_r, self.gui_q, self.gui_p0, self.gui_gate):
             h.on_update(lambda _: self._retrack())
         self.gui_reset.on_click(lambda _: self._reset_to_paper())
         self.gui_store.on_update(lambda _: self._open_store(Path(self.gui_store.value)))
@@ -291,6 +301,7 @@ class Dashboard:
                 return
             with self._lock:
                 self.db, self.queries, self.caches = db, queries, {}
+                self.structures = visloc.StructureCache()
                 self.matches, self.records = None, []
                 self._figure_cache.clear()
                 duration_s = float(queries.timestamps_s[-1] - queries.timestamps_s[0])
@@ -327,7 +338,8 @@ class Dashboard:
         if key not in self.caches:
             self.caches[key] = workspace.pair_cache(db, queries, tuning.match)
         cache = self.caches[key]
-        label = f"Matching {len(indices)} queries (τ1 {tuning.match.tau1:g}, τ2 {tuning.match.tau2:g})"
+        mode = self.gui_mode.value
+        label = f"Matching {len(indices)} queries ({mode}, τ1 {tuning.match.tau1:g}, τ2 {tuning.match.tau2:g})"
         self._show_status(label + "…")
         self.gui_progress.value = 0.0
         self.gui_progress.visible = True
@@ -340,7 +352,8 @@ class Dashboard:
         started = time.perf_counter()
         try:
             matches = visloc.match_drive(queries, db, tuning.match, tuning.retrieval, indices, cache=cache,
-                                         progress=progress, cancelled=cancelled)
+                                         progress=progress, cancelled=cancelled, mode=mode,
+                                         structure_cache=self.structures)
         except visloc.MatchCancelled:
             return
         finally:
@@ -355,7 +368,8 @@ class Dashboard:
             self._retrack()
             self.gui_progress.visible = False
             self._run_number += 1
-            self._show_status(f"Ready (run {self._run_number}, τ1 {tuning.match.tau1:g}, τ2 {tuning.match.tau2:g}): "
+            self._show_status(f"Ready (run {self._run_number}, {mode}, τ1 {tuning.match.tau1:g}, "
+                              f"τ2 {tuning.match.tau2:g}): "
                               f"{len(matches)} queries of {queries.camera} against {len(db)} images of {db.camera}; "
                               f"{work}")
 
@@ -372,7 +386,8 @@ class Dashboard:
                 self._show_error(str(exc))
                 return
             # the query interval is part of the match; the filter's dt follows it
-            self.records = visloc.track_drive(self.matches, self.queries, self.db, filter_params)
+            gate = float(self.gui_gate.value) if self.matches.mode == "refined" else 0.0
+            self.records = visloc.track_drive(self.matches, self.queries, self.db, filter_params, gate_chi2=gate)
             n = len(self.records)
             self._quiet = True
             try:
@@ -441,6 +456,12 @@ class Dashboard:
             if ellipses:
                 s.add_line_segments("/estimate/ellipses", np.concatenate(ellipses), colors=scene.ELLIPSE_RGB,
                                     thickness=0.08)
+            # refined measurements bring their own covariance: their 2-sigma ellipses (centimetres)
+            own = [scene.closed_loop_segments(visloc.covariance_ellipse_m(mxy, np.array(r.measurement_cov_m2)),
+                                              z + 0.05)
+                   for r, mxy in zip(recs, meas) if r.measurement_source == "geometry" and r.measurement_cov_m2]
+            s.add_line_segments("/measurement/ellipses", np.concatenate(own) if own else np.zeros((0, 2, 3)),
+                                colors=scene.MEASUREMENT_RGB, thickness=0.03)
         t0 = float(self.queries.timestamps_s[0])
         times = np.array([r.query_timestamp_s - t0 for r in recs])
         self._error_series = (
@@ -451,8 +472,11 @@ class Dashboard:
         )
         summary = visloc.drive_summary(recs)
         m = self.matches
+        refined = (f"geometry on {100 * summary['geometry_fraction']:.0f}% of steps, "
+                   f"{summary['gated_steps']} gated; " if m.mode == "refined" else "")
         self.gui_run_summary.content = (
-            f"**This run** ({summary['n_steps']} queries, {m.retrieval_params.exclusion_s:g} s exclusion): "
+            f"**This run** ({m.mode} mode, {summary['n_steps']} queries, {m.retrieval_params.exclusion_s:g} s "
+            f"exclusion): {refined}"
             f"mean measurement error {_fmt(summary['mean_measurement_error_m'])}, "
             f"mean estimate error {_fmt(summary['mean_estimate_error_m'])}, "
             f"final estimate error {_fmt(summary['final_estimate_error_m'])}; "
@@ -534,9 +558,10 @@ class Dashboard:
         im = db.images[best]
         d_img = self._frustum_image(im.path)
         d_heading = im.heading_deg if im.heading_deg is not None else heading
+        at = db.east_north_m[best]  # the database camera sits at its geotag (the paper's measurement)
         s.add_camera_frustum("/current/match_camera", fov=fov, aspect=aspect, scale=5.0,
                              color=scene.MEASUREMENT_RGB, image=d_img, wxyz=scene.camera_wxyz(d_heading),
-                             position=(float(meas[0]), float(meas[1]), scene.CAMERA_HEIGHT_M), thickness=0.08)
+                             position=(float(at[0]), float(at[1]), scene.CAMERA_HEIGHT_M), thickness=0.08)
 
     def _fov_aspect(self) -> tuple[float, float]:
         cal = self.db.calibration
@@ -599,18 +624,32 @@ class Dashboard:
             ("best match", "none" if rec.best_db_frame is None else
              f"{db.camera} frame {rec.best_db_frame} ({rec.best_offset_s:+.2f} s), {rec.best_count} correspondences, "
              f"{rec.n_candidates} candidates"),
-            ("measurement (geotag)", "–" if rec.measurement_lat_deg is None else
+            ("measurement", "–" if rec.measurement_lat_deg is None else
              f"{rec.measurement_lat_deg:.7f}°, {rec.measurement_lon_deg:.7f}°"),
+            ("measured by", self._source_text(rec)),
             ("measurement error", _fmt(rec.measurement_error_m)),
+            ("measurement σ", _fmt(rec.measurement_sigma_m) + ("" if rec.measurement_source != "geotag" else
+                                                              " (the filter's R)")),
             ("estimate", "–" if rec.estimate_lat_deg is None else
              f"{rec.estimate_lat_deg:.7f}°, {rec.estimate_lon_deg:.7f}°"),
-            ("estimate error", _fmt(rec.estimate_error_m)),
+            ("estimate error", _fmt(rec.estimate_error_m) + ("  (measurement gated: prediction only)"
+                                                              if rec.gated else "")),
             ("estimate 2σ", _fmt(None if rec.estimate_sigma_m is None else 2.0 * rec.estimate_sigma_m)),
             ("nearest allowed image", _fmt(rec.nearest_candidate_error_m)),
             ("truth", f"{rec.truth_lat_deg:.7f}°, {rec.truth_lon_deg:.7f}°"),
         ]
         body = "\n".join(f"| {a} | {b} |" for a, b in rows)
         return f"**Step {rec.step + 1} of {len(self.records)}**\n\n| | |\n|---|---|\n{body}"
+
+    @staticmethod
+    def _source_text(rec: visloc.StepRecord) -> str:
+        if rec.measurement_source == "geometry":
+            return (f"geometry: PnP against frames {', '.join(map(str, rec.view_db_frames))} "
+                    f"(triangulated with {', '.join(map(str, rec.neighbour_db_frames))}), "
+                    f"{rec.n_pnp_inliers} inliers")
+        if rec.measurement_source == "geotag":
+            return "geotag of the best match" + (f" (fallback: {rec.fallback_reason})" if rec.fallback_reason else "")
+        return "nothing" + (f" ({rec.fallback_reason})" if rec.fallback_reason else "")
 
     def _plot_counts(self, retrieval, rec: visloc.StepRecord) -> None:
         """Correspondences against database time: every database image, gaps where an image
@@ -665,6 +704,8 @@ class Dashboard:
         m, f = visloc.PAPER_MATCH, visloc.PAPER_FILTER
         self._quiet = True
         try:
+            self.gui_mode.value = "paper"
+            self.gui_gate.value = visloc.REFINED.gate_chi2
             self.gui_tau1.value, self.gui_tau2.value = m.tau1, m.tau2
             self.gui_r.value = round(float(np.sqrt(f.meas_var_m2)), 2)
             self.gui_q.value = round(float(np.sqrt(f.accel_var_m2_s4)), 2)

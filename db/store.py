@@ -6,16 +6,27 @@ Tables
 ``settings``       key -> JSON value; ``sift`` holds the SIFT settings the
                    features were extracted with (every image in a store shares them).
 ``cameras``        per (source, camera): the rectified projection matrix ``P_rect``
-                   (3x4, pixels) when known, and the image size in pixels.
+                   (3x4, pixels) when known, the image size in pixels and (since
+                   version 2) ``T_camera_imu`` (4x4, metres: X_camera = T_camera_imu
+                   X_imu, the rectified camera's extrinsics relative to the geotag's
+                   reference point, the IMU) when known.
 ``images``         per (source, camera, frame): geotag, timestamp, original path,
-                   SIFT keypoints (float32, N x 6: x_px, y_px, size_px, angle_deg,
-                   response, octave) and descriptors (uint8, N x 128) as BLOBs.
+                   attitude of the geotag's reference frame (since version 2:
+                   roll_rad, pitch_rad, yaw_rad as KITTI's OXTS gives them, NULL when
+                   unknown), SIFT keypoints (float32, N x 6: x_px, y_px, size_px,
+                   angle_deg, response, octave) and descriptors (uint8, N x 128) as BLOBs.
 ``pair_counts``    a cache: correspondences between a query image and a database
                    image for given (tau1, tau2), and how long computing it took.
 
 Writes happen in transactions (``FeatureStore.add_images`` commits a batch at
 once), the journal is in WAL mode, and an interrupted write rolls back: a store
 never holds half an image.
+
+Schema versions: 1 had no attitudes and no camera extrinsics. Opening a version-1
+store migrates it in place to version 2 (``ALTER TABLE ... ADD COLUMN``, every
+existing row and cached count kept, the new columns NULL); ``visloc ingest`` then
+fills the missing attitudes and extrinsics from the source without re-extracting
+any feature.
 """
 
 from __future__ import annotations
@@ -30,7 +41,12 @@ from pathlib import Path
 import numpy as np
 import sqlite_utils
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+# columns added by each version after the first: table -> (column, SQL type)
+_MIGRATIONS = {
+    2: [("images", "roll_rad", "REAL"), ("images", "pitch_rad", "REAL"), ("images", "yaw_rad", "REAL"),
+        ("cameras", "t_camera_imu_json", "TEXT")],
+}
 KEYPOINT_COLUMNS = 6  # x_px, y_px, size_px, angle_deg, response, octave
 DESCRIPTOR_DIM = 128
 
@@ -69,6 +85,12 @@ class ImageRecord:
     width_px: int = 0
     height_px: int = 0
     sift_ms: float | None = None  # time SIFT took on this image when it was ingested
+    # attitude of the geotag's reference frame (KITTI: the OXTS/IMU unit, x forward, y left,
+    # z up), radians, as OXTS records give it: roll about x, pitch about y, yaw about z with
+    # 0 = east and counter-clockwise positive. None when the source has none (CSV).
+    roll_rad: float | None = None
+    pitch_rad: float | None = None
+    yaw_rad: float | None = None
 
 
 @dataclass(frozen=True)
@@ -86,6 +108,7 @@ class CameraRecord:
     P_rect: np.ndarray | None  # (3, 4) float64, pixels
     width_px: int
     height_px: int
+    T_camera_imu: np.ndarray | None = None  # (4, 4) float64, metres: X_camera = T_camera_imu @ X_imu
 
 
 def _now_iso() -> str:
@@ -145,6 +168,9 @@ class FeatureStore:
         else:
             row = next(db.query("SELECT version FROM visloc_schema LIMIT 1"), None)
             version = None if row is None else row["version"]
+            if isinstance(version, int) and 1 <= version < SCHEMA_VERSION and not (_TABLES - tables):
+                self._migrate(version)
+                version = SCHEMA_VERSION
             if version != SCHEMA_VERSION:
                 raise NotAStoreError(
                     f"{label}: visloc store schema version {version}, this visloc reads version {SCHEMA_VERSION}"
@@ -158,6 +184,15 @@ class FeatureStore:
             with db.atomic():
                 self._create_pair_counts()
 
+    def _migrate(self, version: int) -> None:
+        """Bring a store of an older schema version to ``SCHEMA_VERSION`` in one transaction."""
+        with self.db.atomic():
+            for target in range(version + 1, SCHEMA_VERSION + 1):
+                for table, column, sql_type in _MIGRATIONS[target]:
+                    if column not in self.db[table].columns_dict:
+                        self.db.execute(f"ALTER TABLE [{table}] ADD COLUMN [{column}] {sql_type}")
+            self.db.execute("UPDATE visloc_schema SET version = ?", [SCHEMA_VERSION])
+
     def _create_schema(self) -> None:
         db = self.db
         with db.atomic():
@@ -165,7 +200,8 @@ class FeatureStore:
             db["visloc_schema"].insert({"version": SCHEMA_VERSION, "created_at": _now_iso()})
             db["settings"].create({"key": str, "value_json": str}, pk="key")
             db["cameras"].create(
-                {"source": str, "camera": str, "p_rect_json": str, "width_px": int, "height_px": int},
+                {"source": str, "camera": str, "p_rect_json": str, "width_px": int, "height_px": int,
+                 "t_camera_imu_json": str},
                 pk=("source", "camera"),
             )
             db["images"].create(
@@ -183,6 +219,9 @@ class FeatureStore:
                     "width_px": int,
                     "height_px": int,
                     "sift_ms": float,
+                    "roll_rad": float,
+                    "pitch_rad": float,
+                    "yaw_rad": float,
                     "n_keypoints": int,
                     "keypoints_f32": bytes,
                     "descriptors_u8": bytes,
@@ -238,6 +277,7 @@ class FeatureStore:
 
     def set_camera(self, camera: CameraRecord) -> None:
         p_json = None if camera.P_rect is None else json.dumps(np.asarray(camera.P_rect, float).tolist())
+        t_json = None if camera.T_camera_imu is None else json.dumps(np.asarray(camera.T_camera_imu, float).tolist())
         with self.db.atomic():
             self.db["cameras"].upsert(
                 {
@@ -246,6 +286,7 @@ class FeatureStore:
                     "p_rect_json": p_json,
                     "width_px": int(camera.width_px),
                     "height_px": int(camera.height_px),
+                    "t_camera_imu_json": t_json,
                 },
                 pk=("source", "camera"),
             )
@@ -302,6 +343,23 @@ class FeatureStore:
         with self.db.atomic():
             self.db["images"].insert_all(rows, ignore=True)
         return self.image_count() - before
+
+    def frames_without_attitude(self, source: str, camera: str) -> set[int]:
+        rows = self.db.query("SELECT frame FROM images WHERE source = ? AND camera = ? AND "
+                             "(roll_rad IS NULL OR pitch_rad IS NULL OR yaw_rad IS NULL)", [source, camera])
+        return {r["frame"] for r in rows}
+
+    def set_attitudes(self, source: str, camera: str, attitudes_rad: dict[int, tuple[float, float, float]]) -> int:
+        """Fill (roll_rad, pitch_rad, yaw_rad) of stored frames, in one transaction. Returns rows changed."""
+        changed = 0
+        with self.db.atomic():
+            for frame, (roll, pitch, yaw) in attitudes_rad.items():
+                cur = self.db.execute(
+                    "UPDATE images SET roll_rad = ?, pitch_rad = ?, yaw_rad = ? "
+                    "WHERE source = ? AND camera = ? AND frame = ?",
+                    [float(roll), float(pitch), float(yaw), source, camera, int(frame)])
+                changed += cur.rowcount
+        return changed
 
     def images(self, source: str | None = None, camera: str | None = None) -> list[StoredImage]:
         """Metadata of the stored images, ordered by (source, camera, timestamp)."""
@@ -379,12 +437,14 @@ def _where(source: str | None, camera: str | None) -> tuple[str, list]:
 
 def _camera_from_row(row: dict) -> CameraRecord:
     p = row["p_rect_json"]
+    t = row.get("t_camera_imu_json")
     return CameraRecord(
         source=row["source"],
         camera=row["camera"],
         P_rect=None if p is None else np.array(json.loads(p), dtype=np.float64),
         width_px=row["width_px"],
         height_px=row["height_px"],
+        T_camera_imu=None if t is None else np.array(json.loads(t), dtype=np.float64),
     )
 
 

@@ -120,8 +120,14 @@ def make_fake_kitti(root: Path, n_frames: int = 3, *, cameras=("image_00", "imag
             "".join(f"2011-09-26 13:02:{25 + i * 0.1:012.9f}\n" for i in range(n_frames)))
     if with_calib:
         (root / "2011_09_26" / "calib_cam_to_cam.txt").write_text(
+            "R_rect_00: 1 0 0 0 1 0 0 0 1\n"
             "P_rect_00: 7.215377e+02 0 6.095593e+02 0 0 7.215377e+02 1.728540e+02 0 0 0 1 0\n"
             "P_rect_01: 7.215377e+02 0 6.095593e+02 -3.875744e+02 0 7.215377e+02 1.728540e+02 0 0 0 1 0\n")
+        # velodyne: x forward, y left, z up, 0.8 m behind and 0.8 m above the IMU; camera 0: x right, y down,
+        # z forward, 0.27 m ahead of the velodyne (KITTI's layout, rounded)
+        (root / "2011_09_26" / "calib_imu_to_velo.txt").write_text("R: 1 0 0 0 1 0 0 0 1\nT: -0.8 0.3 -0.8\n")
+        (root / "2011_09_26" / "calib_velo_to_cam.txt").write_text(
+            "calib_time: 15-Mar-2012 11:37:16\nR: 0 -1 0 0 0 -1 1 0 0\nT: 0 -0.08 -0.27\n")
     return drive
 
 

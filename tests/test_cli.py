@@ -228,3 +228,58 @@ def test_damaged_store_file_is_a_one_line_error(synthetic, tmp_path):
     damaged.write_bytes(bytes(data))
     result = run_cli("localize", query_csv, "--db", damaged, "--db-camera", "camera", "--steps", "2")
     one_line_error(result, "damaged.sqlite")
+
+
+@pytest.mark.parametrize("command", ["localize", "evaluate"])
+@pytest.mark.parametrize("flag,value,name", [
+    ("--mode", "fancy", "--mode 'fancy': must be paper or refined"),
+    ("--top-k", "0", "top_k=0: must be an integer >= 1"),
+    ("--gate-chi2", "-1", "gate_chi2=-1.0: must be >= 0"),
+])
+def test_bad_mode_parameters_are_one_line_errors(synthetic, tmp_path, command, flag, value, name):
+    _, _, query_csv, store = synthetic
+    if command == "localize":
+        args = ("localize", query_csv, "--db", store, "--db-camera", "camera")
+    else:
+        args = ("evaluate", tmp_path / "no_kitti", "--db", tmp_path / "s.sqlite")
+    one_line_error(run_cli(*args, flag, value), name)
+
+
+def test_refined_mode_without_calibration_falls_back_to_the_paper_with_the_reason(synthetic, tmp_path):
+    _, _, query_csv, store = synthetic
+    outs = {}
+    for mode in ("paper", "refined"):
+        outs[mode] = tmp_path / f"{mode}.json"
+        result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "3",
+                         "--start-frame", "1", "--mode", mode, "--json", outs[mode])
+        assert result.returncode == 0, result.stderr
+    paper, refined = (json.loads(outs[m].read_text()) for m in ("paper", "refined"))
+    assert refined["mode"] == "refined" and paper["mode"] == "paper"
+    for p, r in zip(paper["steps"], refined["steps"]):
+        assert p["measurement_source"] == r["measurement_source"] == "geotag"
+        assert p["fallback_reason"] is None
+        assert "no intrinsics" in r["fallback_reason"]  # a CSV drive has no camera calibration
+        assert r["best_db_frame"] == p["best_db_frame"] and r["measurement_error_m"] == p["measurement_error_m"]
+    assert "Fallbacks to the geotag" in result.stdout
+
+
+def test_both_modes_report_the_same_keys(tmp_path):
+    from conftest import make_fake_kitti
+
+    make_fake_kitti(tmp_path / "kitti", n_frames=24)
+    reports = {}
+    for mode in ("paper", "refined"):
+        out = tmp_path / f"{mode}.json"
+        result = run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "2",
+                         "--start-frames", "0,5", "--json", out, "--workers", "1", "--mode", mode, "--smooth")
+        assert result.returncode == 0, result.stderr
+        reports[mode] = json.loads(out.read_text())
+    paper, refined = reports["paper"], reports["refined"]
+    assert set(paper) == set(refined)
+    assert set(paper["series"][0][0]) == set(refined["series"][0][0])
+    assert paper["mode"] == "paper" and refined["mode"] == "refined"
+    assert paper["geometry_fallback_fraction"] is None and refined["geometry_fallback_fraction"] is not None
+    assert paper["measurement_source_fraction"]["geometry"] == 0.0
+    assert paper["measurement_source_fraction"]["geotag"] == 1.0 - paper["steps_without_measurement"] / 4
+    # the smoother's last step is the filter's own
+    assert paper["smoothed_error_m"][-1] == pytest.approx(paper["estimate_error_m"][-1])

@@ -326,3 +326,29 @@ def test_bad_port_is_a_one_line_error():
     result = run_cli("dashboard", "--port", "70000")
     assert result.returncode == 2
     assert result.stderr.strip() == "visloc: error: --port 70000: must be in 1..65535"
+
+
+def choose(page, label: str, option: str) -> None:
+    control(page, label).locator("input").first.click()
+    page.get_by_role("option", name=option, exact=True).click()
+
+
+def test_switching_to_the_refined_mode_measures_metric_poses(dashboard, browser):
+    page = open_page(browser, dashboard.url)
+    try:
+        go_to_step(page, 3)
+        paper_error = float(row(page, "measurement error").split()[0])
+        assert row(page, "measured by") == "geotag of the best match"
+        runs = run_number(page)
+        choose(page, "Mode", "refined")
+        wait_for(lambda: run_number(page) > runs and "refined" in status_text(page), 600, "the refined run")
+        go_to_step(page, 3)
+        assert row(page, "measured by").startswith("geometry: PnP against frames")
+        refined_error = float(row(page, "measurement error").split()[0])
+        assert refined_error < 1.0 < paper_error  # metric, not a neighbour's geotag 1 s away
+        assert float(row(page, "measurement σ").split()[0]) < 1.0  # its own, honest R
+        dismiss_webgl_notice(page)
+        screenshot(page, "dashboard_refined.png")
+    finally:
+        reset(page)
+        page.close()

@@ -137,3 +137,27 @@ def test_other_sift_settings_are_refused_before_any_work(tmp_path, csv_drive):
         with pytest.raises(SettingsMismatchError, match="n_features: store 0, asked 500"):
             ingest(store, open_csv(csv_drive), SiftParams(n_features=500), workers=1)
         assert store.image_count() == 2
+
+
+def test_reingest_fills_attitudes_and_extrinsics_a_version_1_store_lacks(tmp_path):
+    from conftest import make_fake_kitti
+    from visloc.sources import open_kitti
+
+    make_fake_kitti(tmp_path / "kitti", n_frames=3)
+    seq = open_kitti(tmp_path / "kitti", None, "image_01")
+    path = tmp_path / "s.sqlite"
+    with FeatureStore(path, create=True) as store:
+        ingest(store, seq, SiftParams(), workers=1)
+        ids_before = [im.image_id for im in store.images()]
+        # what a migrated version-1 store looks like: no attitudes, no extrinsics
+        store.db.execute("UPDATE images SET roll_rad = NULL, pitch_rad = NULL, yaw_rad = NULL")
+        store.db.execute("UPDATE cameras SET t_camera_imu_json = NULL")
+        store.db.conn.commit()
+        assert store.frames_without_attitude(seq.source, "image_01") == {0, 1, 2}
+        report = ingest(store, seq, SiftParams(), workers=1)
+        assert (report.n_added, report.n_skipped, report.n_attitudes_filled) == (0, 3, 3)
+        assert [im.image_id for im in store.images()] == ids_before  # features untouched
+        assert store.frames_without_attitude(seq.source, "image_01") == set()
+        assert store.images()[0].yaw_rad == -2.6
+        np.testing.assert_allclose(store.get_camera(seq.source, "image_01").T_camera_imu, seq.T_camera_imu)
+        assert ingest(store, seq, SiftParams(), workers=1).n_attitudes_filled == 0  # nothing left to fill

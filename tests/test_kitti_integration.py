@@ -116,3 +116,71 @@ def test_readme_drive_example_runs(evaluation, capsys):
     # the drive run's first six steps are the evaluation's series starting at frame 0
     first = next(s for s in report["series"] if s[0]["query_frame"] == 0)
     assert errors[:6] == [round(step["estimate_error_m"], 2) for step in first]
+
+
+# -- the refined mode on the same series ----------------------------------------------------
+
+@pytest.fixture(scope="module")
+def refined(evaluation, kitti_root):
+    tmp, _, _ = evaluation
+    out = tmp / "refined.json"
+    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
+                     "--start-frames", "0,25,50", "--mode", "refined", "--smooth", "--json", out, timeout=1800)
+    assert result.returncode == 0, result.stderr
+    return json.loads(out.read_text()), result.stdout
+
+
+def test_refined_mode_reports_the_same_keys_as_the_paper(evaluation, refined):
+    _, paper, _ = evaluation
+    report, stdout = refined
+    assert set(report) == set(paper)
+    assert set(report["series"][0][0]) == set(paper["series"][0][0])
+    assert report["mode"] == "refined" and paper["mode"] == "paper"
+    assert "mode refined: geometry" in stdout
+
+
+def test_refined_mode_beats_the_paper_on_the_same_series(evaluation, refined):
+    _, paper, _ = evaluation
+    report, _ = refined
+    # the same queries, the same retrievals
+    for ps, rs in zip(paper["series"], report["series"]):
+        assert [s["query_frame"] for s in ps] == [s["query_frame"] for s in rs]
+        assert [s["best_db_frame"] for s in ps] == [s["best_db_frame"] for s in rs]
+    # geometry works on most steps of a moving car, and when it does it is metric, not a neighbour's geotag:
+    # the paper's measurements are at least 3 m off (test_errors_are_physically_sane)
+    assert report["measurement_source_fraction"]["geometry"] >= 0.8
+    geometry_errors = [s["measurement_error_m"] for series in report["series"] for s in series
+                       if s["measurement_source"] == "geometry"]
+    assert np.median(geometry_errors) < 1.0
+    assert report["final_error_m"]["mean"] < paper["final_error_m"]["mean"]
+    assert np.mean(report["measurement_error_m"]) < np.mean(paper["measurement_error_m"])
+    # the smoother never changes the last step and is finite everywhere
+    np.testing.assert_allclose(report["smoothed_error_m"][-1], report["estimate_error_m"][-1])
+
+
+def test_refined_mode_keeps_the_exclusion_window_and_says_why_it_falls_back(refined):
+    report, _ = refined
+    for series in report["series"]:
+        for s in series:
+            # every database image used for structure is >= 1 s (10 frames at 9.7 Hz) from the query
+            for frame in s["view_db_frames"] + s["neighbour_db_frames"]:
+                assert abs(frame - s["query_frame"]) >= 10, (s["query_frame"], frame)
+            if s["measurement_source"] == "geometry":
+                assert s["fallback_reason"] is None and s["view_db_frames"] and s["neighbour_db_frames"]
+                assert 0 < s["measurement_sigma_m"] < 2.0 and s["n_pnp_inliers"] >= 15
+            else:
+                assert s["fallback_reason"]  # a geotag in the refined mode always says why
+
+
+def test_localize_in_refined_mode_agrees_with_evaluate(evaluation, refined, kitti_root):
+    tmp, _, _ = evaluation
+    report, _ = refined
+    result = run_cli("localize", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
+                     "--start-frame", "25", "--exclusion-s", "1", "--mode", "refined", "--json", tmp / "r25.json")
+    assert result.returncode == 0, result.stderr
+    steps = json.loads((tmp / "r25.json").read_text())["steps"]
+    series = report["series"][1]
+    assert [s["measurement_source"] for s in steps] == [s["measurement_source"] for s in series]
+    # fresh SIFT in localize, stored SIFT in evaluate: the same keypoints, so the same poses
+    np.testing.assert_allclose([s["measurement_lat_deg"] for s in steps],
+                               [s["measurement_lat_deg"] for s in series], atol=1e-7)

@@ -117,3 +117,24 @@ def test_iso_timestamps_are_accepted(tmp_path):
     path.write_text("file,timestamp,lat,lon\na.png,2011-09-26T13:02:25.5,49,8\nb.png,2011-09-26T13:02:26.5,49,8\n")
     seq = open_csv(path)
     assert seq.frames[1].timestamp_s - seq.frames[0].timestamp_s == pytest.approx(1.0)
+
+
+def test_kitti_attitudes_and_camera_extrinsics_are_read(tmp_path):
+    make_fake_kitti(tmp_path, n_frames=2)
+    left = open_kitti(tmp_path, None, "image_00")
+    right = open_kitti(tmp_path, None, "image_01")
+    assert (left.frames[0].roll_rad, left.frames[0].pitch_rad, left.frames[0].yaw_rad) == (0.03, 0.01, -2.6)
+    # the IMU origin in camera 0: velodyne (-0.8, 0.3, -0.8) -> camera (-0.3, 0.8, -0.8) + (0, -0.08, -0.27)
+    np.testing.assert_allclose(left.T_camera_imu[:3, 3], [-0.3, 0.72, -1.07], atol=1e-12)
+    # the IMU's forward axis is the camera's optical axis, its left axis the camera's -x
+    np.testing.assert_allclose(left.T_camera_imu[:3, :3] @ [1, 0, 0], [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(left.T_camera_imu[:3, :3] @ [0, 1, 0], [-1, 0, 0], atol=1e-12)
+    # image_01 is the same rectified frame shifted by P_rect_01's baseline, -387.5744 / 721.5377 m in x
+    np.testing.assert_allclose(right.T_camera_imu[:3, 3] - left.T_camera_imu[:3, 3], [-387.5744 / 721.5377, 0, 0])
+
+
+def test_extrinsics_need_every_calibration_file(tmp_path):
+    make_fake_kitti(tmp_path)
+    (tmp_path / "2011_09_26" / "calib_imu_to_velo.txt").unlink()
+    seq = open_kitti(tmp_path, None, "image_00")
+    assert seq.P_rect is not None and seq.T_camera_imu is None

@@ -142,3 +142,67 @@ def test_pair_counts_cache_round_trip_per_threshold(memory_store):
     assert memory_store.pair_counts([1], 0.8, 0.97) == {(1, 2): (17, 25.0), (1, 3): (0, 30.5)}
     assert memory_store.pair_counts([1], 0.9, 0.97) == {(1, 2): (30, 26.0)}
     assert memory_store.pair_counts([2], 0.8, 0.97) == {}
+
+
+def make_version_1_store(path):
+    """A store exactly as schema version 1 wrote it: one image, one cached count, no attitude columns."""
+    conn = sqlite3.connect(path)
+    conn.executescript("""
+        CREATE TABLE visloc_schema (version INTEGER, created_at TEXT);
+        INSERT INTO visloc_schema VALUES (1, '2025-01-01T00:00:00+00:00');
+        CREATE TABLE settings (key TEXT PRIMARY KEY, value_json TEXT);
+        INSERT INTO settings VALUES ('sift', '{"n_features": 0}');
+        CREATE TABLE cameras (source TEXT, camera TEXT, p_rect_json TEXT, width_px INTEGER, height_px INTEGER,
+                              PRIMARY KEY (source, camera));
+        INSERT INTO cameras VALUES ('drive', 'image_01', '[[1,0,0,0],[0,1,0,0],[0,0,1,0]]', 64, 32);
+        CREATE TABLE images (id INTEGER PRIMARY KEY, source TEXT NOT NULL, camera TEXT NOT NULL,
+            frame INTEGER NOT NULL, path TEXT, timestamp_s FLOAT NOT NULL, lat_deg FLOAT NOT NULL,
+            lon_deg FLOAT NOT NULL, alt_m FLOAT, heading_deg FLOAT, width_px INTEGER, height_px INTEGER,
+            sift_ms FLOAT, n_keypoints INTEGER NOT NULL, keypoints_f32 BLOB, descriptors_u8 BLOB, created_at TEXT);
+        CREATE UNIQUE INDEX idx_images_source_camera_frame ON images (source, camera, frame);
+        CREATE TABLE pair_counts (query_image_id INTEGER, db_image_id INTEGER, tau1 FLOAT, tau2 FLOAT,
+            n_correspondences INTEGER, match_ms FLOAT, PRIMARY KEY (query_image_id, db_image_id, tau1, tau2));
+        INSERT INTO pair_counts VALUES (1, 1, 0.8, 0.97, 42, 3.5);
+    """)
+    kp, desc = features(7, 3)
+    conn.execute("INSERT INTO images VALUES (1, 'drive', 'image_01', 0, '/x/0.png', 100.0, 49.0, 8.4, 116.0, 250.0,"
+                 " 64, 32, 12.5, 7, ?, ?, '2025-01-01')", [kp.tobytes(), desc.tobytes()])
+    conn.commit()
+    conn.close()
+    return kp, desc
+
+
+def test_a_version_1_store_is_migrated_in_place_keeping_its_data(tmp_path):
+    from db import SCHEMA_VERSION
+
+    path = tmp_path / "v1.sqlite"
+    kp, desc = make_version_1_store(path)
+    with FeatureStore(path) as store:
+        (image,) = store.images()
+        assert image.frame == 0 and image.lat_deg == 49.0 and image.sift_ms == 12.5
+        assert (image.roll_rad, image.pitch_rad, image.yaw_rad) == (None, None, None)
+        got_kp, got_desc = store.features([image.image_id])[image.image_id]
+        np.testing.assert_array_equal(got_kp, kp)
+        np.testing.assert_array_equal(got_desc, desc)
+        assert store.pair_counts([1], 0.8, 0.97) == {(1, 1): (42, 3.5)}
+        cam = store.get_camera("drive", "image_01")
+        assert cam.P_rect.shape == (3, 4) and cam.T_camera_imu is None
+        assert store.frames_without_attitude("drive", "image_01") == {0}
+        # the new columns can be filled without touching anything else
+        assert store.set_attitudes("drive", "image_01", {0: (0.01, 0.02, -2.6)}) == 1
+        store.set_camera(CameraRecord("drive", "image_01", cam.P_rect, 64, 32, T_camera_imu=np.eye(4)))
+    with FeatureStore(path) as store:
+        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == SCHEMA_VERSION == 2
+        (image,) = store.images()
+        assert (image.roll_rad, image.pitch_rad, image.yaw_rad) == (0.01, 0.02, -2.6)
+        assert store.frames_without_attitude("drive", "image_01") == set()
+        np.testing.assert_array_equal(store.get_camera("drive", "image_01").T_camera_imu, np.eye(4))
+
+
+def test_attitudes_round_trip_in_a_new_store(memory_store):
+    kp, desc = features(5, 0)
+    memory_store.add_images([(record(0, roll_rad=0.1, pitch_rad=-0.2, yaw_rad=3.0), kp, desc),
+                             (record(1), kp, desc)])
+    a, b = memory_store.images()
+    assert (a.roll_rad, a.pitch_rad, a.yaw_rad) == (0.1, -0.2, 3.0)
+    assert memory_store.frames_without_attitude("drive", "image_01") == {1}

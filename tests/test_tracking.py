@@ -82,3 +82,81 @@ def test_agrees_with_filterpy(params):
         ref.update(None if z is None else np.asarray(z).reshape(2, 1))
         np.testing.assert_allclose(ours[k].x, ref.x.ravel(), rtol=1e-9, atol=1e-9)
         np.testing.assert_allclose(ours[k].P, ref.P, rtol=1e-8, atol=1e-8)
+
+
+def test_a_step_may_bring_its_own_measurement_covariance():
+    params = FilterParams(dt_s=1.0, meas_var_m2=100.0, accel_var_m2_s4=1.0, init_var=1000.0)
+    zs = [np.array([0.0, 0.0]), np.array([10.0, 1.0]), np.array([20.5, 2.0])]
+    R_small = np.diag([0.01, 0.04])
+    steps = run_filter(zs, params, covariances_m2=[None, None, R_small])
+    # by hand: the update of step 3 with R_small, from the same prior
+    prior_x, prior_P = steps[2].x_prior, steps[2].P_prior
+    H = np.eye(2, 4)
+    S = H @ prior_P @ H.T + R_small
+    K = prior_P @ H.T @ np.linalg.inv(S)
+    np.testing.assert_allclose(steps[2].x, prior_x + K @ (zs[2] - H @ prior_x), rtol=1e-10)
+    np.testing.assert_allclose(steps[2].R, R_small)
+    np.testing.assert_allclose(steps[1].R, 100.0 * np.eye(2))
+    # a precise measurement pins the position: within a few centimetres of it
+    assert np.linalg.norm(steps[2].x[:2] - zs[2]) < 0.05
+    with pytest.raises(ValueError, match="R must be a finite 2x2"):
+        ConstantVelocityKalman(params).step(zs[0], R=np.eye(3))
+
+
+def test_the_gate_rejects_an_outlier_and_only_predicts():
+    params = FilterParams(dt_s=1.0, meas_var_m2=0.01, accel_var_m2_s4=0.1, init_var=1000.0)
+    track = [np.array([10.0 * k, 0.0]) for k in range(5)]
+    outlier = np.array([50.0, 30.0])  # 30 m off the track (expected: 50, 0)
+    gated = run_filter([*track, outlier, np.array([60.0, 0.0])], params, gate_chi2=13.82)
+    assert [s.gated for s in gated] == [False] * 5 + [True, False]
+    np.testing.assert_allclose(gated[5].x, gated[5].x_prior)  # predicted only
+    np.testing.assert_allclose(gated[5].P, gated[5].P_prior)
+    assert gated[5].innovation.mahalanobis ** 2 > 13.82  # kept for diagnostics
+    assert np.linalg.norm(gated[6].x[:2] - [60.0, 0.0]) < 0.2  # the track goes on undisturbed
+    ungated = run_filter([*track, outlier], params)  # gate off (the paper's filter): the outlier is applied
+    assert not ungated[5].gated and ungated[5].x[1] > 25.0  # pulled most of the 30 m towards it
+
+
+def test_the_first_measurement_is_never_gated():
+    steps = run_filter([np.array([1e6, 1e6])], FilterParams(init_var=1.0), gate_chi2=1e-9)
+    assert not steps[0].gated
+    np.testing.assert_allclose(steps[0].x[:2], [1e6, 1e6])
+
+
+@pytest.mark.parametrize("with_gap", [False, True])
+def test_rts_smoother_agrees_with_filterpy(with_gap):
+    from filterpy.kalman import rts_smoother
+
+    from visloc.tracking import rts_smooth
+
+    params = FilterParams(dt_s=1.0, meas_var_m2=25.0, accel_var_m2_s4=0.5, init_var=1000.0)
+    rng = np.random.default_rng(9)
+    truth = np.cumsum(np.full((10, 2), [8.0, 2.0]), axis=0)
+    zs = [t + rng.normal(scale=5.0, size=2) for t in truth]
+    covs = [None if k % 3 else np.diag([1.0, 4.0]) for k in range(10)]  # mixed per-step R
+    if with_gap:
+        zs[4] = None
+    steps = run_filter(zs, params, covariances_m2=covs)
+    ours = rts_smooth(steps, params.dt_s)
+    F, Q = transition_matrix(params.dt_s), process_noise(params.dt_s, params.accel_var_m2_s4)
+    xs, Ps, _, _ = rts_smoother(np.array([s.x for s in steps]), np.array([s.P for s in steps]),
+                                Fs=[F] * len(steps), Qs=[Q] * len(steps))
+    for k in range(len(steps)):
+        np.testing.assert_allclose(ours[k].x, xs[k], rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(ours[k].P, Ps[k], rtol=1e-8, atol=1e-8)
+    # the last step is the filter's own; earlier ones are at least as certain as filtered
+    np.testing.assert_allclose(ours[-1].x, steps[-1].x)
+    assert all(np.trace(o.P) <= np.trace(s.P) + 1e-9 for o, s in zip(ours, steps))
+
+
+def test_rts_smoother_by_hand_for_two_steps():
+    from visloc.tracking import rts_smooth
+
+    params = FilterParams(dt_s=1.0, meas_var_m2=100.0, accel_var_m2_s4=0.0, init_var=1000.0)
+    steps = run_filter([np.array([10.0, 20.0]), np.array([20.0, 20.0])], params)
+    s = rts_smooth(steps, 1.0)
+    # C = P0 F' Pp1^-1, x_s0 = x0 + C (x1 - x_prior1), with the numbers of test_hand_worked_two_steps
+    C = steps[0].P @ transition_matrix(1.0).T @ np.linalg.inv(steps[1].P_prior)
+    np.testing.assert_allclose(s[0].x, steps[0].x + C @ (steps[1].x - steps[1].x_prior))
+    # no process noise: the smoothed first position is the second estimate moved back by its velocity
+    np.testing.assert_allclose(s[0].x[:2], steps[1].x[:2] - steps[1].x[2:], atol=1e-9)

@@ -22,10 +22,13 @@ from visloc.params import (
     PAPER_MATCH,
     PAPER_RETRIEVAL,
     PAPER_SIFT,
+    REFINED,
     FilterParams,
     MatchParams,
+    RefinedParams,
     RetrievalParams,
     SiftParams,
+    check_mode,
 )
 
 DEFAULT_DB = "visloc.sqlite"
@@ -75,6 +78,28 @@ def _method(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, Filter
     return (MatchParams(tau1=a.tau1, tau2=a.tau2),
             RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s),
             FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var))
+
+
+def _add_mode(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("mode (paper: the paper's method; refined: metric pose from the database, see README)")
+    # a plain string checked by check_mode, so a bad value is a one-line error naming --mode
+    g.add_argument("--mode", default="paper", help="paper or refined (default %(default)s)")
+    r = REFINED
+    g.add_argument("--top-k", type=int, default=r.top_k,
+                   help="refined: candidates re-ranked by essential-matrix inliers (default %(default)s)")
+    g.add_argument("--sigma-floor-m", type=float, default=r.sigma_floor_m,
+                   help="refined: added in quadrature to each pose's covariance, m (default %(default)s)")
+    g.add_argument("--gate-chi2", type=float, default=r.gate_chi2,
+                   help="refined: Mahalanobis gate on y' S^-1 y, 2 dof; 0 = off (default %(default)s = 99.9%%)")
+    g.add_argument("--seed", type=int, default=r.seed, help="refined: RANSAC seed (default %(default)s)")
+
+
+def _mode(a: argparse.Namespace) -> tuple[str, RefinedParams]:
+    try:
+        mode = check_mode(a.mode)
+    except VislocError:
+        raise InputError(f"--mode {a.mode!r}: must be paper or refined") from None
+    return mode, REFINED.replace(top_k=a.top_k, sigma_floor_m=a.sigma_floor_m, gate_chi2=a.gate_chi2, seed=a.seed)
 
 
 def _add_source(p: argparse.ArgumentParser, camera_help: str, camera_default: str, *, multiple: bool = False) -> None:
@@ -130,8 +155,9 @@ def cmd_ingest(a: argparse.Namespace) -> int:
                 n = store.image_count(seq.source, seq.camera)
                 print(f"visloc: interrupted; {a.db} keeps {n} images of {seq.source}/{seq.camera}", file=sys.stderr)
                 return 130
+            filled = f", attitude filled in for {report.n_attitudes_filled}" if report.n_attitudes_filled else ""
             print(f"{a.db}: {seq.source}/{seq.camera}: {report.n_added} added, {report.n_skipped} already stored, "
-                  f"{len(seq)} frames ({report.images_per_s:.1f} images/s)")
+                  f"{len(seq)} frames ({report.images_per_s:.1f} images/s){filled}")
     return 0
 
 
@@ -156,8 +182,11 @@ def cmd_localize(a: argparse.Namespace) -> int:
     from visloc.report import series_tables, write_json
     from visloc.sources import load_gray
 
+    from visloc.geometry import CameraModel
+
     sift = _sift(a)
     match, retrieval, filt = _method(a)
+    mode, refined = _mode(a)
     seq = _open_sequence(a.source, a.drive, a.camera)
     with FeatureStore(a.db) as store:
         db = load_database(store, _choose_database(store, seq.source, a.db_source, a.db_camera), a.db_camera, sift)
@@ -171,7 +200,12 @@ def cmd_localize(a: argparse.Namespace) -> int:
         raise InputError(f"--start-frame {a.start_frame}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
                          f"{times[-1] - times[start]:.1f} s left of {seq.source}/{seq.camera}")
     indices = [start + i for i in schedule[0]]
-    localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match, retrieval, filt)
+    query_camera = None
+    if seq.P_rect is not None and seq.T_camera_imu is not None:
+        query_camera = CameraModel.from_projection(seq.P_rect, seq.T_camera_imu)
+    localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match, retrieval, filt, mode=mode,
+                          refined_params=refined, geometry=db.geometry() if mode == "refined" else None,
+                          query_camera=query_camera)
     sift_engine = make_sift(sift)
     records = []
     for k, i in enumerate(indices):
@@ -180,16 +214,19 @@ def cmd_localize(a: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         feats = extract_sift(gray, sift, sift=sift_engine, name=str(fr.image_path))
         sift_ms = (time.perf_counter() - t0) * 1000.0
-        result = localizer.step(Query(feats.descriptors_u8, fr.timestamp_s))
+        result = localizer.step(Query(feats.descriptors_u8, fr.timestamp_s, keypoints_f32=feats.keypoints_f32))
         records.append(step_record(k, result, db, query_frame=fr.frame, truth_lat_deg=fr.lat_deg,
                                    truth_lon_deg=fr.lon_deg, latency_ms=sift_ms + result.compute_ms, keep_counts=True))
     print(f"queries: {seq.source}/{seq.camera} frames {[seq.frames[i].frame for i in indices]}   "
-          f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s\n")
+          f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s   "
+          f"mode {mode}\n")
     print(series_tables(records))
     if a.json:
         write_json(a.json, {"queries": f"{seq.source}/{seq.camera}", "database": f"{db.source}/{db.camera}",
-                            "steps": records, "params": {"match": match.as_dict(), "retrieval": retrieval.as_dict(),
-                                                         "filter": filt.as_dict(), "sift": sift.as_dict()}})
+                            "mode": mode, "steps": records,
+                            "params": {"match": match.as_dict(), "retrieval": retrieval.as_dict(),
+                                       "filter": filt.as_dict(), "sift": sift.as_dict(), "mode": mode,
+                                       "refined": refined.as_dict() if mode == "refined" else None}})
         print(f"\nwrote {a.json}")
     return 0
 
@@ -202,6 +239,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
 
     sift = _sift(a)
     match, retrieval, filt = _method(a)
+    mode, refined = _mode(a)
     root = a.root or default_data_root()
     for path in (a.json, a.plot):
         if path is not None and not Path(path).resolve().parent.is_dir():
@@ -240,7 +278,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
             with _progress(len(starts) if starts is not None else len(schedule), "series") as bar:
                 result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, sampling=a.sampling,
                                   start_indices=starts, cache=cache,
-                                  progress=lambda n: (bar.update(n), save_counts()))
+                                  progress=lambda n: (bar.update(n), save_counts()), mode=mode,
+                                  refined_params=refined, smooth=a.smooth)
         finally:
             save_counts()
     finally:
@@ -254,7 +293,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     plot = a.plot or (Path(a.json).with_suffix(".png") if a.json else None)
     if plot:
         title = (f"{db.source}: queries {queries.camera}, database {db.camera}, exclusion "
-                 f"{retrieval.exclusion_s:g} s, {summary['n_series']} series")
+                 f"{retrieval.exclusion_s:g} s, {summary['n_series']} series, mode {mode}")
         save_error_plot(summary, plot, title)
         print(f"wrote {plot}")
     return 0
@@ -281,6 +320,9 @@ def cmd_info(a: argparse.Namespace) -> int:
             span = s["last_timestamp_s"] - s["first_timestamp_s"]
             cam = store.get_camera(s["source"], s["camera"])
             calib = "P_rect known" if cam and cam.P_rect is not None else "no calibration"
+            calib += ", extrinsics known" if cam and cam.T_camera_imu is not None else ", no extrinsics"
+            lacking = len(store.frames_without_attitude(s["source"], s["camera"]))
+            calib += f", {lacking} without attitude" if lacking else ", attitudes known"
             print(f"  {s['source']}/{s['camera']}: {s['n_images']} images over {span:.1f} s, "
                   f"{s['mean_keypoints']:.0f} keypoints per image, {calib}")
     return 0
@@ -316,6 +358,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
     _add_method(p, PAPER_RETRIEVAL)
+    _add_mode(p)
     _add_sift(p)
     p.set_defaults(func=cmd_localize)
 
@@ -334,7 +377,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--smooth", action="store_true",
+                   help="also run the RTS smoother over each series and report its per-step errors")
     _add_method(p, PAPER_EVAL_RETRIEVAL)
+    _add_mode(p)
     _add_sift(p)
     p.set_defaults(func=cmd_evaluate)
 

@@ -12,7 +12,7 @@ import multiprocessing as mp
 import os
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -33,6 +33,7 @@ class IngestReport:
     n_skipped: int  # already stored
     n_added: int
     seconds: float
+    n_attitudes_filled: int = 0  # stored images whose missing attitude this run filled in (schema-1 stores)
 
     @property
     def images_per_s(self) -> float:
@@ -117,6 +118,7 @@ def ingest(
                 source=sequence.source, camera=sequence.camera, frame=frame.frame, path=str(frame.image_path),
                 timestamp_s=frame.timestamp_s, lat_deg=frame.lat_deg, lon_deg=frame.lon_deg, alt_m=frame.alt_m,
                 heading_deg=frame.heading_deg, width_px=size_px[0], height_px=size_px[1], sift_ms=sift_ms,
+                roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad, yaw_rad=frame.yaw_rad,
             )
             pending.append((record, keypoints, descriptors))
             if len(pending) >= batch_size:
@@ -129,6 +131,24 @@ def ingest(
         if pending:
             added += store.add_images(pending)
         if size_px is not None and (added or store.get_camera(sequence.source, sequence.camera) is None):
-            store.set_camera(CameraRecord(sequence.source, sequence.camera, sequence.P_rect, *size_px))
+            store.set_camera(CameraRecord(sequence.source, sequence.camera, sequence.P_rect, *size_px,
+                                          T_camera_imu=sequence.T_camera_imu))
+    filled = backfill_poses(store, sequence)
     return IngestReport(sequence.source, sequence.camera, len(sequence), len(sequence) - len(missing), added,
-                        time.perf_counter() - start)
+                        time.perf_counter() - start, n_attitudes_filled=filled)
+
+
+def backfill_poses(store: FeatureStore, sequence: Sequence) -> int:
+    """Fill attitudes and camera extrinsics that a store built before schema version 2 lacks.
+
+    Reads them from ``sequence`` (the OXTS records and calibration files); features are
+    untouched. Returns the number of images whose attitude was filled.
+    """
+    camera = store.get_camera(sequence.source, sequence.camera)
+    if camera is not None and camera.T_camera_imu is None and sequence.T_camera_imu is not None:
+        store.set_camera(replace(camera, T_camera_imu=sequence.T_camera_imu,
+                                 P_rect=camera.P_rect if camera.P_rect is not None else sequence.P_rect))
+    lacking = store.frames_without_attitude(sequence.source, sequence.camera)
+    attitudes = {f.frame: (f.roll_rad, f.pitch_rad, f.yaw_rad) for f in sequence.frames
+                 if f.frame in lacking and None not in (f.roll_rad, f.pitch_rad, f.yaw_rad)}
+    return store.set_attitudes(sequence.source, sequence.camera, attitudes) if attitudes else 0

@@ -2,6 +2,11 @@
 
 ``Localizer`` works on arrays only: database timestamps, positions in the local
 metric frame, and descriptors. Feed it one query at a time with ``step``.
+
+``mode="paper"`` (default) is the paper's method. ``mode="refined"`` turns each
+retrieval into a metric pose measurement with its own covariance
+(``visloc.refined``) and gates outliers in the filter; it needs the database's
+``DatabaseGeometry``, the query camera's ``CameraModel`` and queries with keypoints.
 """
 
 from __future__ import annotations
@@ -12,8 +17,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.params import FilterParams, MatchParams, RetrievalParams
+from visloc.geometry import CameraModel
+from visloc.params import REFINED, FilterParams, MatchParams, RefinedParams, RetrievalParams, check_mode
 from visloc.matching import count_correspondences
+from visloc.refined import DatabaseGeometry, Measurement, StructureCache, measurement_from_retrieval
 from visloc.retrieval import CountFn, Retrieval, brute_force_counts, retrieve
 from visloc.tracking import ConstantVelocityKalman, FilterStep
 
@@ -23,15 +30,17 @@ class Query:
     descriptors_u8: np.ndarray  # (N, 128)
     timestamp_s: float
     key: Hashable = None  # identifies the query image for caches (e.g. its frame index)
+    keypoints_f32: np.ndarray | None = None  # (N, 6) or (N, 2), pixel x, y first; the refined mode needs them
 
 
 @dataclass(frozen=True)
 class StepResult:
     query_timestamp_s: float
     retrieval: Retrieval
-    measurement_m: np.ndarray | None  # (east_m, north_m) of the best match's geotag, None without a match
+    measurement_m: np.ndarray | None  # (east_m, north_m) measured (geotag or pose), None without a measurement
     filter: FilterStep
-    compute_ms: float  # wall time of retrieval + filter in this step
+    compute_ms: float  # wall time of retrieval + measurement + filter in this step
+    measurement: Measurement | None = None  # the full measurement: source, covariance, fallback reason
 
     @property
     def best_index(self) -> int | None:
@@ -54,6 +63,12 @@ class Localizer:
         filter_params: FilterParams,
         *,
         counter: CounterFactory | None = None,
+        mode: str = "paper",
+        refined_params: RefinedParams = REFINED,
+        geometry: DatabaseGeometry | None = None,
+        query_camera: CameraModel | None = None,
+        structure_cache: StructureCache | None = None,
+        measurement_cache: dict | None = None,
     ):
         self.db_timestamps_s = np.asarray(db_timestamps_s, float)
         self.db_east_north_m = np.asarray(db_east_north_m, float)
@@ -64,27 +79,51 @@ class Localizer:
         self.match_params = match_params
         self.retrieval_params = retrieval_params
         self.filter_params = filter_params
+        self.mode = check_mode(mode)
+        self.refined_params = refined_params
+        self.geometry = geometry
+        self.query_camera = query_camera
+        self.structure_cache = structure_cache if structure_cache is not None else StructureCache()
+        # (query key, candidates) -> Measurement: the same query with the same candidates measures the same
+        self.measurement_cache = measurement_cache
+        self.last_measure_ms = 0.0  # wall time of the latest step's measurement (about 0 when memoised)
         self._counter = counter or (lambda q: brute_force_counts(q.descriptors_u8, self.db_descriptors, match_params))
         self.reset()
 
     def reset(self) -> None:
         """Forget the track: the next query scans the whole database again."""
-        self._kalman = ConstantVelocityKalman(self.filter_params)
+        gate = self.refined_params.gate_chi2 if self.mode == "refined" else 0.0
+        self._kalman = ConstantVelocityKalman(self.filter_params, gate_chi2=gate)
         self._center_timestamp_s: float | None = None
 
     def step(self, query: Query) -> StepResult:
         start = time.perf_counter()
         retrieval = retrieve(self._counter(query), self.db_timestamps_s, query.timestamp_s,
                              self._center_timestamp_s, self.retrieval_params)
-        measurement = None
         if retrieval.best_index is not None:
-            measurement = self.db_east_north_m[retrieval.best_index]
             self._center_timestamp_s = float(self.db_timestamps_s[retrieval.best_index])
         else:
             self._center_timestamp_s = None  # lost: scan everything next time
-        filtered = self._kalman.step(measurement)
-        return StepResult(query.timestamp_s, retrieval, measurement, filtered,
-                          (time.perf_counter() - start) * 1000.0)
+        t_measure = time.perf_counter()
+        measurement = self.measure(query, retrieval)
+        self.last_measure_ms = (time.perf_counter() - t_measure) * 1000.0
+        filtered = self._kalman.step(measurement.east_north_m, measurement.cov_m2)
+        return StepResult(query.timestamp_s, retrieval, measurement.east_north_m, filtered,
+                          (time.perf_counter() - start) * 1000.0, measurement)
+
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
+        """The measurement of one retrieved query in this localizer's mode (memoised if asked)."""
+        memo_key = None
+        if self.measurement_cache is not None and query.key is not None and self.mode == "refined":
+            memo_key = (query.key, retrieval.candidates.tobytes(), retrieval.counts.tobytes())
+            if memo_key in self.measurement_cache:
+                return self.measurement_cache[memo_key]
+        m = measurement_from_retrieval(query.keypoints_f32, query.descriptors_u8, retrieval, self.db_east_north_m,
+                                       mode=self.mode, geometry=self.geometry, query_camera=self.query_camera,
+                                       params=self.refined_params, cache=self.structure_cache)
+        if memo_key is not None:
+            self.measurement_cache[memo_key] = m
+        return m
 
 
 class PairCountCache:

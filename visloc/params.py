@@ -134,3 +134,91 @@ PAPER_MATCH = MatchParams(tau1=0.8, tau2=0.97)
 PAPER_RETRIEVAL = RetrievalParams(window_s=20.0, exclusion_s=0.0)
 PAPER_EVAL_RETRIEVAL = RetrievalParams(window_s=20.0, exclusion_s=1.0)
 PAPER_FILTER = FilterParams(dt_s=1.0, meas_var_m2=(1e-4 * METRES_PER_DEGREE) ** 2, accel_var_m2_s4=1.0, init_var=1000.0)
+
+
+# -- the refined mode (beyond the paper) ------------------------------------------------
+
+MODES = ("paper", "refined")
+
+
+def check_mode(mode: str) -> str:
+    """``mode`` itself if it names a mode; ``ParameterError`` naming the parameter otherwise."""
+    if mode not in MODES:
+        raise ParameterError(f"mode={mode!r}: must be one of {', '.join(MODES)}")
+    return mode
+
+
+@dataclass(frozen=True)
+class RefinedParams(_Params):
+    """Metric position from the geotagged database (the refined mode), and the filter's gating.
+
+    Verification and structure
+      top_k:                 candidates (by correspondence count) verified by two-view geometry
+      ratio:                 Lowe ratio of the geometric matching (equation (1) alone: the paper's
+                             cosine test, equation (2), rejects too many true matches for geometry)
+      essential_px:          RANSAC threshold of the essential matrix, pixels
+      min_verified_inliers:  a candidate needs this many essential-matrix inliers to count as verified
+      n_views:               verified candidates (best first, skipping those without an allowed
+                             neighbour) whose 3D structure the query is posed against
+      neighbour_gaps:        a view's structure comes from triangulating it with the database images
+                             this many frames before and after it (those the retrieval allows)
+      min_baseline_m:        a neighbour must be at least this far from the view (else: stopped car)
+      triangulation_px:      largest reprojection error of a triangulated point, pixels
+      min_parallax_deg:      smallest angle between the two rays of a triangulated point
+      max_depth_m:           farthest triangulated point kept, metres
+    Pose
+      pnp_px:                PnP RANSAC inlier threshold, pixels
+      pnp_iterations:        PnP RANSAC iterations
+      min_pnp_inliers:       fewer inliers than this: fall back to the geotag
+      max_offset_m:          a pose farther than this from the geotag of the view it was solved
+                             against is rejected (it cannot see the same scene)
+    Uncertainty and filter
+      sigma_floor_m:         added in quadrature to the PnP covariance on each axis: the part of the
+                             error the PnP residuals cannot see (database poses, calibration,
+                             triangulated points), metres
+      gate_chi2:             a measurement whose squared Mahalanobis distance to the prediction
+                             exceeds this is not applied (2 degrees of freedom; 13.82 = 99.9 %);
+                             0 disables gating
+      seed:                  seed of every RANSAC
+    """
+
+    top_k: int = 5
+    ratio: float = 0.8
+    essential_px: float = 1.0
+    min_verified_inliers: int = 20
+    n_views: int = 2
+    neighbour_gaps: tuple[int, ...] = (3, 6)
+    min_baseline_m: float = 1.0
+    triangulation_px: float = 1.0
+    min_parallax_deg: float = 0.5
+    max_depth_m: float = 80.0
+    pnp_px: float = 2.0
+    pnp_iterations: int = 1000
+    min_pnp_inliers: int = 15
+    max_offset_m: float = 30.0
+    sigma_floor_m: float = 0.05
+    gate_chi2: float = 13.82
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        def integer(name: str, low: int) -> None:
+            v = getattr(self, name)
+            _check(name, v, isinstance(v, int) and not isinstance(v, bool) and v >= low, f"an integer >= {low}")
+
+        integer("top_k", 1)
+        integer("min_verified_inliers", 5)
+        integer("n_views", 1)
+        integer("pnp_iterations", 1)
+        integer("min_pnp_inliers", 6)
+        integer("seed", 0)
+        gaps = self.neighbour_gaps
+        if not (isinstance(gaps, tuple) and gaps and all(isinstance(g, int) and g >= 1 for g in gaps)):
+            raise ParameterError(f"neighbour_gaps={gaps!r}: must be a non-empty tuple of integers >= 1")
+        _check("ratio", self.ratio, 0 < self.ratio <= 1, "in (0, 1]")
+        for name in ("essential_px", "triangulation_px", "pnp_px", "max_depth_m", "max_offset_m"):
+            _check(name, getattr(self, name), getattr(self, name) > 0, "> 0")
+        for name in ("min_baseline_m", "min_parallax_deg", "sigma_floor_m", "gate_chi2"):
+            _check(name, getattr(self, name), getattr(self, name) >= 0, ">= 0")
+
+
+REFINED = RefinedParams()

@@ -44,7 +44,17 @@ def series_tables(records: list[StepRecord]) -> str:
         row("Estimation inaccuracy (m)", [r.estimate_error_haversine_m for r in records], ".2f"),
         row("Estimate 1-sigma, largest axis (m)", [r.estimate_sigma_m for r in records], ".2f"),
         row("Latency (ms)", [r.latency_ms for r in records], ".0f"),
+        "",
+        "Measurements as the filter took them",
+        head,
+        row("Source", [r.measurement_source for r in records], "s"),
+        row("Measurement 1-sigma (m)", [r.measurement_sigma_m for r in records], ".2f"),
+        row("Measurement error (geodesic, m)", [r.measurement_error_m for r in records], ".2f"),
+        row("Gated (not applied)", ["yes" if r.gated else "no" for r in records], "s"),
     ]
+    reasons = [f"  {lab}: {r.fallback_reason}" for lab, r in zip(labels, records) if r.fallback_reason]
+    if reasons:
+        lines += ["Fallbacks to the geotag:", *reasons]
     return "\n".join(lines)
 
 
@@ -70,6 +80,24 @@ def summary_text(summary: dict) -> str:
             for k, v in summary["final_error_m_by_steps_ahead"].items()),
         f"paper (drive 0001): measurement about 18 m, final {PAPER_FINAL_ERROR_M} m",
     ]
+    if summary.get("mode") == "refined":
+        src = summary["measurement_source_fraction"]
+        nees = summary["measurement_nees"] or {}
+        lines += [
+            f"mode refined: geometry {_cell(src['geometry'], '.0%')} of steps, geotag fallback "
+            f"{_cell(summary['geometry_fallback_fraction'], '.1%')} of measurements, gated "
+            f"{_cell(summary['gated_fraction'], '.1%')}",
+            f"{'mean measurement 1-sigma (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["measurement_sigma_m"]),
+            f"geometry NEES mean {_cell(nees.get('mean'), '.2f')} (2 if honest), within 95 %: "
+            f"{_cell(nees.get('fraction_within_95'), '.0%')}",
+            "of the latency, the measurement (ms): p50 {p50}  p95 {p95}".format(
+                **{k: _cell(v, ".0f") for k, v in summary["measurement_latency_ms"].items()}),
+        ]
+        if summary["fallback_reasons"]:
+            lines.append("fallback reasons: " + "; ".join(f"{k}: {v}" for k, v in summary["fallback_reasons"].items()))
+    if summary.get("smoothed_error_m"):
+        lines.append(f"{'mean RTS-smoothed error (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}"
+                                                                    for v in summary["smoothed_error_m"]))
     return "\n".join(lines)
 
 
@@ -97,7 +125,8 @@ def save_error_plot(summary: dict, path: Path, title: str) -> None:
     meas = [nan if v is None else v for v in summary["measurement_error_m"]]
     est = [nan if v is None else v for v in summary["estimate_error_m"]]
     fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
-    ax.plot(x, meas, "o-", color="tab:orange", label="measurement (best-match geotag)")
+    source = "metric pose" if summary.get("mode") == "refined" else "best-match geotag"
+    ax.plot(x, meas, "o-", color="tab:orange", label=f"measurement ({source})")
     ax.plot(x, est, "s-", color="tab:blue", label="Kalman estimate")
     ax.plot([x[-1]], [PAPER_FINAL_ERROR_M], "k*", markersize=11, label=f"paper's final estimate ({PAPER_FINAL_ERROR_M} m)")
     for xi, v in zip(x, est):

@@ -7,7 +7,15 @@ computes anything; it reads files and checks that they agree.
 KITTI raw layout: ``ROOT/<date>/<date>_drive_<NNNN>_sync/`` with ``image_0X/data/*.png``,
 ``image_0X/timestamps.txt`` (falls back to ``oxts/timestamps.txt``), ``oxts/data/*.txt``
 (lat, lon, alt, roll, pitch, yaw, ...) and ``ROOT/<date>/calib_cam_to_cam.txt``
-(``P_rect_0X``). Timestamps are read as UTC and kept as Unix seconds.
+(``P_rect_0X``, ``R_rect_00``), ``calib_velo_to_cam.txt`` and ``calib_imu_to_velo.txt``
+(rigid transforms). Timestamps are read as UTC and kept as Unix seconds.
+
+Camera extrinsics (KITTI's chain, all rigid, metres): a point X_imu in the OXTS/IMU
+frame is X_velo = T_velo_imu X_imu, X_cam0 = T_cam0_velo X_velo (unrectified left
+gray camera), then rotated by R_rect_00 into the common rectified frame, and camera N
+sits at t_N = K^-1 P_rect_0N[:, 3] from the rectified camera 0 (for image_01 about
+-0.54 m in x: 0.54 m to the right). So T_camera_imu = [I | t_N] R_rect_00 T_cam0_velo
+T_velo_imu, and the rectified intrinsics are K = P_rect_0N[:, :3].
 
 CSV: a header with ``file,timestamp,lat,lon`` and optionally ``alt``, ``heading``
 (compass degrees, 0 = north, clockwise); ``file`` is relative to the CSV's folder;
@@ -43,6 +51,10 @@ class Frame:
     lon_deg: float
     alt_m: float | None = None
     heading_deg: float | None = None
+    # attitude of the geotag's reference frame, OXTS convention (see db.ImageRecord); None if unknown
+    roll_rad: float | None = None
+    pitch_rad: float | None = None
+    yaw_rad: float | None = None
 
 
 @dataclass(frozen=True)
@@ -52,6 +64,7 @@ class Sequence:
     frames: tuple[Frame, ...]
     P_rect: np.ndarray | None = None  # (3, 4) rectified projection matrix, pixels
     image_size_px: tuple[int, int] | None = None  # (width, height)
+    T_camera_imu: np.ndarray | None = None  # (4, 4) X_camera = T_camera_imu @ X_imu, metres (KITTI calibration)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -118,18 +131,18 @@ def _read_timestamps(path: Path) -> list[float]:
     return out
 
 
-def _read_oxts(path: Path) -> tuple[float, float, float, float]:
-    """(lat_deg, lon_deg, alt_m, heading_deg) of one OXTS record."""
+def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, float]:
+    """(lat_deg, lon_deg, alt_m, heading_deg, roll_rad, pitch_rad, yaw_rad) of one OXTS record."""
     try:
         values = [float(v) for v in path.read_text().split()]
     except (OSError, ValueError) as exc:
         raise InputError(f"{path}: unreadable OXTS record ({exc})") from None
     if len(values) < 6 or not all(math.isfinite(v) for v in values[:6]):
         raise InputError(f"{path}: OXTS record needs at least 6 numbers (lat lon alt roll pitch yaw)")
-    lat, lon, alt, _roll, _pitch, yaw = values[:6]
+    lat, lon, alt, roll, pitch, yaw = values[:6]
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):
         raise InputError(f"{path}: lat/lon out of range ({lat}, {lon})")
-    return lat, lon, alt, yaw_enu_to_heading_deg(yaw)
+    return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw
 
 
 def read_kitti_calibration(calib_path: Path, camera: str) -> np.ndarray | None:
@@ -147,6 +160,51 @@ def read_kitti_calibration(calib_path: Path, camera: str) -> np.ndarray | None:
                 raise InputError(f"{calib_path}: {key[:-1]} must hold 12 numbers")
             return values.reshape(3, 4)
     raise InputError(f"{calib_path}: no {key[:-1]} entry")
+
+
+def _read_calib_values(path: Path) -> dict[str, np.ndarray]:
+    out = {}
+    for line in path.read_text().splitlines():
+        key, sep, rest = line.partition(":")
+        if not sep:
+            continue
+        try:
+            out[key.strip()] = np.array([float(v) for v in rest.split()])
+        except ValueError:
+            continue  # e.g. calib_time
+    return out
+
+
+def _rigid(values: dict[str, np.ndarray], path: Path, r_key: str = "R", t_key: str = "T") -> np.ndarray:
+    R, t = values.get(r_key), values.get(t_key)
+    if R is None or t is None or R.size != 9 or t.size != 3:
+        raise InputError(f"{path}: needs {r_key} (9 numbers) and {t_key} (3 numbers)")
+    T = np.eye(4)
+    T[:3, :3] = R.reshape(3, 3)
+    T[:3, 3] = t
+    return T
+
+
+def read_kitti_extrinsics(date_folder: Path, camera: str) -> np.ndarray | None:
+    """T_camera_imu (4x4, metres) of a rectified KITTI camera, or None if a calibration file is absent.
+
+    See the module docstring for the chain of transforms.
+    """
+    paths = [date_folder / n for n in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt")]
+    if not all(p.is_file() for p in paths):
+        return None
+    cam, velo, imu = (_read_calib_values(p) for p in paths)
+    T_velo_imu = _rigid(imu, paths[2])
+    T_cam0_velo = _rigid(velo, paths[1])
+    r_rect = cam.get("R_rect_00")
+    if r_rect is None or r_rect.size != 9:
+        raise InputError(f"{paths[0]}: no R_rect_00 entry with 9 numbers")
+    T_rect_cam0 = np.eye(4)
+    T_rect_cam0[:3, :3] = r_rect.reshape(3, 3)
+    P = read_kitti_calibration(paths[0], camera)
+    T_camera_rect = np.eye(4)
+    T_camera_rect[:3, 3] = np.linalg.solve(P[:, :3], P[:, 3])  # baseline of camera N in the rectified frame
+    return T_camera_rect @ T_rect_cam0 @ T_cam0_velo @ T_velo_imu
 
 
 def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
@@ -178,11 +236,12 @@ def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
     for i, (img, rec, t) in enumerate(zip(images, oxts, stamps, strict=True)):
         if img.stem != rec.stem:
             raise InputError(f"{rec}: OXTS record does not pair with image {img.name}")
-        lat, lon, alt, heading = _read_oxts(rec)
+        lat, lon, alt, heading, roll, pitch, yaw = _read_oxts(rec)
         frames.append(Frame(frame=i, image_path=img, timestamp_s=t, lat_deg=lat, lon_deg=lon, alt_m=alt,
-                            heading_deg=heading))
+                            heading_deg=heading, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw))
     calib = read_kitti_calibration(folder.parent / "calib_cam_to_cam.txt", camera)
-    return Sequence(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib)
+    extrinsics = read_kitti_extrinsics(folder.parent, camera) if calib is not None else None
+    return Sequence(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib, T_camera_imu=extrinsics)
 
 
 # -- folder of images + CSV ------------------------------------------------------

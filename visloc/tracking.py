@@ -12,6 +12,13 @@ measurement and its covariance is (P0^-1 + R^-1)^-1 on the position.
 A missing measurement (``None``: no database image had a correspondence) only
 predicts. Covariances are updated in Joseph form, which stays symmetric and
 positive semi-definite.
+
+Beyond the paper (the refined mode): a step may bring its own measurement
+covariance ``R`` (``step(z, R)``; None = the filter's constant R), and with
+``gate_chi2 > 0`` a measurement whose squared Mahalanobis distance to the prediction,
+y' S^-1 y, exceeds ``gate_chi2`` is not applied: the step only predicts and is marked
+``gated`` (its innovation is kept for diagnostics). ``rts_smooth`` is the
+Rauch-Tung-Striebel smoother over a finished run's steps.
 """
 
 from __future__ import annotations
@@ -85,6 +92,8 @@ class FilterStep:
     x: np.ndarray
     P: np.ndarray
     innovation: Innovation | None
+    gated: bool = False  # the measurement was rejected by the Mahalanobis gate (x, P are the prediction)
+    R: np.ndarray | None = None  # the measurement covariance this step used, m^2 (None: no measurement)
 
     @property
     def position_m(self) -> np.ndarray:
@@ -102,8 +111,9 @@ class ConstantVelocityKalman:
     the filter has no state; a ``None`` then yields an empty step (``x`` all NaN).
     """
 
-    def __init__(self, params: FilterParams):
+    def __init__(self, params: FilterParams, *, gate_chi2: float = 0.0):
         self.params = params
+        self.gate_chi2 = float(gate_chi2)  # 0: no gating
         self.F = transition_matrix(params.dt_s)
         self.Q = process_noise(params.dt_s, params.accel_var_m2_s4)
         self.R = params.meas_var_m2 * np.eye(MEAS_DIM)
@@ -117,7 +127,11 @@ class ConstantVelocityKalman:
     def initialised(self) -> bool:
         return self.x is not None
 
-    def step(self, z: np.ndarray | None) -> FilterStep:
+    def step(self, z: np.ndarray | None, R: np.ndarray | None = None) -> FilterStep:
+        """One query: predict, then update with ``z`` (east_m, north_m) using ``R`` (2x2, m^2) or the filter's R."""
+        R = self.R if R is None else np.asarray(R, float)
+        if R.shape != (MEAS_DIM, MEAS_DIM) or not np.all(np.isfinite(R)):
+            raise ValueError(f"R must be a finite {MEAS_DIM}x{MEAS_DIM} covariance, got {R!r}")
         if self.x is None:
             if z is None:
                 nan = np.full(STATE_DIM, np.nan)
@@ -130,14 +144,67 @@ class ConstantVelocityKalman:
         if z is None:
             self.x, self.P = x_prior, P_prior
             return FilterStep(x_prior, P_prior, x_prior, P_prior, None)
-        self.x, self.P, innovation = update(x_prior, P_prior, z, self.R)
-        return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation)
+        initialising = self.x is None
+        x, P, innovation = update(x_prior, P_prior, z, R)
+        # the first measurement defines the track, so it is never gated
+        if not initialising and self.gate_chi2 > 0 and innovation.mahalanobis**2 > self.gate_chi2:
+            self.x, self.P = x_prior, P_prior
+            return FilterStep(x_prior, P_prior, x_prior.copy(), P_prior.copy(), innovation, gated=True, R=R)
+        self.x, self.P = x, P
+        return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation, R=R)
 
 
-def run_filter(measurements_m: list[np.ndarray | None], params: FilterParams) -> list[FilterStep]:
-    """Filter a whole sequence of measurements (east_m, north_m) or None."""
-    kf = ConstantVelocityKalman(params)
-    return [kf.step(z) for z in measurements_m]
+def run_filter(measurements_m: list[np.ndarray | None], params: FilterParams, *,
+               covariances_m2: list[np.ndarray | None] | None = None, gate_chi2: float = 0.0) -> list[FilterStep]:
+    """Filter a whole sequence of measurements (east_m, north_m) or None.
+
+    ``covariances_m2``: per step a 2x2 R or None (the filter's R); ``gate_chi2``: see the module docstring.
+    """
+    kf = ConstantVelocityKalman(params, gate_chi2=gate_chi2)
+    covs = covariances_m2 if covariances_m2 is not None else [None] * len(measurements_m)
+    if len(covs) != len(measurements_m):
+        raise ValueError("covariances_m2 must have one entry per measurement")
+    return [kf.step(z, R) for z, R in zip(measurements_m, covs)]
+
+
+@dataclass(frozen=True)
+class SmoothedStep:
+    x: np.ndarray  # (4,) smoothed state
+    P: np.ndarray  # (4, 4) its covariance
+
+    @property
+    def position_m(self) -> np.ndarray:
+        return self.x[:2]
+
+    @property
+    def position_cov_m2(self) -> np.ndarray:
+        return self.P[:2, :2]
+
+
+def rts_smooth(steps: list[FilterStep], dt_s: float) -> list[SmoothedStep]:
+    """Rauch-Tung-Striebel smoothing of a finished filter run (constant velocity, step ``dt_s``).
+
+    Uses each step's stored prediction (x_prior, P_prior = F P F' + Q), so it needs
+    only F. Steps before the first measurement (NaN state) stay NaN.
+    Backwards from the last step k = n-2 .. first:
+        C_k = P_k F' (P_prior_{k+1})^-1
+        x_s_k = x_k + C_k (x_s_{k+1} - x_prior_{k+1})
+        P_s_k = P_k + C_k (P_s_{k+1} - P_prior_{k+1}) C_k'
+    """
+    F = transition_matrix(dt_s)
+    out = [SmoothedStep(s.x.copy(), s.P.copy()) for s in steps]
+    for k in range(len(steps) - 2, -1, -1):
+        if not np.all(np.isfinite(steps[k].x)):
+            continue  # before the track started
+        nxt = steps[k + 1]
+        # C = P F' Pp^-1   (solve instead of inverting Pp; Pp is symmetric)
+        C = np.linalg.solve(nxt.P_prior, F @ steps[k].P).T
+        # x_s = x + C (x_s' - x_prior')
+        x = steps[k].x + C @ (out[k + 1].x - nxt.x_prior)
+        # P_s = P + C (P_s' - P_prior') C'
+        P = steps[k].P + C @ (out[k + 1].P - nxt.P_prior) @ C.T
+        out[k] = SmoothedStep(x, 0.5 * (P + P.T))
+    return out
 
 
 def covariance_ellipse_m(center_m: np.ndarray, cov_m2: np.ndarray, n_sigma: float = 2.0,

@@ -1,0 +1,258 @@
+"""Geometry of the refined mode on a synthetic scene with known poses.
+
+A street of random 3D points, database cameras at known poses along it, a query camera
+between them; pixels are projections with a KITTI-like K plus small noise. The
+triangulation, the PnP pose and the whole measurement must give back the known answer.
+"""
+
+import numpy as np
+import pytest
+
+from visloc.geometry import (CameraModel, essential_inliers, imu_east_north_covariance, imu_pose_from_camera,
+                             imu_poses, invert, project, rotation_from_rpy, solve_pnp, triangulate)
+from visloc.params import RefinedParams
+from visloc.refined import (GEOMETRY, GEOTAG, DatabaseGeometry, StructureCache, filter_measurements,
+                            measurement_from_retrieval)
+from visloc.retrieval import Retrieval
+from visloc.params import FilterParams
+from visloc.tracking import run_filter
+
+K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
+WIDTH_PX, HEIGHT_PX = 1242, 375
+# imu: x forward, y left, z up; camera: x right, y down, z forward, 1.1 m ahead of the imu and 0.7 m above it
+R_CAMERA_IMU = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+T_CAMERA_IMU = np.eye(4)
+T_CAMERA_IMU[:3, :3] = R_CAMERA_IMU
+T_CAMERA_IMU[:3, 3] = -R_CAMERA_IMU @ np.array([1.1, 0.3, 0.7])
+CAMERA = CameraModel(K, T_CAMERA_IMU)
+
+
+def street(n_points=1500, seed=0):
+    """Points on two facades and the road ahead of an eastbound car (world ENU, metres)."""
+    rng = np.random.default_rng(seed)
+    east = rng.uniform(5.0, 60.0, n_points)
+    side = rng.choice([-1.0, 1.0], n_points)
+    north = side * rng.uniform(4.0, 9.0, n_points)
+    up = rng.uniform(-1.5, 6.0, n_points)
+    return np.stack([east, north, up], axis=1)
+
+
+def camera_pose(east_m, north_m=0.0, up_m=0.0, yaw_rad=0.0, pitch_rad=0.0, roll_rad=0.0):
+    T_world_imu = imu_poses(np.array([[east_m, north_m, up_m]]), np.array([[roll_rad, pitch_rad, yaw_rad]]))[0]
+    return T_world_imu @ invert(T_CAMERA_IMU), T_world_imu
+
+
+def observe(points, T_world_camera, noise_px=0.0, rng=None):
+    """Pixels and a visibility mask (in front, inside the image)."""
+    uv, depth = project(K, T_world_camera, points)
+    visible = (depth > 1.0) & (uv[:, 0] >= 0) & (uv[:, 0] < WIDTH_PX) & (uv[:, 1] >= 0) & (uv[:, 1] < HEIGHT_PX)
+    if noise_px:
+        uv = uv + (rng or np.random.default_rng(1)).normal(scale=noise_px, size=uv.shape)
+    return uv, visible
+
+
+def test_rotation_follows_the_oxts_convention():
+    # yaw 90 degrees: the car's forward axis (imu x) points north, its left axis (imu y) west
+    R = rotation_from_rpy(0.0, 0.0, np.pi / 2)
+    np.testing.assert_allclose(R @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+    np.testing.assert_allclose(R @ [0, 1, 0], [-1, 0, 0], atol=1e-12)
+    # positive pitch is "front down" in OXTS: forward axis gets a negative up component
+    assert (rotation_from_rpy(0.0, 0.1, 0.0) @ [1, 0, 0])[2] < 0
+    # positive roll is "left side up"
+    assert (rotation_from_rpy(0.1, 0.0, 0.0) @ [0, 1, 0])[2] > 0
+    T = imu_poses(np.array([[1.0, 2.0, 3.0]]), np.array([[0.1, 0.2, 0.3]]))[0]
+    np.testing.assert_allclose(invert(T) @ T, np.eye(4), atol=1e-12)
+
+
+def test_triangulation_recovers_points_and_rejects_tiny_parallax():
+    points = street()
+    Ta, _ = camera_pose(0.0)
+    Tb, _ = camera_pose(3.0, north_m=0.1, yaw_rad=0.02)
+    xa, va = observe(points, Ta)
+    xb, vb = observe(points, Tb)
+    both = va & vb
+    exact = triangulate(K, Ta, xa[both], K, Tb, xb[both], max_reprojection_px=1.0, min_parallax_deg=1.0)
+    assert exact.keep.sum() > 300
+    assert np.abs(exact.points_world[exact.keep] - points[both][exact.keep]).max() < 1e-6
+    # 0.2 px of noise: with a forward baseline depth is the weak direction, its error grows with distance
+    rng = np.random.default_rng(2)
+    xa_noisy = xa + rng.normal(scale=0.2, size=xa.shape)
+    xb_noisy = xb + rng.normal(scale=0.2, size=xb.shape)
+    tri = triangulate(K, Ta, xa_noisy[both], K, Tb, xb_noisy[both], max_reprojection_px=1.0, min_parallax_deg=1.0)
+    assert tri.keep.sum() > 300
+    err = np.linalg.norm(tri.points_world[tri.keep] - points[both][tri.keep], axis=1)
+    distance = np.linalg.norm(points[both][tri.keep] - Ta[:3, 3], axis=1)
+    assert np.median(err / distance) < 0.01
+    assert np.all(tri.parallax_deg[tri.keep] >= 1.0)
+    # the same views with no baseline: nothing has parallax, nothing is kept
+    zero = triangulate(K, Ta, xa[va], K, Ta, xa[va], min_parallax_deg=0.5)
+    assert zero.keep.sum() == 0
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 0.3])
+def test_pnp_gives_back_the_query_position_within_centimetres(noise_px):
+    points = street(seed=3)
+    T_query_camera, T_query_imu = camera_pose(-6.0, north_m=0.4, up_m=0.05, yaw_rad=0.03, pitch_rad=0.01)
+    xq, vq = observe(points, T_query_camera, noise_px, np.random.default_rng(4))
+    outliers = np.flatnonzero(vq)[:40]  # 40 wrong 2D-3D pairs, RANSAC must drop them
+    xq[outliers] += np.random.default_rng(5).uniform(30, 200, (40, 2))
+    pnp = solve_pnp(points[vq], xq[vq], K, reprojection_px=2.0, seed=0, min_inliers=15)
+    assert not isinstance(pnp, str), pnp
+    T_imu = imu_pose_from_camera(pnp.T_world_camera, T_CAMERA_IMU)
+    assert np.linalg.norm(T_imu[:3, 3] - T_query_imu[:3, 3]) < 0.02
+    assert not set(np.flatnonzero(vq)[pnp.inliers]) & set(outliers)
+
+
+def test_pnp_covariance_matches_the_scatter_of_repeated_noisy_solutions():
+    """With exact 3D points and pixel noise, PnP's propagated covariance should describe its own errors."""
+    points = street(n_points=300, seed=6)
+    T_query_camera, T_query_imu = camera_pose(-6.0, north_m=0.4, yaw_rad=0.03)
+    nees = []
+    for seed in range(40):
+        xq, vq = observe(points, T_query_camera, 1.0, np.random.default_rng(100 + seed))
+        pnp = solve_pnp(points[vq], xq[vq], K, reprojection_px=4.0, seed=0)
+        e = imu_pose_from_camera(pnp.T_world_camera, T_CAMERA_IMU)[:2, 3] - T_query_imu[:2, 3]
+        cov = imu_east_north_covariance(pnp, T_CAMERA_IMU)
+        assert np.all(np.linalg.eigvalsh(cov) > 0)
+        nees.append(e @ np.linalg.solve(cov, e))
+    # chi-square with 2 dof has mean 2; 40 draws put the sample mean within about +-0.7
+    assert 1.2 < np.mean(nees) < 3.0, np.mean(nees)
+
+
+def test_pnp_with_too_few_points_says_why():
+    points = street(n_points=8)
+    T, _ = camera_pose(0.0)
+    x, v = observe(points, T)
+    reason = solve_pnp(points[v], x[v], K, min_inliers=15)
+    assert isinstance(reason, str) and "2D-3D correspondences" in reason
+
+
+def test_essential_inliers_reject_wrong_matches_and_need_five_points():
+    points = street(seed=7)
+    Ta, _ = camera_pose(0.0)
+    Tb, _ = camera_pose(4.0, yaw_rad=0.05)
+    xa, va = observe(points, Ta, 0.2)
+    xb, vb = observe(points, Tb, 0.2)
+    both = np.flatnonzero(va & vb)
+    ya, yb = xa[both].copy(), xb[both].copy()
+    wrong = np.arange(0, len(both), 5)
+    yb[wrong] = np.random.default_rng(8).uniform([0, 0], [WIDTH_PX, HEIGHT_PX], (len(wrong), 2))
+    mask = essential_inliers(ya, yb, K, K, threshold_px=1.0, seed=0)
+    right = np.setdiff1d(np.arange(len(both)), wrong)
+    assert mask[right].mean() > 0.95 and mask[wrong].mean() < 0.1
+    np.testing.assert_array_equal(mask, essential_inliers(ya, yb, K, K, threshold_px=1.0, seed=0))  # seeded
+    assert not essential_inliers(ya[:4], yb[:4], K, K).any()
+
+
+# -- the whole measurement -------------------------------------------------------------
+
+def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3, seed=11):
+    """Database images at the given eastings (all heading east), a query, and descriptors per 3D point."""
+    rng = np.random.default_rng(seed)
+    points = street(n_points=n_points, seed=seed)
+    descriptors = rng.integers(0, 256, (n_points, 128)).astype(np.uint8)
+    poses, kps, descs = [], [], []
+    for east in db_east_m:
+        T, _ = camera_pose(east)
+        x, v = observe(points, T, noise_px, rng)
+        poses.append(T)
+        kps.append(x[v])
+        descs.append(descriptors[v])
+    Tq, Tq_imu = camera_pose(query_east_m, north_m=0.3, yaw_rad=0.02)
+    xq, vq = observe(points, Tq, noise_px, rng)
+    geometry = DatabaseGeometry(T_world_camera=np.array(poses), keypoints_xy_px=tuple(kps), descriptors_u8=tuple(descs),
+                                camera=CAMERA)
+    imu_positions = np.array([(T @ T_CAMERA_IMU)[:2, 3] for T in poses])
+    return geometry, imu_positions, xq[vq], descriptors[vq], Tq_imu[:2, 3]
+
+
+def retrieval_over(n):
+    """Every database image a candidate; counts favour the middle image."""
+    counts = np.full(n, 50, np.int64)
+    counts[n // 2] = 80
+    return Retrieval(candidates=np.arange(n), counts=counts, best_index=n // 2)
+
+
+def test_measurement_gives_back_the_known_query_position_within_centimetres():
+    geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0])
+    params = RefinedParams(neighbour_gaps=(1, 2), n_views=2)
+    cache = StructureCache()
+    m = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
+                                   query_camera=CAMERA, params=params, cache=cache)
+    assert m.source == GEOMETRY and m.fallback_reason is None, m.fallback_reason
+    assert np.linalg.norm(m.east_north_m - truth) < 0.05
+    assert m.n_pnp_inliers > 100 and m.sigma_m < 0.1 and m.heading_deg == pytest.approx(90 - np.degrees(0.02), abs=0.2)
+    assert len(cache) > 0
+    # the paper's measurement of the same retrieval is the best match's geotag, 5 m off here
+    paper = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="paper")
+    assert paper.source == GEOTAG and paper.cov_m2 is None
+    np.testing.assert_array_equal(paper.east_north_m, geotags[2])
+    # deterministic: the same inputs give the same measurement, with or without the cache
+    again = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
+                                       query_camera=CAMERA, params=params)
+    np.testing.assert_array_equal(again.east_north_m, m.east_north_m)
+    np.testing.assert_array_equal(again.cov_m2, m.cov_m2)
+
+
+def test_a_stopped_car_has_no_baseline_and_falls_back_to_the_geotag():
+    geometry, geotags, xq, dq, _ = synthetic_database([5.0, 5.0, 5.0, 5.0, 5.0])
+    m = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
+                                   query_camera=CAMERA, params=RefinedParams(neighbour_gaps=(1, 2)))
+    assert m.source == GEOTAG and m.cov_m2 is None
+    assert "car stopped" in m.fallback_reason
+    np.testing.assert_array_equal(m.east_north_m, geotags[2])
+
+
+def test_too_few_points_fall_back_with_the_reason():
+    geometry, geotags, xq, dq, _ = synthetic_database([3.0, 6.0, 9.0], n_points=40)
+    m = measurement_from_retrieval(xq, dq, retrieval_over(3), geotags, mode="refined", geometry=geometry,
+                                   query_camera=CAMERA, params=RefinedParams(neighbour_gaps=(1,), min_verified_inliers=60))
+    assert m.source == GEOTAG and m.fallback_reason.startswith("verification: best candidate has")
+
+
+@pytest.mark.parametrize("what,reason", [
+    ("query_camera", "query camera has no calibration"),
+    ("database_camera", "no extrinsics"),
+    ("keypoints", "query keypoints not given"),
+    ("excluded_neighbours", "car stopped"),
+])
+def test_missing_inputs_fall_back_with_the_reason(what, reason):
+    geometry, geotags, xq, dq, _ = synthetic_database([3.0, 6.0, 9.0])
+    retrieval = retrieval_over(3)
+    kwargs = dict(mode="refined", geometry=geometry, query_camera=CAMERA, params=RefinedParams(neighbour_gaps=(1,)))
+    if what == "query_camera":
+        kwargs["query_camera"] = None
+    elif what == "database_camera":
+        kwargs["geometry"] = DatabaseGeometry(geometry.T_world_camera, geometry.keypoints_xy_px,
+                                              geometry.descriptors_u8, None, "database x: no extrinsics")
+    elif what == "keypoints":
+        xq = None
+    elif what == "excluded_neighbours":  # the retrieval allows only the view itself: no neighbour to triangulate with
+        retrieval = Retrieval(candidates=np.array([1]), counts=np.array([80]), best_index=1)
+    m = measurement_from_retrieval(xq, dq, retrieval, geotags, **kwargs)
+    assert m.source == GEOTAG and reason in m.fallback_reason
+    np.testing.assert_array_equal(m.east_north_m, geotags[retrieval.best_index])
+
+
+def test_no_match_gives_no_measurement_in_either_mode():
+    geometry, geotags, xq, dq, _ = synthetic_database([3.0, 6.0, 9.0])
+    none = Retrieval(candidates=np.arange(3), counts=np.zeros(3, np.int64), best_index=None)
+    for mode in ("paper", "refined"):
+        m = measurement_from_retrieval(xq, dq, none, geotags, mode=mode, geometry=geometry, query_camera=CAMERA)
+        assert m.source is None and m.east_north_m is None
+
+
+def test_filter_measurements_uses_each_measurements_own_covariance():
+    geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0])
+    params = RefinedParams(neighbour_gaps=(1, 2))
+    geo = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
+                                     query_camera=CAMERA, params=params)
+    paper = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="paper")
+    fp = FilterParams()
+    steps = filter_measurements([paper, geo], fp)
+    expected = run_filter([paper.east_north_m, geo.east_north_m], fp, covariances_m2=[None, geo.cov_m2])
+    np.testing.assert_allclose(steps[1].x, expected[1].x)
+    np.testing.assert_allclose(steps[1].R, geo.cov_m2)
+    np.testing.assert_allclose(steps[0].R, fp.meas_var_m2 * np.eye(2))
+    # a centimetre-accurate measurement pulls the estimate onto itself
+    assert np.linalg.norm(steps[1].x[:2] - geo.east_north_m) < 0.01
