@@ -171,7 +171,7 @@ def test_page_loads_with_its_controls_and_panels(dashboard, browser):
         assert "image_00 frame 0" in row(page, "query")
         assert re.match(r"image_01 frame \d+ \([+-]\d\.\d\d s\), \d+ correspondences", row(page, "best match"))
         assert row(page, "measurement error").endswith(" m")
-        assert status_text(page).startswith("Ready (run 1, τ1 0.8, τ2 0.97): 11 queries of image_00")
+        assert status_text(page).startswith("Ready (run 1, paper, τ1 0.8, τ2 0.97): 11 queries of image_00")
         time.sleep(2)  # let the scene's images arrive
         assert screenshot(page, "dashboard_loaded.png").stat().st_size > 50_000
         assert dashboard.alive()
@@ -294,6 +294,7 @@ def test_a_bad_store_is_reported_in_the_page_and_the_server_lives_on(dashboard, 
         assert row(page, "query") == query
         assert dashboard.alive()
     finally:
+        reset(page)  # a new run replaces the message
         page.close()
 
 

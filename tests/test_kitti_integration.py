@@ -15,7 +15,7 @@ from conftest import KITTI_DRIVE, run_cli
 pytestmark = [pytest.mark.kitti, pytest.mark.slow]
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def evaluation(kitti_evaluation):
     return kitti_evaluation
 

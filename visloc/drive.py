@@ -23,11 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.database import GeoDatabase, QuerySet, camera_model
+from visloc.database import GeoDatabase, QuerySet
 from visloc.errors import ParameterError
-from visloc.evaluation import StepRecord, step_record
+from visloc.evaluation import StepRecord, localization_inputs, step_record
 from visloc.localizer import Localizer, PairCountCache, Query, StepResult
-from visloc.params import REFINED, FilterParams, MatchParams, RefinedParams, RetrievalParams, check_mode
+from visloc.params import REFINED, FilterParams, MatchParams, RefinedParams, RetrievalParams
 from visloc.refined import Measurement, StructureCache
 from visloc.retrieval import CountFn, Retrieval
 from visloc.tracking import run_filter
@@ -104,15 +104,7 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
     Counts computed so far stay in ``cache`` either way; database structure built by
     the refined mode stays in ``structure_cache``.
     """
-    check_mode(mode)
-    if cache is None:
-        cache = PairCountCache(db.descriptors_u8, match_params)
-    elif cache.match_params != match_params:
-        raise ParameterError(f"cache holds counts for {cache.match_params}, not {match_params}")
-    geometry = query_camera = None
-    if mode == "refined":
-        geometry = db.geometry()
-        query_camera, _ = camera_model(queries.calibration, f"queries {queries.source}/{queries.camera}")
+    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache)
     indices = np.asarray(query_indices, np.int64)
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
                           FilterParams(), counter=lambda q: _cancellable(cache(q), cancelled), mode=mode,

@@ -275,6 +275,25 @@ class Evaluation:
         }
 
 
+def localization_inputs(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, mode: str,
+                        cache: PairCountCache | None):
+    """What a Localizer over ``queries`` and ``db`` needs besides parameters: a count cache for
+    these thresholds (a new one if None) and, in the refined mode, the database's geometry and
+    the query camera. Refuses a cache built for other thresholds."""
+    check_mode(mode)
+    if cache is None:
+        cache = PairCountCache(db.descriptors_u8, match_params)
+    elif cache.match_params != match_params:
+        raise ParameterError(f"cache holds counts for {cache.match_params}, not {match_params}")
+    geometry = query_camera = None
+    if mode == "refined":
+        geometry = db.geometry()
+        query_camera, _ = camera_model(queries.calibration, f"queries {queries.source}/{queries.camera}")
+        if not queries.keypoints_f32:
+            raise ParameterError("mode='refined': the query set has no keypoints")
+    return cache, geometry, query_camera
+
+
 def evaluate(
     queries: QuerySet,
     db: GeoDatabase,
@@ -311,16 +330,7 @@ def evaluate(
     if start_indices is not None:
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
-    if cache is None:
-        cache = PairCountCache(db.descriptors_u8, match_params)
-    elif cache.match_params != match_params:
-        raise ParameterError(f"cache holds counts for {cache.match_params}, not {match_params}")
-    geometry = query_camera = None
-    if mode == "refined":
-        geometry = db.geometry()
-        query_camera, _ = camera_model(queries.calibration, f"queries {queries.source}/{queries.camera}")
-        if not queries.keypoints_f32:
-            raise ParameterError("mode='refined': the query set has no keypoints")
+    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache)
     structures = StructureCache()
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
                           filter_params, counter=cache, mode=mode, refined_params=refined_params, geometry=geometry,
