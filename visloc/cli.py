@@ -53,11 +53,15 @@ def _add_sift(p: argparse.ArgumentParser) -> None:
     g.add_argument("--sift-contrast", type=float, default=d.contrast_threshold, help="contrast threshold (default %(default)s)")
     g.add_argument("--sift-edge", type=float, default=d.edge_threshold, help="edge threshold (default %(default)s)")
     g.add_argument("--sift-sigma", type=float, default=d.sigma, help="default %(default)s")
+    g.add_argument("--sift-scale", type=float, default=d.image_scale,
+                   help="run SIFT on the image resized by this factor in [0.1, 1]; keypoints stay in full-resolution "
+                        "pixels (default %(default)s)")
 
 
 def _sift(a: argparse.Namespace) -> SiftParams:
     return SiftParams(n_features=a.sift_features, n_octave_layers=a.sift_octave_layers,
-                      contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma)
+                      contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma,
+                      image_scale=a.sift_scale)
 
 
 def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
