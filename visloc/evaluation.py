@@ -309,6 +309,7 @@ def evaluate(
     mode: str = "paper",
     refined_params: RefinedParams = REFINED,
     smooth: bool = False,
+    fast=None,
 ) -> Evaluation:
     """Run every series (or those starting at ``start_indices``, indices into ``queries``).
 
@@ -324,6 +325,8 @@ def evaluate(
     again, RANSAC, PnP) but not the triangulation of database structure, which is
     database-side work done once per database pair (``structure_build_ms``).
     ``smooth`` adds the RTS smoother's estimates of every step of each series.
+    ``fast`` (a ``visloc.fast.FastDatabase`` of ``db``) selects the opt-in fast retrieval: the
+    filter gates the candidates and global vectors shortlist them before the exact counts.
     """
     check_mode(mode)
     schedule = series_schedule(queries.timestamps_s, filter_params.dt_s, n_steps, sampling)
@@ -334,7 +337,8 @@ def evaluate(
     structures = StructureCache()
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
                           filter_params, counter=cache, mode=mode, refined_params=refined_params, geometry=geometry,
-                          query_camera=query_camera, structure_cache=structures, measurement_cache={})
+                          query_camera=query_camera, structure_cache=structures, measurement_cache={},
+                          fast=fast)
     series = []
     for indices in schedule:
         localizer.reset()
@@ -366,6 +370,7 @@ def evaluate(
         "n_steps": n_steps, "sampling": sampling, "database": f"{db.source}/{db.camera}",
         "queries": f"{queries.source}/{queries.camera}", "mode": mode,
         "refined": refined_params.as_dict() if mode == "refined" else None, "smooth": smooth,
+        "fast": fast.params.as_dict() if fast is not None else None,
     }
     return Evaluation(series=series, params=params, mode=mode, smoothed=smooth,
                       structure_build_ms=structures.build_ms)
