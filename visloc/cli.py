@@ -313,6 +313,27 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_bench(a: argparse.Namespace) -> int:
+    from bench.run import BenchParams, run_bench, write_json
+
+    params = BenchParams(series=a.series, shortlist_size=a.shortlist, fast_scale=a.fast_scale,
+                         ingest_images=a.ingest_images, workers=a.workers, synthetic_images=a.synthetic_images,
+                         synthetic_descriptors=a.synthetic_descriptors, synthetic_queries=a.synthetic_queries,
+                         skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy)
+    root = a.root or default_data_root()
+    if a.json is not None and not Path(a.json).resolve().parent.is_dir():
+        raise InputError(f"--json {a.json}: folder does not exist")
+    for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
+        if not Path(path).resolve().parent.is_dir():
+            raise InputError(f"{flag} {path}: folder does not exist")
+    _open_sequence(root, a.drive, "image_00")  # a missing drive fails here, before any slow work
+    result = run_bench(root, a.drive, Path(a.db), Path(a.fast_db), params, say=lambda t: print(t, flush=True))
+    if a.json:
+        write_json(a.json, result)
+        print(f"wrote {a.json}")
+    return 0
+
+
 def cmd_info(a: argparse.Namespace) -> int:
     from visloc.ingest import stored_sift_params
 
@@ -398,6 +419,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--db-camera", default="image_01", help="database camera to show first (default %(default)s)")
     p.add_argument("--query-camera", default="image_00", help="query camera to show first (default %(default)s)")
     p.set_defaults(func=cmd_dashboard)
+
+    p = sub.add_parser("bench", help="time the paper's brute-force path against the fast path (issue 5)",
+                       description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "
+                                   "SIFT at a smaller image scale) on the same queries of a KITTI drive: accuracy, "
+                                   "latency per stage, ingest throughput against bare SIFT, and a synthetic "
+                                   "database's lost-query time and peak memory. Builds the stores it lacks.")
+    p.add_argument("root", nargs="?", type=Path, default=None,
+                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
+    p.add_argument("--drive", default="2011_09_26_drive_0001", help="KITTI drive (default %(default)s)")
+    p.add_argument("--db", default="out/visloc.sqlite", help="store of the paper's path (default %(default)s)")
+    p.add_argument("--fast-db", default="out/visloc_s05.sqlite",
+                   help="store of the fast path, SIFT at --fast-scale (default %(default)s)")
+    p.add_argument("--series", type=int, default=2, help="live series of 6 queries timed per lever (default %(default)s)")
+    p.add_argument("--shortlist", type=int, default=8, help="images matched exactly per query (default %(default)s)")
+    p.add_argument("--fast-scale", type=float, default=0.5, help="fast path's SIFT image scale (default %(default)s)")
+    p.add_argument("--ingest-images", type=int, default=24, help="images timed for ingest (default %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="processes for ingest and bare SIFT (default %(default)s)")
+    p.add_argument("--synthetic-images", type=int, default=100_000, help="synthetic database size (default %(default)s)")
+    p.add_argument("--synthetic-descriptors", type=int, default=64,
+                   help="descriptors per synthetic image (default %(default)s)")
+    p.add_argument("--synthetic-queries", type=int, default=20, help="lost queries on it (default %(default)s)")
+    p.add_argument("--skip-synthetic", action="store_true", help="leave out the synthetic database test")
+    p.add_argument("--skip-accuracy", action="store_true", help="leave out the accuracy over every series")
+    p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)

@@ -276,13 +276,13 @@ class Evaluation:
 
 
 def localization_inputs(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, mode: str,
-                        cache: PairCountCache | None):
+                        cache: PairCountCache | None, fast=None):
     """What a Localizer over ``queries`` and ``db`` needs besides parameters: a count cache for
     these thresholds (a new one if None) and, in the refined mode, the database's geometry and
     the query camera. Refuses a cache built for other thresholds."""
     check_mode(mode)
-    if cache is None:
-        cache = PairCountCache(db.descriptors_u8, match_params)
+    if cache is None:  # the fast path may match capped descriptors: count what it matches
+        cache = PairCountCache(fast.descriptors_u8 if fast is not None else db.descriptors_u8, match_params)
     elif cache.match_params != match_params:
         raise ParameterError(f"cache holds counts for {cache.match_params}, not {match_params}")
     geometry = query_camera = None
@@ -333,7 +333,10 @@ def evaluate(
     if start_indices is not None:
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
-    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache)
+    if fast is not None and fast.params.max_keypoints and cache is not None:
+        raise ParameterError("fast.params.max_keypoints: counts of capped descriptors cannot come from a cache of "
+                             "full ones; pass cache=None")
+    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache, fast)
     structures = StructureCache()
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
                           filter_params, counter=cache, mode=mode, refined_params=refined_params, geometry=geometry,

@@ -34,7 +34,7 @@ from visloc.matching import NearestTwo, correspondence_mask, nearest_two
 from visloc.params import MatchParams, RetrievalParams, _check, _Params
 from visloc.retrieval import Retrieval, candidate_mask
 
-NN_BACKENDS = ("gemm", "faiss")
+NN_BACKENDS = ("gemm", "faiss", "batched")
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,10 @@ class FastParams(_Params):
     gate_sigmas:        gate radius in standard deviations of the predicted position (largest axis)
     gate_min_radius_m:  the gate is never narrower than this, metres
     shortlist_size:     candidates matched exactly, the most similar by global vector (0 = all in the gate)
-    nn_backend:         exact nearest-two search: "faiss" or "gemm" (numpy float32 GEMM, the paper path's)
+    nn_backend:         exact nearest-two search: "batched" (every shortlisted image in one GEMM),
+                        "faiss" or "gemm" (numpy float32 GEMM per image, the paper path's)
+    max_keypoints:      keypoint cap: query and database images keep their this many strongest keypoints
+                        (by SIFT response) for retrieval; 0 = all. Geometry always uses every keypoint.
     n_words:            k-means words of the VLAD codebook
     pca_dim:            dimension of the global vectors after PCA (0 = no PCA, n_words * 128)
     train_descriptors:  descriptors sampled from the database to train the codebook
@@ -54,7 +57,8 @@ class FastParams(_Params):
     gate_sigmas: float = 3.0
     gate_min_radius_m: float = 20.0
     shortlist_size: int = 8
-    nn_backend: str = "faiss"
+    nn_backend: str = "batched"
+    max_keypoints: int = 0
     n_words: int = 32
     pca_dim: int = 0
     train_descriptors: int = 100_000
@@ -63,7 +67,7 @@ class FastParams(_Params):
     def __post_init__(self) -> None:
         _check("gate_sigmas", self.gate_sigmas, self.gate_sigmas > 0, "> 0")
         _check("gate_min_radius_m", self.gate_min_radius_m, self.gate_min_radius_m >= 0, ">= 0")
-        for name, low in (("shortlist_size", 0), ("n_words", 1), ("pca_dim", 0), ("train_descriptors", 1),
+        for name, low in (("shortlist_size", 0), ("max_keypoints", 0), ("n_words", 1), ("pca_dim", 0), ("train_descriptors", 1),
                           ("seed", 0)):
             v = getattr(self, name)
             _check(name, v, isinstance(v, int) and not isinstance(v, bool) and v >= low, f"an integer >= {low}")
@@ -102,16 +106,67 @@ def nearest_two_faiss(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestT
 def count_correspondences_with(backend: str, query_u8: np.ndarray, database_u8: np.ndarray,
                                params: MatchParams) -> int:
     """The paper's score of one database image, nearest two found by ``backend`` ("gemm" or "faiss")."""
-    if backend not in NN_BACKENDS:
-        raise ParameterError(f"nn_backend={backend!r}: must be one of {', '.join(NN_BACKENDS)}")
+    if backend not in ("gemm", "faiss"):
+        raise ParameterError(f"nn_backend={backend!r}: must be gemm or faiss for one image")
     nn = nearest_two_faiss(query_u8, database_u8) if backend == "faiss" else nearest_two(query_u8, database_u8)
     return int(correspondence_mask(nn, params).sum())
 
 
+def count_many(query_u8: np.ndarray, db_descriptors: Sequence[np.ndarray], candidates: np.ndarray,
+               params: MatchParams, *, block_bytes: int = 64 << 20) -> np.ndarray:
+    """(M,) correspondence counts of the query against each candidate image, in one GEMM per block.
+
+    The candidates' descriptors are stacked (padded to the longest with columns whose score is
+    -inf) so that one large matrix product replaces M small ones; the nearest two are then
+    found per candidate. The arithmetic is ``matching.nearest_two``'s, in the same float32
+    order, so the counts are the same numbers (``tests/test_fast.py`` checks it).
+    """
+    candidates = np.asarray(candidates, np.int64)
+    out = np.zeros(candidates.size, np.int64)
+    q = np.asarray(query_u8, np.float32)
+    if candidates.size == 0 or q.shape[0] == 0:
+        return out
+    q_sq = np.einsum("ij,ij->i", q, q)
+    q_norm = np.sqrt(q_sq)
+    sizes = np.array([len(db_descriptors[int(i)]) for i in candidates])
+    width = max(int(sizes.max()), 1)
+    per_block = max(1, block_bytes // (4 * width * max(q.shape[0], 1)))
+    tau1_sq = params.tau1 ** 2
+    for start in range(0, candidates.size, per_block):
+        chunk = candidates[start : start + per_block]
+        c = chunk.size
+        d = np.zeros((c, width, q.shape[1]), np.float32)
+        d_sq = np.full((c, width), np.inf, np.float32)
+        for j, i in enumerate(chunk):
+            rows = np.asarray(db_descriptors[int(i)], np.float32)
+            d[j, : len(rows)] = rows
+            d_sq[j, : len(rows)] = np.einsum("ij,ij->i", rows, rows)
+        # score = g.f - |f|^2 / 2, maximal at the nearest f (see matching.nearest_two)
+        score = (q @ d.reshape(c * width, -1).T).reshape(q.shape[0], c, width)
+        score -= 0.5 * d_sq[None, :, :]
+        index1 = score.argmax(axis=2)  # (Nq, c)
+        best = np.take_along_axis(score, index1[:, :, None], axis=2)[:, :, 0]
+        np.put_along_axis(score, index1[:, :, None], -np.inf, axis=2)
+        second = score.max(axis=2)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            dist1_sq = np.maximum(q_sq[:, None] - 2.0 * best, 0.0).astype(np.float32)
+            dist2_sq = np.maximum(q_sq[:, None] - 2.0 * second, 0.0).astype(np.float32)
+            d_sq1 = d_sq[np.arange(c)[None, :], index1]
+            dot1 = best + 0.5 * d_sq1
+            norms = q_norm[:, None] * np.sqrt(d_sq1)
+            cosine1 = np.where(norms > 0, dot1 / norms, np.nan).astype(np.float32)
+            ok = (dist1_sq < tau1_sq * dist2_sq) & (cosine1 > params.tau2) & np.isfinite(best)
+        out[start : start + c] = ok.sum(axis=0)
+    return out
+
+
 def counts_with(backend: str, query_u8: np.ndarray, db_descriptors: Sequence[np.ndarray], params: MatchParams):
-    """A ``retrieval.CountFn`` matching the query against each candidate with ``backend``."""
+    """A ``retrieval.CountFn`` for this query: "batched" stacks the candidates into one GEMM
+    (``count_many``), "gemm" and "faiss" match them one at a time."""
 
     def counts(candidates: np.ndarray) -> np.ndarray:
+        if backend == "batched":
+            return count_many(query_u8, db_descriptors, candidates, params)
         return np.array([count_correspondences_with(backend, query_u8, db_descriptors[int(i)], params)
                          for i in candidates], np.int64)
 
@@ -160,8 +215,9 @@ class GlobalEncoder:
         if x.shape[0]:
             # nearest word by |x - c|^2 = |c|^2 - 2 x.c + const
             words = np.argmin((c * c).sum(1)[None, :] - 2.0 * (x @ c.T), axis=1)
-            np.add.at(out, words, x)
-            out -= np.bincount(words, minlength=c.shape[0])[:, None].astype(np.float32) * c
+            onehot = np.zeros((x.shape[0], c.shape[0]), np.float32)
+            onehot[np.arange(x.shape[0]), words] = 1.0
+            out = onehot.T @ x - onehot.sum(axis=0)[:, None] * c
         out = np.sign(out) * np.sqrt(np.abs(out))
         norms = np.linalg.norm(out, axis=1, keepdims=True)
         out = np.divide(out, norms, out=np.zeros_like(out), where=norms > 0).ravel()
@@ -248,6 +304,16 @@ def shortlist(db_vectors_f32: np.ndarray, query_vector_f32: np.ndarray, size: in
     return rows[order]
 
 
+def strongest(keypoints_f32: np.ndarray, n: int) -> np.ndarray:
+    """Rows of the ``n`` keypoints with the largest SIFT response (column 4), in their original order;
+    every row when ``n`` is 0 or not smaller than the number of keypoints. Ties keep the earlier row."""
+    k = np.asarray(keypoints_f32)
+    if n <= 0 or n >= k.shape[0]:
+        return np.arange(k.shape[0])
+    order = np.argsort(-k[:, 4], kind="stable")[:n]
+    return np.sort(order)
+
+
 # -- the fast retrieval -----------------------------------------------------------------------
 
 @dataclass(frozen=True)
@@ -269,11 +335,28 @@ class FastDatabase:
     encoder: GlobalEncoder
     vectors_f32: np.ndarray  # (N, dim)
     params: FastParams
+    descriptors_u8: tuple[np.ndarray, ...]  # what retrieval matches: every image's, capped if params say so
 
     @classmethod
-    def build(cls, descriptors: Sequence[np.ndarray], params: FastParams = FAST) -> "FastDatabase":
+    def build(cls, descriptors: Sequence[np.ndarray], params: FastParams = FAST,
+              keypoints: Sequence[np.ndarray] | None = None) -> "FastDatabase":
+        """Train the encoder on ``descriptors`` and encode every image. A keypoint cap needs ``keypoints``."""
+        if params.max_keypoints:
+            if keypoints is None or len(keypoints) != len(descriptors):
+                raise ParameterError("max_keypoints: capping the database needs its keypoints")
+            descriptors = tuple(np.ascontiguousarray(d[strongest(k, params.max_keypoints)])
+                                for d, k in zip(descriptors, keypoints))
+        descriptors = tuple(descriptors)
         encoder = train_encoder(descriptors, params)
-        return cls(encoder, encoder.encode_many(descriptors), params)
+        return cls(encoder, encoder.encode_many(descriptors), params, descriptors)
+
+    def cap_query(self, descriptors_u8: np.ndarray, keypoints_f32: np.ndarray | None) -> np.ndarray:
+        """The query's descriptors retrieval uses (its strongest ``max_keypoints`` when capped)."""
+        if not self.params.max_keypoints:
+            return descriptors_u8
+        if keypoints_f32 is None:
+            raise ParameterError("max_keypoints: capping a query needs its keypoints")
+        return np.ascontiguousarray(descriptors_u8[strongest(keypoints_f32, self.params.max_keypoints)])
 
 
 def fast_retrieve(query_u8: np.ndarray, counts_of, db_timestamps_s: np.ndarray, db_east_north_m: np.ndarray,

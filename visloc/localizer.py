@@ -98,7 +98,7 @@ class Localizer:
         if counter is None and fast is not None:
             from visloc.fast import counts_with
 
-            counter = lambda q: counts_with(fast.params.nn_backend, q.descriptors_u8, self.db_descriptors,  # noqa: E731
+            counter = lambda q: counts_with(fast.params.nn_backend, q.descriptors_u8, fast.descriptors_u8,  # noqa: E731
                                             match_params)
         self._counter = counter or (lambda q: brute_force_counts(q.descriptors_u8, self.db_descriptors, match_params))
         self.reset()
@@ -136,6 +136,9 @@ class Localizer:
         if k.initialised:
             x, P = predict(k.x, k.P, k.F, k.Q)
             predicted, predicted_cov = x[:2], P[:2, :2]
+        if self.fast.params.max_keypoints:  # retrieval sees the strongest keypoints only; geometry sees all
+            capped = self.fast.cap_query(query.descriptors_u8, query.keypoints_f32)
+            query = Query(capped, query.timestamp_s, key=query.key, keypoints_f32=None)
         self.last_fast = fast_retrieve(query.descriptors_u8, self._counter(query), self.db_timestamps_s,
                                        self.db_east_north_m, self.fast, query.timestamp_s, self.retrieval_params,
                                        predicted, predicted_cov)
