@@ -271,6 +271,11 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         db = load_database(store, db_seq.source, db_seq.camera, sift)
         queries = load_query_set(store, query_seq.source, query_seq.camera, sift)
         starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
+        fast = None
+        if a.fast:  # opt-in: filter gate + VLAD shortlist + batched exact counts (visloc.fast)
+            from visloc.fast import FAST, FastDatabase
+
+            fast = FastDatabase.build(db.descriptors_u8, FAST, keypoints=db.keypoints_f32)
         # correspondence counts computed by earlier runs with the same tau1, tau2
         cache = PairCountCache(db.descriptors_u8, match, db_keys=[im.image_id for im in db.images],
                                known=store.pair_counts(queries.image_ids, match.tau1, match.tau2))
@@ -283,7 +288,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                 result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, sampling=a.sampling,
                                   start_indices=starts, cache=cache,
                                   progress=lambda n: (bar.update(n), save_counts()), mode=mode,
-                                  refined_params=refined, smooth=a.smooth)
+                                  refined_params=refined, smooth=a.smooth, fast=fast)
         finally:
             save_counts()
     finally:
@@ -404,6 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
     p.add_argument("--smooth", action="store_true",
                    help="also run the RTS smoother over each series and report its per-step errors")
+    p.add_argument("--fast", action="store_true",
+                   help="the fast retrieval (issue 5): the filter gates the candidates, VLAD vectors shortlist "
+                        "8 of them, exact counts on those only (default: the paper's window, every candidate)")
     _add_method(p, PAPER_EVAL_RETRIEVAL)
     _add_mode(p)
     _add_sift(p)
