@@ -50,7 +50,7 @@ class BenchParams:
     series: int = 2
     shortlist_size: int = 8
     fast_scale: float = 0.5
-    ingest_images: int = 24
+    ingest_images: int = 40
     workers: int = 2
     synthetic_images: int = 100_000
     synthetic_descriptors: int = 64

@@ -442,7 +442,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--series", type=int, default=2, help="live series of 6 queries timed per lever (default %(default)s)")
     p.add_argument("--shortlist", type=int, default=8, help="images matched exactly per query (default %(default)s)")
     p.add_argument("--fast-scale", type=float, default=0.5, help="fast path's SIFT image scale (default %(default)s)")
-    p.add_argument("--ingest-images", type=int, default=24, help="images timed for ingest (default %(default)s)")
+    p.add_argument("--ingest-images", type=int, default=40, help="images timed for ingest (default %(default)s)")
     p.add_argument("--workers", type=int, default=2, help="processes for ingest and bare SIFT (default %(default)s)")
     p.add_argument("--synthetic-images", type=int, default=100_000, help="synthetic database size (default %(default)s)")
     p.add_argument("--synthetic-descriptors", type=int, default=64,
