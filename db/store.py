@@ -17,6 +17,10 @@ Tables
                    angle_deg, response, octave) and descriptors (uint8, N x 128) as BLOBs.
 ``pair_counts``    a cache: correspondences between a query image and a database
                    image for given (tau1, tau2), and how long computing it took.
+``global_vectors`` optional (the fast path): one small float32 vector per image under
+                   a name (e.g. the VLAD encoder that made it), for a shortlist search
+                   that never loads the descriptors.
+``arrays``         optional: named numpy arrays (e.g. that encoder's codebook).
 
 Writes happen in transactions (``FeatureStore.add_images`` commits a batch at
 once), the journal is in WAL mode, and an interrupted write rolls back: a store
@@ -412,6 +416,88 @@ class FeatureStore:
         if rows:
             with self.db.atomic():
                 self.db["pair_counts"].insert_all(rows, replace=True)
+
+    # -- streaming and global vectors (the fast path) ---------------------------------
+
+    def iter_descriptors(self, image_ids: Iterable[int], chunk_size: int = 256):
+        """Yield (image_id, descriptors_u8 (N, 128)) for ``image_ids`` in order, ``chunk_size`` rows per
+        query: memory stays bounded by one chunk however large the store."""
+        ids = [int(i) for i in image_ids]
+        for start in range(0, len(ids), chunk_size):
+            chunk = ids[start : start + chunk_size]
+            marks = ",".join("?" * len(chunk))
+            rows = {r["id"]: r for r in self.db.query(
+                f"SELECT id, n_keypoints, descriptors_u8 FROM images WHERE id IN ({marks})", chunk)}
+            for i in chunk:
+                if i not in rows:
+                    raise StoreError(f"{self.label}: no image with id {i}")
+                r = rows[i]
+                yield i, np.frombuffer(r["descriptors_u8"], dtype=np.uint8).reshape(r["n_keypoints"], DESCRIPTOR_DIM)
+
+    def image_ids(self, source: str | None = None, camera: str | None = None) -> np.ndarray:
+        """(N,) int64 image ids in (source, camera, timestamp) order, without loading any metadata."""
+        where, args = _where(source, camera)
+        rows = self.db.execute(f"SELECT id FROM images {where} ORDER BY source, camera, timestamp_s, frame", args)
+        return np.array([r[0] for r in rows], np.int64)
+
+    def geotags_of(self, image_ids: Iterable[int]) -> dict[int, tuple[float, float]]:
+        """image_id -> (lat_deg, lon_deg) geotag."""
+        ids = [int(i) for i in image_ids]
+        marks = ",".join("?" * len(ids))
+        return {r[0]: (r[1], r[2]) for r in self.db.execute(
+            f"SELECT id, lat_deg, lon_deg FROM images WHERE id IN ({marks})", ids)}
+
+    def _ensure_fast_tables(self) -> None:
+        if "global_vectors" not in self.db.table_names():
+            with self.db.atomic():
+                self.db["global_vectors"].create({"name": str, "image_id": int, "vector_f32": bytes},
+                                                 pk=("name", "image_id"))
+                self.db["arrays"].create({"key": str, "dtype": str, "shape_json": str, "data": bytes}, pk="key")
+
+    def add_global_vectors(self, name: str, image_ids: Sequence[int], vectors_f32: np.ndarray) -> None:
+        """Store one float32 vector per image under ``name`` (replacing what was there), one transaction."""
+        self._ensure_fast_tables()
+        v = np.ascontiguousarray(vectors_f32, np.float32)
+        if v.ndim != 2 or v.shape[0] != len(image_ids):
+            raise StoreError(f"{self.label}: global vectors must be ({len(image_ids)}, D), got {v.shape}")
+        with self.db.atomic():
+            self.db["global_vectors"].insert_all(
+                ({"name": name, "image_id": int(i), "vector_f32": row.tobytes()} for i, row in zip(image_ids, v)),
+                replace=True, batch_size=1000)
+
+    def global_vectors(self, name: str) -> tuple[np.ndarray, np.ndarray]:
+        """(image ids (N,) int64, vectors (N, D) float32) stored under ``name``, ordered by image id.
+        Reads row by row into one preallocated array (no per-row Python objects kept)."""
+        if "global_vectors" not in self.db.table_names():
+            raise StoreError(f"{self.label}: no global vectors (build them first)")
+        n = self.db.execute("SELECT count(*) FROM global_vectors WHERE name = ?", [name]).fetchone()[0]
+        if n == 0:
+            raise StoreError(f"{self.label}: no global vectors named {name!r}")
+        ids = np.empty(n, np.int64)
+        out = None
+        cur = self.db.execute("SELECT image_id, vector_f32 FROM global_vectors WHERE name = ? ORDER BY image_id",
+                              [name])
+        for k, (image_id, blob) in enumerate(cur):
+            row = np.frombuffer(blob, np.float32)
+            if out is None:
+                out = np.empty((n, row.size), np.float32)
+            ids[k], out[k] = image_id, row
+        return ids, out
+
+    def put_array(self, key: str, array: np.ndarray) -> None:
+        self._ensure_fast_tables()
+        a = np.ascontiguousarray(array)
+        with self.db.atomic():
+            self.db["arrays"].upsert({"key": key, "dtype": a.dtype.str, "shape_json": json.dumps(list(a.shape)),
+                                      "data": a.tobytes()}, pk="key")
+
+    def get_array(self, key: str) -> np.ndarray | None:
+        if "arrays" not in self.db.table_names():
+            return None
+        row = next(self.db.query("SELECT dtype, shape_json, data FROM arrays WHERE key = ?", [key]), None)
+        if row is None:
+            return None
+        return np.frombuffer(row["data"], np.dtype(row["dtype"])).reshape(json.loads(row["shape_json"])).copy()
 
     def sources(self) -> list[dict]:
         """One dict per (source, camera): image count, time span, keypoint statistics."""

@@ -25,7 +25,7 @@ def one_line_error(result, *fragments):
 def test_every_command_and_option_has_help_text():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    assert set(sub.choices) == {"ingest", "localize", "evaluate", "info", "dashboard"}
+    assert set(sub.choices) == {"ingest", "localize", "evaluate", "info", "dashboard", "bench"}
     for name, cmd in sub.choices.items():
         assert cmd.description, name
         for action in cmd._actions:
@@ -283,3 +283,15 @@ def test_both_modes_report_the_same_keys(tmp_path):
     assert paper["measurement_source_fraction"]["geotag"] == 1.0 - paper["steps_without_measurement"] / 4
     # the smoother's last step is the filter's own
     assert paper["smoothed_error_m"][-1] == pytest.approx(paper["estimate_error_m"][-1])
+
+
+@pytest.mark.parametrize("args,named", [
+    (["--series", "0"], "--series"),
+    (["--shortlist", "0"], "--shortlist"),
+    (["--fast-scale", "1.5"], "--fast-scale"),
+    (["--synthetic-images", "10"], "--synthetic-images"),
+    (["--workers", "0"], "--workers"),
+    (["--json", "/no/such/folder/bench.json"], "--json"),
+])
+def test_bench_refuses_bad_parameters_in_one_line(args, named):
+    one_line_error(run_cli("bench", *args), named)

@@ -17,6 +17,7 @@ from visloc.database import GeoDatabase, QuerySet, load_database, load_query_set
 from visloc.drive import DriveMatches, MatchCancelled, drive_query_indices, drive_summary, match_drive, track_drive
 from visloc.errors import InputError, ParameterError, VislocError
 from visloc.evaluation import Evaluation, StepRecord, evaluate, series_schedule
+from visloc.fast import FAST, FastDatabase, FastParams, FastRetrieval, count_many, fast_retrieve, nearest_two_faiss
 from visloc.features import Features, extract_sift, make_sift
 from visloc.figures import correspondence_figure
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
@@ -55,6 +56,7 @@ from visloc.workspace import Dataset, Workspace
 __version__ = "0.1.0"
 
 __all__ = [
+    "FAST", "FastDatabase", "FastParams", "FastRetrieval", "count_many", "fast_retrieve", "nearest_two_faiss",
     "Dataset", "DriveMatches", "MatchCancelled", "Workspace", "correspondence_figure",
     "covariance_ellipse_m", "drive_query_indices", "drive_summary", "match_drive", "track_drive",
     "CameraModel", "DatabaseGeometry", "MODES", "Measurement", "PnPResult", "REFINED", "RefinedParams",

@@ -53,11 +53,15 @@ def _add_sift(p: argparse.ArgumentParser) -> None:
     g.add_argument("--sift-contrast", type=float, default=d.contrast_threshold, help="contrast threshold (default %(default)s)")
     g.add_argument("--sift-edge", type=float, default=d.edge_threshold, help="edge threshold (default %(default)s)")
     g.add_argument("--sift-sigma", type=float, default=d.sigma, help="default %(default)s")
+    g.add_argument("--sift-scale", type=float, default=d.image_scale,
+                   help="run SIFT on the image resized by this factor in [0.1, 1]; keypoints stay in full-resolution "
+                        "pixels (default %(default)s)")
 
 
 def _sift(a: argparse.Namespace) -> SiftParams:
     return SiftParams(n_features=a.sift_features, n_octave_layers=a.sift_octave_layers,
-                      contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma)
+                      contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma,
+                      image_scale=a.sift_scale)
 
 
 def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
@@ -267,6 +271,11 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         db = load_database(store, db_seq.source, db_seq.camera, sift)
         queries = load_query_set(store, query_seq.source, query_seq.camera, sift)
         starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
+        fast = None
+        if a.fast:  # opt-in: filter gate + VLAD shortlist + batched exact counts (visloc.fast)
+            from visloc.fast import FAST, FastDatabase
+
+            fast = FastDatabase.build(db.descriptors_u8, FAST, keypoints=db.keypoints_f32)
         # correspondence counts computed by earlier runs with the same tau1, tau2
         cache = PairCountCache(db.descriptors_u8, match, db_keys=[im.image_id for im in db.images],
                                known=store.pair_counts(queries.image_ids, match.tau1, match.tau2))
@@ -279,7 +288,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                 result = evaluate(queries, db, match, retrieval, filt, n_steps=a.steps, sampling=a.sampling,
                                   start_indices=starts, cache=cache,
                                   progress=lambda n: (bar.update(n), save_counts()), mode=mode,
-                                  refined_params=refined, smooth=a.smooth)
+                                  refined_params=refined, smooth=a.smooth, fast=fast)
         finally:
             save_counts()
     finally:
@@ -306,6 +315,27 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
 
     serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera, query_camera=a.query_camera,
           announce=lambda text: print(text, flush=True))
+    return 0
+
+
+def cmd_bench(a: argparse.Namespace) -> int:
+    from bench.run import BenchParams, run_bench, write_json
+
+    params = BenchParams(series=a.series, shortlist_size=a.shortlist, fast_scale=a.fast_scale,
+                         ingest_images=a.ingest_images, workers=a.workers, synthetic_images=a.synthetic_images,
+                         synthetic_descriptors=a.synthetic_descriptors, synthetic_queries=a.synthetic_queries,
+                         skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy)
+    root = a.root or default_data_root()
+    if a.json is not None and not Path(a.json).resolve().parent.is_dir():
+        raise InputError(f"--json {a.json}: folder does not exist")
+    for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
+        if not Path(path).resolve().parent.is_dir():
+            raise InputError(f"{flag} {path}: folder does not exist")
+    _open_sequence(root, a.drive, "image_00")  # a missing drive fails here, before any slow work
+    result = run_bench(root, a.drive, Path(a.db), Path(a.fast_db), params, say=lambda t: print(t, flush=True))
+    if a.json:
+        write_json(a.json, result)
+        print(f"wrote {a.json}")
     return 0
 
 
@@ -379,6 +409,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
     p.add_argument("--smooth", action="store_true",
                    help="also run the RTS smoother over each series and report its per-step errors")
+    p.add_argument("--fast", action="store_true",
+                   help="the fast retrieval (issue 5): the filter gates the candidates, VLAD vectors shortlist "
+                        "8 of them, exact counts on those only (default: the paper's window, every candidate)")
     _add_method(p, PAPER_EVAL_RETRIEVAL)
     _add_mode(p)
     _add_sift(p)
@@ -394,6 +427,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--db-camera", default="image_01", help="database camera to show first (default %(default)s)")
     p.add_argument("--query-camera", default="image_00", help="query camera to show first (default %(default)s)")
     p.set_defaults(func=cmd_dashboard)
+
+    p = sub.add_parser("bench", help="time the paper's brute-force path against the fast path (issue 5)",
+                       description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "
+                                   "SIFT at a smaller image scale) on the same queries of a KITTI drive: accuracy, "
+                                   "latency per stage, ingest throughput against bare SIFT, and a synthetic "
+                                   "database's lost-query time and peak memory. Builds the stores it lacks.")
+    p.add_argument("root", nargs="?", type=Path, default=None,
+                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
+    p.add_argument("--drive", default="2011_09_26_drive_0001", help="KITTI drive (default %(default)s)")
+    p.add_argument("--db", default="out/visloc.sqlite", help="store of the paper's path (default %(default)s)")
+    p.add_argument("--fast-db", default="out/visloc_s05.sqlite",
+                   help="store of the fast path, SIFT at --fast-scale (default %(default)s)")
+    p.add_argument("--series", type=int, default=2, help="live series of 6 queries timed per lever (default %(default)s)")
+    p.add_argument("--shortlist", type=int, default=8, help="images matched exactly per query (default %(default)s)")
+    p.add_argument("--fast-scale", type=float, default=0.5, help="fast path's SIFT image scale (default %(default)s)")
+    p.add_argument("--ingest-images", type=int, default=40, help="images timed for ingest (default %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="processes for ingest and bare SIFT (default %(default)s)")
+    p.add_argument("--synthetic-images", type=int, default=100_000, help="synthetic database size (default %(default)s)")
+    p.add_argument("--synthetic-descriptors", type=int, default=64,
+                   help="descriptors per synthetic image (default %(default)s)")
+    p.add_argument("--synthetic-queries", type=int, default=20, help="lost queries on it (default %(default)s)")
+    p.add_argument("--skip-synthetic", action="store_true", help="leave out the synthetic database test")
+    p.add_argument("--skip-accuracy", action="store_true", help="leave out the accuracy over every series")
+    p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
+    p.set_defaults(func=cmd_bench)
 
     p = sub.add_parser("info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)

@@ -276,13 +276,13 @@ class Evaluation:
 
 
 def localization_inputs(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, mode: str,
-                        cache: PairCountCache | None):
+                        cache: PairCountCache | None, fast=None):
     """What a Localizer over ``queries`` and ``db`` needs besides parameters: a count cache for
     these thresholds (a new one if None) and, in the refined mode, the database's geometry and
     the query camera. Refuses a cache built for other thresholds."""
     check_mode(mode)
-    if cache is None:
-        cache = PairCountCache(db.descriptors_u8, match_params)
+    if cache is None:  # the fast path may match capped descriptors: count what it matches
+        cache = PairCountCache(fast.descriptors_u8 if fast is not None else db.descriptors_u8, match_params)
     elif cache.match_params != match_params:
         raise ParameterError(f"cache holds counts for {cache.match_params}, not {match_params}")
     geometry = query_camera = None
@@ -309,6 +309,7 @@ def evaluate(
     mode: str = "paper",
     refined_params: RefinedParams = REFINED,
     smooth: bool = False,
+    fast=None,
 ) -> Evaluation:
     """Run every series (or those starting at ``start_indices``, indices into ``queries``).
 
@@ -324,17 +325,23 @@ def evaluate(
     again, RANSAC, PnP) but not the triangulation of database structure, which is
     database-side work done once per database pair (``structure_build_ms``).
     ``smooth`` adds the RTS smoother's estimates of every step of each series.
+    ``fast`` (a ``visloc.fast.FastDatabase`` of ``db``) selects the opt-in fast retrieval: the
+    filter gates the candidates and global vectors shortlist them before the exact counts.
     """
     check_mode(mode)
     schedule = series_schedule(queries.timestamps_s, filter_params.dt_s, n_steps, sampling)
     if start_indices is not None:
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
-    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache)
+    if fast is not None and fast.params.max_keypoints and cache is not None:
+        raise ParameterError("fast.params.max_keypoints: counts of capped descriptors cannot come from a cache of "
+                             "full ones; pass cache=None")
+    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache, fast)
     structures = StructureCache()
     localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
                           filter_params, counter=cache, mode=mode, refined_params=refined_params, geometry=geometry,
-                          query_camera=query_camera, structure_cache=structures, measurement_cache={})
+                          query_camera=query_camera, structure_cache=structures, measurement_cache={},
+                          fast=fast)
     series = []
     for indices in schedule:
         localizer.reset()
@@ -366,6 +373,7 @@ def evaluate(
         "n_steps": n_steps, "sampling": sampling, "database": f"{db.source}/{db.camera}",
         "queries": f"{queries.source}/{queries.camera}", "mode": mode,
         "refined": refined_params.as_dict() if mode == "refined" else None, "smooth": smooth,
+        "fast": fast.params.as_dict() if fast is not None else None,
     }
     return Evaluation(series=series, params=params, mode=mode, smoothed=smooth,
                       structure_build_ms=structures.build_ms)

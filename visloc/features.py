@@ -55,12 +55,18 @@ def extract_sift(gray_u8: np.ndarray, params: SiftParams, *, sift: "cv2.SIFT | N
     if gray_u8.ndim != 2 or gray_u8.dtype != np.uint8:
         raise InputError(f"{name}: expected a 2-D uint8 gray image, got {gray_u8.dtype} {gray_u8.shape}")
     sift = sift or make_sift(params)
-    keypoints, descriptors = sift.detectAndCompute(gray_u8, None)
+    scale = params.image_scale
+    image = gray_u8 if scale == 1.0 else cv2.resize(gray_u8, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+    keypoints, descriptors = sift.detectAndCompute(image, None)
     if not keypoints:
         raise InputError(f"{name}: no SIFT keypoints found (blank or featureless image)")
     kp = np.array(
         [(k.pt[0], k.pt[1], k.size, k.angle, k.response, k.octave) for k in keypoints], dtype=np.float32
     )
+    if scale != 1.0:
+        # pixel centres: x_full + 0.5 = (x_scaled + 0.5) / scale
+        kp[:, :2] = (kp[:, :2] + 0.5) / scale - 0.5
+        kp[:, 2] /= scale
     return Features(keypoints_f32=kp, descriptors_u8=np.ascontiguousarray(descriptors, dtype=np.uint8))
 
 

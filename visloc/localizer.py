@@ -14,6 +14,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -22,7 +23,9 @@ from visloc.params import REFINED, FilterParams, MatchParams, RefinedParams, Ret
 from visloc.matching import count_correspondences
 from visloc.refined import DatabaseGeometry, Measurement, StructureCache, measurement_from_retrieval
 from visloc.retrieval import CountFn, Retrieval, brute_force_counts, retrieve
-from visloc.tracking import ConstantVelocityKalman, FilterStep
+if TYPE_CHECKING:
+    from visloc.fast import FastDatabase
+from visloc.tracking import ConstantVelocityKalman, FilterStep, predict
 
 
 @dataclass(frozen=True)
@@ -69,6 +72,7 @@ class Localizer:
         query_camera: CameraModel | None = None,
         structure_cache: StructureCache | None = None,
         measurement_cache: dict | None = None,
+        fast: "FastDatabase | None" = None,
     ):
         self.db_timestamps_s = np.asarray(db_timestamps_s, float)
         self.db_east_north_m = np.asarray(db_east_north_m, float)
@@ -87,6 +91,15 @@ class Localizer:
         # (query key, candidates) -> Measurement: the same query with the same candidates measures the same
         self.measurement_cache = measurement_cache
         self.last_measure_ms = 0.0  # wall time of the latest step's measurement (about 0 when memoised)
+        self.last_retrieval_ms = 0.0  # wall time of the latest step's retrieval
+        # opt-in fast path (visloc.fast): the filter gates retrieval, global vectors shortlist, exact counts
+        self.fast = fast
+        self.last_fast = None  # the latest step's FastRetrieval (fast path only)
+        if counter is None and fast is not None:
+            from visloc.fast import counts_with
+
+            counter = lambda q: counts_with(fast.params.nn_backend, q.descriptors_u8, fast.descriptors_u8,  # noqa: E731
+                                            match_params)
         self._counter = counter or (lambda q: brute_force_counts(q.descriptors_u8, self.db_descriptors, match_params))
         self.reset()
 
@@ -98,8 +111,12 @@ class Localizer:
 
     def step(self, query: Query) -> StepResult:
         start = time.perf_counter()
-        retrieval = retrieve(self._counter(query), self.db_timestamps_s, query.timestamp_s,
-                             self._center_timestamp_s, self.retrieval_params)
+        if self.fast is None:
+            retrieval = retrieve(self._counter(query), self.db_timestamps_s, query.timestamp_s,
+                                 self._center_timestamp_s, self.retrieval_params)
+        else:
+            retrieval = self._fast_retrieve(query)
+        self.last_retrieval_ms = (time.perf_counter() - start) * 1000.0
         if retrieval.best_index is not None:
             self._center_timestamp_s = float(self.db_timestamps_s[retrieval.best_index])
         else:
@@ -110,6 +127,22 @@ class Localizer:
         filtered = self._kalman.step(measurement.east_north_m, measurement.cov_m2)
         return StepResult(query.timestamp_s, retrieval, measurement.east_north_m, filtered,
                           (time.perf_counter() - start) * 1000.0, measurement)
+
+    def _fast_retrieve(self, query: Query) -> Retrieval:
+        from visloc.fast import fast_retrieve
+
+        predicted = predicted_cov = None
+        k = self._kalman
+        if k.initialised:
+            x, P = predict(k.x, k.P, k.F, k.Q)
+            predicted, predicted_cov = x[:2], P[:2, :2]
+        if self.fast.params.max_keypoints:  # retrieval sees the strongest keypoints only; geometry sees all
+            capped = self.fast.cap_query(query.descriptors_u8, query.keypoints_f32)
+            query = Query(capped, query.timestamp_s, key=query.key, keypoints_f32=None)
+        self.last_fast = fast_retrieve(query.descriptors_u8, self._counter(query), self.db_timestamps_s,
+                                       self.db_east_north_m, self.fast, query.timestamp_s, self.retrieval_params,
+                                       predicted, predicted_cov)
+        return self.last_fast.retrieval
 
     def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
         """The measurement of one retrieved query in this localizer's mode (memoised if asked)."""

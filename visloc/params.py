@@ -37,6 +37,10 @@ class SiftParams(_Params):
     """OpenCV SIFT settings. A store records them; queries must use the same ones.
 
     ``n_features = 0`` keeps every keypoint (the paper: about 3200 per KITTI frame).
+    ``image_scale`` < 1 runs SIFT on the image resized by that factor (area
+    interpolation) and maps keypoints back to full-resolution pixels, so geometry
+    is unchanged; 1 (the paper) runs on the image as it is. A scaled store is a
+    different store: its settings record the scale.
     """
 
     n_features: int = 0
@@ -44,6 +48,14 @@ class SiftParams(_Params):
     contrast_threshold: float = 0.04
     edge_threshold: float = 10.0
     sigma: float = 1.6
+    image_scale: float = 1.0
+
+    def as_dict(self) -> dict:
+        # image_scale is recorded only when it is not 1, so stores built before it existed still match
+        d = asdict(self)
+        if d["image_scale"] == 1.0:
+            del d["image_scale"]
+        return d
 
     def __post_init__(self) -> None:
         _check("n_features", self.n_features, isinstance(self.n_features, int) and self.n_features >= 0,
@@ -53,6 +65,7 @@ class SiftParams(_Params):
         _check("contrast_threshold", self.contrast_threshold, self.contrast_threshold >= 0, ">= 0")
         _check("edge_threshold", self.edge_threshold, self.edge_threshold > 0, "> 0")
         _check("sigma", self.sigma, self.sigma > 0, "> 0")
+        _check("image_scale", self.image_scale, 0.1 <= self.image_scale <= 1, "in [0.1, 1]")
 
 
 @dataclass(frozen=True)

@@ -262,7 +262,7 @@ def measurement_from_retrieval(
     for _, i, pairs in views:
         if len(used_views) == params.n_views:
             break
-        neighbours = neighbours_of(i, retrieval.candidates, geometry.T_world_camera, params)
+        neighbours = neighbours_of(i, retrieval.search_area, geometry.T_world_camera, params)
         if not neighbours:
             continue
         structure, ms = view_structure(geometry, i, neighbours, params, cache)

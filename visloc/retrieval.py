@@ -35,6 +35,14 @@ class Retrieval:
     candidates: np.ndarray  # (M,) database indices compared with the query
     counts: np.ndarray  # (M,) correspondences per candidate
     best_index: int | None  # database index of the best match, None if no candidate has a correspondence
+    # every image the search area allowed, when the candidates are only a shortlist of them (fast path);
+    # None: the candidates are the whole search area (the paper's path)
+    allowed: np.ndarray | None = None
+
+    @property
+    def search_area(self) -> np.ndarray:
+        """Database indices the retrieval could have chosen from."""
+        return self.candidates if self.allowed is None else self.allowed
 
     @property
     def best_count(self) -> int:

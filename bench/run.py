@@ -1,0 +1,402 @@
+"""``visloc bench``: the paper's brute-force path and the fast path on the same queries, in one run.
+
+Sections (each prints as it finishes; ``--json`` writes everything):
+
+1. **Accuracy** over every series of the paper's protocol (1 s exclusion) on drive 0001,
+   one row per lever: the paper's path, the filter gate, gate + VLAD shortlist, and the
+   same at SIFT image scale 0.5 (the fast path). Counts come from each store's pair-count
+   cache, filled by exact matching when missing (the counts are deterministic, so cached and
+   fresh counts are the same numbers); per query, whether the best match agrees with the paper's.
+2. **Latency** on the same live queries (``--series`` series of six, spread over the drive)
+   for every lever, everything recomputed: query SIFT from the PNG (the read itself not
+   timed), retrieval, geometry (the measurement; 0 in the paper's mode), filter.
+   Percentiles per stage, and the speed ratio paper / fast.
+3. **Ingest**: images per second of bare OpenCV SIFT in a process pool against
+   ``visloc.ingest`` into a fresh store, same images, same number of processes.
+4. **Scale**: a synthetic database of ``--synthetic-images`` images; time for a lost query
+   to find its candidates, and peak memory, in a process of its own.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import os
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from visloc.errors import ParameterError
+
+LEVERS = ("paper", "faiss_nn", "gate", "gate_shortlist", "fast")
+LEVER_TEXT = {
+    "paper": "paper: full-res SIFT, +-20 s window, GEMM brute force",
+    "faiss_nn": "+ exact faiss k-NN instead of GEMM (same candidates)",
+    "gate": "+ filter gate instead of the +-20 s window",
+    "gate_shortlist": "+ VLAD shortlist of the gate (exact counts on it)",
+    "fast": "+ SIFT at image scale 0.5 (own store): the fast path",
+}
+
+
+@dataclass(frozen=True)
+class BenchParams:
+    """What ``visloc bench`` runs; every check names its command-line flag."""
+
+    series: int = 2
+    shortlist_size: int = 8
+    fast_scale: float = 0.5
+    ingest_images: int = 40
+    workers: int = 2
+    synthetic_images: int = 100_000
+    synthetic_descriptors: int = 64
+    synthetic_queries: int = 20
+    skip_synthetic: bool = False
+    skip_accuracy: bool = False
+
+    def __post_init__(self) -> None:
+        def integer(flag: str, value, low: int) -> None:
+            if not (isinstance(value, int) and value >= low):
+                raise ParameterError(f"--{flag} {value!r}: must be an integer >= {low}")
+
+        integer("series", self.series, 1)
+        integer("shortlist", self.shortlist_size, 1)
+        integer("ingest-images", self.ingest_images, 2)
+        integer("workers", self.workers, 1)
+        integer("synthetic-images", self.synthetic_images, 1000)
+        integer("synthetic-descriptors", self.synthetic_descriptors, 8)
+        integer("synthetic-queries", self.synthetic_queries, 1)
+        if not (isinstance(self.fast_scale, float) and 0.1 <= self.fast_scale <= 1.0):
+            raise ParameterError(f"--fast-scale {self.fast_scale!r}: must be in [0.1, 1]")
+
+
+def _pct(values) -> dict:
+    v = np.asarray(list(values), float)
+    if v.size == 0:
+        return {"p50": None, "p95": None}
+    return {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95))}
+
+
+def _load() -> dict:
+    one, five, fifteen = os.getloadavg()
+    return {"load_1min": one, "load_5min": five, "load_15min": fifteen, "cores": os.cpu_count()}
+
+
+def _peak_rss_mb() -> float:
+    from bench.synthetic import peak_rss_mb
+
+    return peak_rss_mb()
+
+
+# -- stores ------------------------------------------------------------------------------------
+
+def _ensure_store(path: Path, root: Path, drive: str | None, sift, workers: int, say) -> None:
+    from db import FeatureStore
+    from visloc.cli import _ingest_sequence, _open_sequence
+
+    with FeatureStore(path, create=True) as store:
+        for camera in ("image_01", "image_00"):
+            seq = _open_sequence(root, drive, camera)
+            if len(store.stored_frames(seq.source, seq.camera)) < len(seq):
+                say(f"building {path} ({camera}, SIFT {sift.as_dict()})")
+                _ingest_sequence(store, seq, sift, workers)
+
+
+def _load_store(path: Path, source_hint: str | None):
+    from db import FeatureStore
+    from visloc.database import load_database, load_query_set
+    from visloc.ingest import stored_sift_params
+
+    with FeatureStore(path) as store:
+        sift = stored_sift_params(store)
+        sources = {s["source"] for s in store.sources()}
+        source = next((s for s in sources if source_hint is None or source_hint in s), None)
+        db = load_database(store, source, "image_01", sift)
+        queries = load_query_set(store, source, "image_00", sift)
+    return sift, db, queries
+
+
+# -- 1. accuracy ---------------------------------------------------------------------------------
+
+def _accuracy(paths: dict, datasets: dict, fast_dbs: dict, say) -> dict:
+    from db import FeatureStore
+    from visloc.evaluation import evaluate
+    from visloc.localizer import PairCountCache
+    from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH
+
+    m = PAPER_MATCH
+    rows, best_frames = {}, {}
+    for lever, (store_key, fast_key) in {"paper": ("full", None), "gate": ("full", "gate"),
+                                         "gate_shortlist": ("full", "gate_shortlist"),
+                                         "paper_scaled": ("scaled", None), "fast": ("scaled", "fast")}.items():
+        sift, db, queries = datasets[store_key]
+        with FeatureStore(paths[store_key]) as store:
+            cache = PairCountCache(db.descriptors_u8, m, db_keys=[im.image_id for im in db.images],
+                                   known=store.pair_counts(queries.image_ids, m.tau1, m.tau2))
+            t0 = time.perf_counter()
+            try:
+                ev = evaluate(queries, db, m, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, cache=cache,
+                              fast=fast_dbs.get(fast_key))
+            finally:
+                store.add_pair_counts(cache.take_new_entries(), m.tau1, m.tau2)
+        s = ev.summary()
+        best_frames[lever] = [r.best_db_frame for series in ev.series for r in series]
+        rows[lever] = {"final_error_m": s["final_error_m"], "measurement_error_m": s["measurement_error_m"],
+                       "estimate_error_m": s["estimate_error_m"], "n_series": s["n_series"],
+                       "mean_candidates_counted": float(np.mean([r.n_candidates for se in ev.series for r in se])),
+                       "seconds": time.perf_counter() - t0}
+        say(f"  accuracy {lever:15s} final mean {s['final_error_m']['mean']:.2f} m, measurement "
+            f"{' '.join(f'{v:.2f}' for v in s['measurement_error_m'])} m, "
+            f"{rows[lever]['mean_candidates_counted']:.1f} images counted per query")
+    for lever in rows:
+        a, b = np.array(best_frames[lever], object), np.array(best_frames["paper"], object)
+        same = [x == y for x, y in zip(a, b)]
+        near = [x is not None and y is not None and abs(x - y) <= 1 for x, y in zip(a, b)]
+        rows[lever]["best_match_agrees_with_paper"] = float(np.mean(same))
+        rows[lever]["best_match_within_1_frame_of_paper"] = float(np.mean(near))
+    return rows
+
+
+# -- 2. latency ----------------------------------------------------------------------------------
+
+def _live(lever: str, datasets: dict, fast_dbs: dict, seq_by_key: dict, starts: list[list[int]]) -> list[dict]:
+    from visloc.fast import counts_with
+    from visloc.features import extract_sift, make_sift
+    from visloc.geo import geodesic_distance_m
+    from visloc.localizer import Localizer, Query
+    from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH
+    from visloc.sources import load_gray
+
+    store_key = "scaled" if lever == "fast" else "full"
+    sift, db, _ = datasets[store_key]
+    counter = None
+    if lever == "faiss_nn":
+        counter = lambda q: counts_with("faiss", q.descriptors_u8, db.descriptors_u8, PAPER_MATCH)  # noqa: E731
+    fast = fast_dbs.get(lever) if lever in ("gate", "gate_shortlist", "fast") else None
+    loc = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, PAPER_MATCH, PAPER_EVAL_RETRIEVAL,
+                    PAPER_FILTER, counter=counter, fast=fast)
+    engine = make_sift(sift)
+    seq = seq_by_key["image_00"]
+    extract_sift(load_gray(seq.frames[0].image_path), sift, sift=engine)  # warm up (imports, allocations)
+    out = []
+    for indices in starts:
+        loc.reset()
+        for k, i in enumerate(indices):
+            fr = seq.frames[i]
+            gray = load_gray(fr.image_path)
+            t0 = time.perf_counter()
+            feats = extract_sift(gray, sift, sift=engine)
+            sift_ms = (time.perf_counter() - t0) * 1000.0
+            r = loc.step(Query(feats.descriptors_u8, fr.timestamp_s, keypoints_f32=feats.keypoints_f32))
+            total_ms = (time.perf_counter() - t0) * 1000.0
+            best = r.best_index
+            m_err = None
+            if best is not None:
+                m_err = float(geodesic_distance_m(db.lat_deg[best], db.lon_deg[best], fr.lat_deg, fr.lon_deg))
+            out.append({"query_frame": fr.frame, "step": k, "sift_ms": sift_ms, "retrieval_ms": loc.last_retrieval_ms,
+                        "geometry_ms": loc.last_measure_ms,
+                        "filter_ms": max(r.compute_ms - loc.last_retrieval_ms - loc.last_measure_ms, 0.0),
+                        "total_ms": total_ms, "n_keypoints": len(feats), "n_counted": int(r.retrieval.candidates.size),
+                        "best_db_frame": None if best is None else int(db.images[best].frame),
+                        "measurement_error_m": m_err})
+    return out
+
+
+def _latency(datasets: dict, fast_dbs: dict, seq_by_key: dict, n_series: int, say) -> dict:
+    from visloc.evaluation import series_schedule
+    from visloc.params import PAPER_FILTER
+
+    seq = seq_by_key["image_00"]
+    schedule = series_schedule(seq.timestamps_s, PAPER_FILTER.dt_s, 6)
+    picks = np.unique(np.linspace(0, len(schedule) - 1, n_series).round().astype(int))
+    starts = [schedule[p] for p in picks]
+    out = {"start_frames": [seq.frames[s[0]].frame for s in starts], "levers": {}}
+    for lever in LEVERS:
+        rows = _live(lever, datasets, fast_dbs, seq_by_key, starts)
+        stages = {k: _pct(r[k] for r in rows) for k in ("sift_ms", "retrieval_ms", "geometry_ms", "filter_ms",
+                                                        "total_ms")}
+        out["levers"][lever] = {"stages_ms": stages, "queries": rows,
+                                "mean_counted": float(np.mean([r["n_counted"] for r in rows])),
+                                "median_keypoints": float(np.median([r["n_keypoints"] for r in rows]))}
+        say(f"  latency {lever:15s} total p50 {stages['total_ms']['p50']:8.1f} ms  p95 {stages['total_ms']['p95']:8.1f}"
+            f" ms  (SIFT {stages['sift_ms']['p50']:.0f}, retrieval {stages['retrieval_ms']['p50']:.1f}, "
+            f"filter {stages['filter_ms']['p50']:.2f}; {out['levers'][lever]['mean_counted']:.1f} images counted)")
+    paper, fast = out["levers"]["paper"]["queries"], out["levers"]["fast"]["queries"]
+    ratio = [p["total_ms"] / f["total_ms"] for p, f in zip(paper, fast)]
+    out["speed_ratio_paper_over_fast"] = {"p50": float(np.median(ratio)), "min": float(np.min(ratio)),
+                                          "max": float(np.max(ratio))}
+    for lever in LEVERS:
+        rows = out["levers"][lever]["queries"]
+        out["levers"][lever]["best_match_agrees_with_paper"] = float(np.mean(
+            [r["best_db_frame"] == p["best_db_frame"] for r, p in zip(rows, paper)]))
+    return out
+
+
+# -- 3. ingest -----------------------------------------------------------------------------------
+
+_bare_sift = None
+
+
+def _bare_init(sift_dict: dict) -> None:
+    global _bare_sift
+    import cv2
+
+    from visloc.features import make_sift
+    from visloc.params import SiftParams
+
+    cv2.setNumThreads(1)
+    _bare_sift = make_sift(SiftParams(**sift_dict))
+
+
+def _bare_one(path: str) -> int:
+    import cv2
+
+    gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+    keypoints, _ = _bare_sift.detectAndCompute(gray, None)
+    return len(keypoints)
+
+
+def _ingest_bench(seq_by_key: dict, sift, n_images: int, workers: int, say) -> dict:
+    from db import FeatureStore
+    from visloc.ingest import ingest
+
+    seq = seq_by_key["image_00"]
+    frames = seq.frames[:n_images]
+    paths = [str(f.image_path) for f in frames]
+    runs = {"bare_sift_images_per_s": [], "ingest_images_per_s": []}
+    for _ in range(3):  # interleaved, three times: the machine's load drifts
+        t0 = time.perf_counter()
+        with mp.get_context("spawn").Pool(workers, initializer=_bare_init, initargs=(sift.as_dict(),)) as pool:
+            list(pool.imap(_bare_one, paths, chunksize=1))
+        runs["bare_sift_images_per_s"].append(len(paths) / (time.perf_counter() - t0))
+        with tempfile.TemporaryDirectory() as tmp:
+            with FeatureStore(Path(tmp) / "ingest.sqlite", create=True) as store:
+                t0 = time.perf_counter()
+                report = ingest(store, seq, sift, workers=workers, limit=n_images)
+                runs["ingest_images_per_s"].append(report.n_added / (time.perf_counter() - t0))
+    bare, ing = float(np.median(runs["bare_sift_images_per_s"])), float(np.median(runs["ingest_images_per_s"]))
+    out = {"n_images": len(paths), "workers": workers, "sift": sift.as_dict(), "runs": runs,
+           "bare_sift_images_per_s": bare, "ingest_images_per_s": ing, "ingest_over_bare": ing / bare,
+           "ingest_over_bare_per_run": [i / b for i, b in zip(runs["ingest_images_per_s"],
+                                                              runs["bare_sift_images_per_s"])]}
+    say(f"  ingest {ing:.2f} images/s vs bare SIFT {bare:.2f} images/s over {workers} processes: "
+        f"{100 * ing / bare:.0f}% (medians of 3 interleaved runs each; per run "
+        f"{', '.join(f'{100 * r:.0f}%' for r in out['ingest_over_bare_per_run'])})")
+    return out
+
+
+# -- 4. scale ------------------------------------------------------------------------------------
+
+def _synthetic_build(path: str, spec_dict: dict) -> dict:
+    from bench.synthetic import SyntheticSpec, build_store
+
+    seconds = build_store(Path(path), SyntheticSpec(**spec_dict))
+    return {"build_s": seconds, "peak_rss_mb": _peak_rss_mb()}
+
+
+def _synthetic_query(path: str, spec_dict: dict, places: list[int], shortlist_size: int) -> dict:
+    from bench.synthetic import SyntheticSpec, lost_query
+
+    return lost_query(Path(path), SyntheticSpec(**spec_dict), places, shortlist_size)
+
+
+def _scale(out_dir: Path, p: BenchParams, say) -> dict:
+    from bench.synthetic import SyntheticSpec
+
+    spec = SyntheticSpec(n_images=p.synthetic_images, descriptors_per_image=p.synthetic_descriptors)
+    path = out_dir / f"synthetic_{spec.n_images}_{spec.descriptors_per_image}.sqlite"
+    ctx = mp.get_context("spawn")
+    with ProcessPoolExecutor(1, mp_context=ctx) as ex:
+        build = ex.submit(_synthetic_build, str(path), spec.key()).result()
+    if build["build_s"]:
+        say(f"  built {path} in {build['build_s']:.0f} s")
+    places = np.random.default_rng(7).choice(spec.n_images, size=p.synthetic_queries, replace=False).tolist()
+    with ProcessPoolExecutor(1, mp_context=ctx) as ex:  # a fresh process: its peak memory is the query's alone
+        res = ex.submit(_synthetic_query, str(path), spec.key(), places, p.shortlist_size).result()
+    res["build"] = build
+    say(f"  {spec.n_images} images: lost query finds its candidates in p50 {res['candidates_ms']['p50']:.1f} ms, "
+        f"p95 {res['candidates_ms']['p95']:.1f} ms (shortlist recall {res['recall_shortlist']:.2f}, best within 1 m "
+        f"{res['best_within_1m']:.2f}); global vectors {res['global_vectors_mb']:.0f} MB of a "
+        f"{res['store_mb']:.0f} MB store, peak RSS {res['peak_rss_mb']:.0f} MB, index load {res['index_load_s']:.2f} s")
+    return res
+
+
+# -- main ----------------------------------------------------------------------------------------
+
+def run_bench(root: Path, drive: str | None, db_path: Path, fast_db_path: Path, params: BenchParams,
+              say=print) -> dict:
+    from visloc.cli import _open_sequence
+    from visloc.fast import FastDatabase, FastParams
+    from visloc.params import PAPER_SIFT
+
+    result: dict = {"params": asdict(params), "load_before": _load()}
+    say(f"load before: {result['load_before']}")
+    _ensure_store(db_path, root, drive, PAPER_SIFT, params.workers, say)
+    _ensure_store(fast_db_path, root, drive, PAPER_SIFT.replace(image_scale=params.fast_scale), params.workers, say)
+    seq_by_key = {c: _open_sequence(root, drive, c) for c in ("image_00", "image_01")}
+    datasets = {"full": _load_store(db_path, drive), "scaled": _load_store(fast_db_path, drive)}
+    fp = FastParams(shortlist_size=params.shortlist_size)
+    t0 = time.perf_counter()
+    fast_dbs = {"gate": FastDatabase.build(datasets["full"][1].descriptors_u8, fp.replace(shortlist_size=0)),
+                "gate_shortlist": FastDatabase.build(datasets["full"][1].descriptors_u8, fp),
+                "fast": FastDatabase.build(datasets["scaled"][1].descriptors_u8, fp)}
+    result["fast_params"] = fp.as_dict()
+    result["global_index_build_s"] = (time.perf_counter() - t0) / 3
+    if not params.skip_accuracy:
+        say("1. accuracy, every series of the paper's protocol (1 s exclusion):")
+        result["accuracy"] = _accuracy({"full": db_path, "scaled": fast_db_path}, datasets, fast_dbs, say)
+    say(f"2. latency, {params.series} live series of 6 queries (SIFT + retrieval + geometry + filter):")
+    result["latency"] = _latency(datasets, fast_dbs, seq_by_key, params.series, say)
+    r = result["latency"]["speed_ratio_paper_over_fast"]
+    say(f"  speed ratio paper / fast per query: median {r['p50']:.0f}x (min {r['min']:.0f}x, max {r['max']:.0f}x)")
+    result["peak_rss_mb"] = _peak_rss_mb()
+    say("3. ingest:")
+    result["ingest"] = _ingest_bench(seq_by_key, PAPER_SIFT, params.ingest_images, params.workers, say)
+    if not params.skip_synthetic:
+        say("4. scale (synthetic database, own process):")
+        result["scale"] = _scale(Path(fast_db_path).parent, params, say)
+    result["load_after"] = _load()
+    result["targets"] = _targets(result)
+    say(f"load after: {result['load_after']}")
+    for k, v in result["targets"].items():
+        say(f"target {k}: {'MET' if v['met'] else 'NOT MET'} ({v['value']})")
+    return result
+
+
+def _targets(result: dict) -> dict:
+    out = {}
+    st = result["latency"]["levers"]["fast"]["stages_ms"]["total_ms"]
+    acc = result.get("accuracy")
+    out["latency"] = {"met": st["p50"] <= 100 and st["p95"] <= 150,
+                      "value": f"fast path p50 {st['p50']:.0f} ms, p95 {st['p95']:.0f} ms"}
+    if acc:
+        fast, paper = acc["fast"], acc["paper"]
+        worse_m = [f - p for f, p in zip(fast["measurement_error_m"], paper["measurement_error_m"])]
+        out["accuracy_final"] = {"met": fast["final_error_m"]["mean"] <= paper["final_error_m"]["mean"],
+                                 "value": f"final mean {fast['final_error_m']['mean']:.2f} m vs paper "
+                                          f"{paper['final_error_m']['mean']:.2f} m"}
+        out["accuracy_measurement"] = {"met": max(worse_m) <= 0.0,
+                                       "value": "measurement error minus paper's per step "
+                                                + " ".join(f"{w:+.2f}" for w in worse_m) + " m"}
+    ing = result["ingest"]
+    out["ingest"] = {"met": ing["ingest_over_bare"] >= 0.9, "value": f"{100 * ing['ingest_over_bare']:.0f}% of bare SIFT"}
+    if "scale" in result:
+        sc = result["scale"]
+        out["scale"] = {"met": sc["candidates_ms"]["max"] <= 1000 and sc["n_images"] >= 100_000,
+                        "value": f"{sc['n_images']} images, max {sc['candidates_ms']['max']:.0f} ms, peak RSS "
+                                 f"{sc['peak_rss_mb']:.0f} MB"}
+    return out
+
+
+def write_json(path: Path, result: dict) -> None:
+    Path(path).write_text(json.dumps(result, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+
+
+if __name__ == "__main__":  # pragma: no cover - use 'visloc bench'
+    from visloc.cli import main
+
+    sys.exit(main(["bench", *sys.argv[1:]]))
