@@ -6,5 +6,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 bash scripts/install_chromium.sh
-.venv/bin/ruff check visloc db dashboard tests scripts
+.venv/bin/ruff check visloc db dashboard bench tests scripts
 exec .venv/bin/python -m pytest "$@"
