@@ -75,6 +75,9 @@ class Dashboard:
         self.preferred = (db_camera, query_camera)
         self._lock = threading.RLock()
         self._jobs = LatestJobRunner(on_error=lambda name, exc: self._show_error(f"{name}: {exc}"))
+        # images of the current step (PNG reads, correspondences, Figure 3): off the callbacks too, in
+        # their own worker so scrubbing never cancels a matching run; a newer step supersedes an older one
+        self._image_jobs = LatestJobRunner(on_error=lambda name, exc: self._show_error(f"{name}: {exc}"))
         self._stop = threading.Event()
         self._quiet = False  # set while the reset button moves several controls at once
 
@@ -525,10 +528,11 @@ class Dashboard:
                                         colors=scene.CURRENT_RGB, thickness=0.3)
                     s.add_icosphere("/current/estimate", radius=0.9, color=scene.ESTIMATE_RGB,
                                     position=(float(est[0]), float(est[1]), z + 0.04))
-                self._draw_cameras(k, rec, q_index, retrieval, truth, meas)
             if self.gui_follow.value:
                 self._follow(truth)
-            self.gui_figure.image = self._figure(k, q_index, retrieval)
+            matches = self.matches
+            self._image_jobs.submit("drawing the step's images",
+                                    lambda cancelled: self._draw_step_images(k, matches, truth, cancelled))
             self.gui_numbers.content = self._numbers(rec, q_index)
             self._plot_counts(retrieval, rec)
             self._plot_errors(k)
@@ -542,26 +546,46 @@ class Dashboard:
                 client.camera.look_at = target
                 client.camera.position = target + offset
 
-    def _draw_cameras(self, k, rec, q_index, retrieval, truth, meas) -> None:
+    def _draw_step_images(self, k: int, matches: visloc.DriveMatches, truth_xy: np.ndarray, cancelled) -> None:
+        """Background: read the query's and best match's images once, draw Figure 3 and the two
+        camera frustums, and show them if step ``k`` of ``matches`` is still the one on screen."""
+        db, queries = self.db, self.queries
+        q_index = int(matches.query_indices[k])
+        best = matches.retrievals[k].best_index
+        q_path = queries.paths[q_index] if queries.paths else None
+        d_path = db.images[best].path if best is not None else None
+        q_gray, d_gray = self._read_image(q_path), self._read_image(d_path)
+        if cancelled():
+            return
+        figure = self._figure(k, matches, q_index, best, q_gray, d_gray, q_path, d_path)
+        if cancelled():
+            return
+        with self._lock:
+            if self.matches is not matches or int(self.gui_step.value) != k:
+                return
+            self.gui_figure.image = figure
+            self._draw_cameras(q_index, best, truth_xy, self._frustum_image(q_gray), self._frustum_image(d_gray))
+
+    def _draw_cameras(self, q_index: int, best: int | None, truth_xy: np.ndarray, q_img: np.ndarray | None,
+                      d_img: np.ndarray | None) -> None:
         db, queries = self.db, self.queries
         s = self.server.scene
         fov, aspect = self._fov_aspect()
-        q_img = self._frustum_image(queries.paths[q_index] if queries.paths else None)
         heading = float(queries.heading_deg[q_index]) if queries.heading_deg is not None else 0.0
-        s.add_camera_frustum("/current/query_camera", fov=fov, aspect=aspect, scale=5.0, color=scene.TRUTH_RGB,
-                             image=q_img, wxyz=scene.camera_wxyz(heading),
-                             position=(float(truth[0]), float(truth[1]), scene.CAMERA_HEIGHT_M), thickness=0.08)
-        best = retrieval.best_index
-        if best is None:
-            s.add_camera_frustum("/current/match_camera", fov=fov, aspect=aspect, visible=False)
-            return
-        im = db.images[best]
-        d_img = self._frustum_image(im.path)
-        d_heading = im.heading_deg if im.heading_deg is not None else heading
-        at = db.east_north_m[best]  # the database camera sits at its geotag (the paper's measurement)
-        s.add_camera_frustum("/current/match_camera", fov=fov, aspect=aspect, scale=5.0,
-                             color=scene.MEASUREMENT_RGB, image=d_img, wxyz=scene.camera_wxyz(d_heading),
-                             position=(float(at[0]), float(at[1]), scene.CAMERA_HEIGHT_M), thickness=0.08)
+        with self.server.atomic():
+            s.add_camera_frustum("/current/query_camera", fov=fov, aspect=aspect, scale=5.0, color=scene.TRUTH_RGB,
+                                 image=q_img, wxyz=scene.camera_wxyz(heading),
+                                 position=(float(truth_xy[0]), float(truth_xy[1]), scene.CAMERA_HEIGHT_M),
+                                 thickness=0.08)
+            if best is None:
+                s.add_camera_frustum("/current/match_camera", fov=fov, aspect=aspect, visible=False)
+                return
+            im = db.images[best]
+            d_heading = im.heading_deg if im.heading_deg is not None else heading
+            at = db.east_north_m[best]  # the database camera sits at its geotag (the paper's measurement)
+            s.add_camera_frustum("/current/match_camera", fov=fov, aspect=aspect, scale=5.0,
+                                 color=scene.MEASUREMENT_RGB, image=d_img, wxyz=scene.camera_wxyz(d_heading),
+                                 position=(float(at[0]), float(at[1]), scene.CAMERA_HEIGHT_M), thickness=0.08)
 
     def _fov_aspect(self) -> tuple[float, float]:
         cal = self.db.calibration
@@ -579,10 +603,10 @@ class Dashboard:
         except visloc.VislocError:
             return None
 
-    def _frustum_image(self, path: str | None) -> np.ndarray | None:
+    @staticmethod
+    def _frustum_image(gray: np.ndarray | None) -> np.ndarray | None:
         import cv2
 
-        gray = self._read_image(path)
         if gray is None:
             return None
         h, w = gray.shape
@@ -590,23 +614,21 @@ class Dashboard:
                            interpolation=cv2.INTER_AREA)
         return np.repeat(small[:, :, None], 3, axis=2)
 
-    def _figure(self, k: int, q_index: int, retrieval) -> np.ndarray:
-        best = retrieval.best_index
-        key = (k, q_index, best, self.matches.match_params)
+    def _figure(self, k: int, matches: visloc.DriveMatches, q_index: int, best: int | None,
+                q_gray: np.ndarray | None, d_gray: np.ndarray | None, q_path: str | None,
+                d_path: str | None) -> np.ndarray:
+        key = (k, q_index, best, matches.match_params)
         if key in self._figure_cache:
             return self._figure_cache[key]
         queries, db = self.queries, self.db
-        q_path = queries.paths[q_index] if queries.paths else None
-        q_gray = self._read_image(q_path)
         if best is None:
             fig = _placeholder(f"Query frame {queries.frames[q_index]}: no database image has a correspondence")
-        elif q_gray is None or self._read_image(db.images[best].path) is None:
-            missing = q_path if q_gray is None else db.images[best].path
+        elif q_gray is None or d_gray is None:
+            missing = q_path if q_gray is None else d_path
             fig = _placeholder(f"Image file not reachable:\n{missing}\n(the store keeps features, not images)")
         else:
-            d_gray = self._read_image(db.images[best].path)
             pairs = visloc.correspondences(queries.descriptors_u8[q_index], db.descriptors_u8[best],
-                                           self.matches.match_params)
+                                           matches.match_params)
             q_xy = queries.keypoints_f32[q_index][pairs[:, 0], :2]
             d_xy = db.keypoints_f32[best][pairs[:, 1], :2]
             fig = visloc.correspondence_figure(
@@ -721,3 +743,4 @@ class Dashboard:
     def close(self) -> None:
         self._stop.set()
         self._jobs.shutdown()
+        self._image_jobs.shutdown()
