@@ -1,1 +1,1 @@
-"""``visloc bench``: the paper's brute-force path against the fast path, in one run (issue 5)."""
+"""``visloc bench``: the paper's brute-force path against the fast path, in one run; ``synthetic`` builds a large database to test scale."""

@@ -2,8 +2,10 @@
 
 Sections (each prints as it finishes; ``--json`` writes everything):
 
-1. **Accuracy** over every series of the paper's protocol (1 s exclusion) on drive 0001,
-   one row per lever: the paper's path, the filter gate, gate + VLAD shortlist, and the
+The drive's left gray camera gives the queries; the database is its right gray camera where
+the drive has one, else the left camera itself (the 1 s exclusion keeps a query off its own image).
+
+1. **Accuracy** over every series of the paper's protocol (1 s exclusion), one row per lever: the paper's path, the filter gate, gate + VLAD shortlist, and the
    same at SIFT image scale 0.5 (the fast path). Counts come from each store's pair-count
    cache, filled by exact matching when missing (the counts are deterministic, so cached and
    fresh counts are the same numbers); per query, whether the best match agrees with the paper's.
@@ -22,16 +24,28 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import os
-import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
-from visloc.errors import ParameterError
+from visloc.bench.synthetic import SyntheticSpec, build_store, lost_query, peak_rss_mb
+from visloc.evaluation import evaluate, series_schedule
+from visloc.features import extract_sift, make_sift
+from visloc.errors import InputError, ParameterError
+from visloc.geo import geodesic_distance_m
+from visloc.matching import backend_counter
+from visloc.methods import PAPER_METHOD, build_localizer
+from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_SIFT, FastParams, SiftParams
+from visloc.queries import extract_queries
+from visloc.retrieval import build_global_index
+from visloc.runs import run_queries
+from visloc.sources import load_gray, open_source
+from visloc.workspace import Workspace
 
 LEVERS = ("paper", "faiss_nn", "gate", "gate_shortlist", "fast")
 LEVER_TEXT = {
@@ -86,63 +100,48 @@ def _load() -> dict:
     return {"load_1min": one, "load_5min": five, "load_15min": fifteen, "cores": os.cpu_count()}
 
 
-def _peak_rss_mb() -> float:
-    from bench.synthetic import peak_rss_mb
-
-    return peak_rss_mb()
-
-
 # -- stores ------------------------------------------------------------------------------------
 
-def _ensure_store(path: Path, root: Path, drive: str | None, sift, workers: int, say) -> None:
-    from db import FeatureStore
-    from visloc.cli import _ingest_sequence, _open_sequence
-
-    with FeatureStore(path, create=True) as store:
-        for camera in ("image_01", "image_00"):
-            seq = _open_sequence(root, drive, camera)
-            if len(store.stored_frames(seq.source, seq.camera)) < len(seq):
-                say(f"building {path} ({camera}, SIFT {sift.as_dict()})")
-                _ingest_sequence(store, seq, sift, workers)
+def _cameras(root: Path | None, drive: str | None) -> tuple[str, str]:
+    """(query camera, database camera): left queries against the right camera where the drive has both
+    gray cameras, else queries and database from the left one (the exclusion window keeps a query off itself)."""
+    try:
+        open_source(root, drive=drive, camera="image_01")
+    except InputError:
+        return "image_00", "image_00"
+    return "image_00", "image_01"
 
 
-def _load_store(path: Path, source_hint: str | None):
-    from db import FeatureStore
-    from visloc.database import load_database, load_query_set
-    from visloc.ingest import stored_sift_params
+def _ensure_store(path: Path, sequences: dict, sift: SiftParams, workers: int, say) -> None:
+    ws = Workspace(path, create=True)
+    for seq in {s.name: s for s in sequences.values()}.values():
+        if ws.stored_frame_count(seq.source, seq.camera) < len(seq):
+            say(f"building {path} ({seq.name}, SIFT {sift.as_dict()})")
+            ws.ingest(seq, sift, workers=workers)
 
-    with FeatureStore(path) as store:
-        sift = stored_sift_params(store)
-        sources = {s["source"] for s in store.sources()}
-        source = next((s for s in sources if source_hint is None or source_hint in s), None)
-        db = load_database(store, source, "image_01", sift)
-        queries = load_query_set(store, source, "image_00", sift)
-    return sift, db, queries
+
+def _load_store(path: Path, sequences: dict):
+    ws = Workspace(path)
+    db, queries = sequences["database"], sequences["queries"]
+    return ws, ws.load_database(db.source, db.camera), ws.load_queries(queries.source, queries.camera)
 
 
 # -- 1. accuracy ---------------------------------------------------------------------------------
 
-def _accuracy(paths: dict, datasets: dict, fast_dbs: dict, say) -> dict:
-    from db import FeatureStore
-    from visloc.evaluation import evaluate
-    from visloc.localizer import PairCountCache
-    from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH
-
-    m = PAPER_MATCH
+def _accuracy(datasets: dict, indexes: dict, say) -> dict:
     rows, best_frames = {}, {}
     for lever, (store_key, fast_key) in {"paper": ("full", None), "gate": ("full", "gate"),
                                          "gate_shortlist": ("full", "gate_shortlist"),
                                          "paper_scaled": ("scaled", None), "fast": ("scaled", "fast")}.items():
-        sift, db, queries = datasets[store_key]
-        with FeatureStore(paths[store_key]) as store:
-            cache = PairCountCache(db.descriptors_u8, m, db_keys=[im.image_id for im in db.images],
-                                   known=store.pair_counts(queries.image_ids, m.tau1, m.tau2))
-            t0 = time.perf_counter()
-            try:
-                ev = evaluate(queries, db, m, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, cache=cache,
-                              fast=fast_dbs.get(fast_key))
-            finally:
-                store.add_pair_counts(cache.take_new_entries(), m.tau1, m.tau2)
+        ws, db, queries = datasets[store_key]
+        method = PAPER_METHOD if fast_key is None else PAPER_METHOD.replace(shortlist=indexes[fast_key][0])
+        cache = ws.pair_cache(db, queries, PAPER_MATCH)
+        t0 = time.perf_counter()
+        try:
+            ev = evaluate(queries, db, PAPER_MATCH, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, method=method, cache=cache,
+                          shortlist_index=None if fast_key is None else indexes[fast_key][1])
+        finally:
+            ws.save_pair_counts(cache)
         s = ev.summary()
         best_frames[lever] = [r.best_db_frame for series in ev.series for r in series]
         rows[lever] = {"final_error_m": s["final_error_m"], "measurement_error_m": s["measurement_error_m"],
@@ -163,60 +162,47 @@ def _accuracy(paths: dict, datasets: dict, fast_dbs: dict, say) -> dict:
 
 # -- 2. latency ----------------------------------------------------------------------------------
 
-def _live(lever: str, datasets: dict, fast_dbs: dict, seq_by_key: dict, starts: list[list[int]]) -> list[dict]:
-    from visloc.fast import counts_with
-    from visloc.features import extract_sift, make_sift
-    from visloc.geo import geodesic_distance_m
-    from visloc.localizer import Localizer, Query
-    from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH
-    from visloc.sources import load_gray
-
+def _live(lever: str, datasets: dict, indexes: dict, seq_by_key: dict, starts: list[list[int]]) -> list[dict]:
     store_key = "scaled" if lever == "fast" else "full"
-    sift, db, _ = datasets[store_key]
-    counter = None
-    if lever == "faiss_nn":
-        counter = lambda q: counts_with("faiss", q.descriptors_u8, db.descriptors_u8, PAPER_MATCH)  # noqa: E731
-    fast = fast_dbs.get(lever) if lever in ("gate", "gate_shortlist", "fast") else None
-    loc = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, PAPER_MATCH, PAPER_EVAL_RETRIEVAL,
-                    PAPER_FILTER, counter=counter, fast=fast)
+    ws, db, _ = datasets[store_key]
+    sift = ws.sift_params
+    counter = backend_counter("faiss", db.descriptors_u8, PAPER_MATCH) if lever == "faiss_nn" else None
+    method, index = PAPER_METHOD, None
+    if lever in indexes:
+        (fast_params, index) = indexes[lever]
+        method = PAPER_METHOD.replace(shortlist=fast_params)
+    loc = build_localizer(method, db, PAPER_MATCH, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, counter=counter,
+                          shortlist_index=index)
     engine = make_sift(sift)
-    seq = seq_by_key["image_00"]
+    seq = seq_by_key["queries"]
     extract_sift(load_gray(seq.frames[0].image_path), sift, sift=engine)  # warm up (imports, allocations)
     out = []
     for indices in starts:
         loc.reset()
-        for k, i in enumerate(indices):
-            fr = seq.frames[i]
-            gray = load_gray(fr.image_path)
-            t0 = time.perf_counter()
-            feats = extract_sift(gray, sift, sift=engine)
-            sift_ms = (time.perf_counter() - t0) * 1000.0
-            r = loc.step(Query(feats.descriptors_u8, fr.timestamp_s, keypoints_f32=feats.keypoints_f32))
-            total_ms = (time.perf_counter() - t0) * 1000.0
+        for k, (i, step) in enumerate(zip(indices, run_queries(loc, extract_queries(seq, indices, sift,
+                                                                                     engine=engine)))):
+            r, fr = step.result, seq.frames[i]
             best = r.best_index
             m_err = None
             if best is not None:
                 m_err = float(geodesic_distance_m(db.lat_deg[best], db.lon_deg[best], fr.lat_deg, fr.lon_deg))
-            out.append({"query_frame": fr.frame, "step": k, "sift_ms": sift_ms, "retrieval_ms": loc.last_retrieval_ms,
-                        "geometry_ms": loc.last_measure_ms,
-                        "filter_ms": max(r.compute_ms - loc.last_retrieval_ms - loc.last_measure_ms, 0.0),
-                        "total_ms": total_ms, "n_keypoints": len(feats), "n_counted": int(r.retrieval.candidates.size),
+            out.append({"query_frame": fr.frame, "step": k, "sift_ms": r.query.sift_ms,
+                        "retrieval_ms": r.timings.retrieval_ms, "geometry_ms": r.timings.measurement_ms,
+                        "filter_ms": r.timings.filter_ms, "total_ms": r.query.sift_ms + r.timings.total_ms,
+                        "n_keypoints": len(r.query.descriptors_u8), "n_counted": int(r.retrieval.candidates.size),
                         "best_db_frame": None if best is None else int(db.images[best].frame),
                         "measurement_error_m": m_err})
     return out
 
 
-def _latency(datasets: dict, fast_dbs: dict, seq_by_key: dict, n_series: int, say) -> dict:
-    from visloc.evaluation import series_schedule
-    from visloc.params import PAPER_FILTER
-
-    seq = seq_by_key["image_00"]
+def _latency(datasets: dict, indexes: dict, seq_by_key: dict, n_series: int, say) -> dict:
+    seq = seq_by_key["queries"]
     schedule = series_schedule(seq.timestamps_s, PAPER_FILTER.dt_s, 6)
     picks = np.unique(np.linspace(0, len(schedule) - 1, n_series).round().astype(int))
     starts = [schedule[p] for p in picks]
     out = {"start_frames": [seq.frames[s[0]].frame for s in starts], "levers": {}}
     for lever in LEVERS:
-        rows = _live(lever, datasets, fast_dbs, seq_by_key, starts)
+        rows = _live(lever, datasets, indexes, seq_by_key, starts)
         stages = {k: _pct(r[k] for r in rows) for k in ("sift_ms", "retrieval_ms", "geometry_ms", "filter_ms",
                                                         "total_ms")}
         out["levers"][lever] = {"stages_ms": stages, "queries": rows,
@@ -243,28 +229,18 @@ _bare_sift = None
 
 def _bare_init(sift_dict: dict) -> None:
     global _bare_sift
-    import cv2
-
-    from visloc.features import make_sift
-    from visloc.params import SiftParams
-
     cv2.setNumThreads(1)
     _bare_sift = make_sift(SiftParams(**sift_dict))
 
 
 def _bare_one(path: str) -> int:
-    import cv2
-
     gray = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
     keypoints, _ = _bare_sift.detectAndCompute(gray, None)
     return len(keypoints)
 
 
-def _ingest_bench(seq_by_key: dict, sift, n_images: int, workers: int, say) -> dict:
-    from db import FeatureStore
-    from visloc.ingest import ingest
-
-    seq = seq_by_key["image_00"]
+def _ingest_bench(seq_by_key: dict, sift: SiftParams, n_images: int, workers: int, say) -> dict:
+    seq = seq_by_key["queries"]
     frames = seq.frames[:n_images]
     paths = [str(f.image_path) for f in frames]
     runs = {"bare_sift_images_per_s": [], "ingest_images_per_s": []}
@@ -274,10 +250,10 @@ def _ingest_bench(seq_by_key: dict, sift, n_images: int, workers: int, say) -> d
             list(pool.imap(_bare_one, paths, chunksize=1))
         runs["bare_sift_images_per_s"].append(len(paths) / (time.perf_counter() - t0))
         with tempfile.TemporaryDirectory() as tmp:
-            with FeatureStore(Path(tmp) / "ingest.sqlite", create=True) as store:
-                t0 = time.perf_counter()
-                report = ingest(store, seq, sift, workers=workers, limit=n_images)
-                runs["ingest_images_per_s"].append(report.n_added / (time.perf_counter() - t0))
+            ws = Workspace(Path(tmp) / "ingest.sqlite", create=True)
+            t0 = time.perf_counter()
+            report = ws.ingest(seq, sift, workers=workers, limit=n_images)
+            runs["ingest_images_per_s"].append(report.n_added / (time.perf_counter() - t0))
     bare, ing = float(np.median(runs["bare_sift_images_per_s"])), float(np.median(runs["ingest_images_per_s"]))
     out = {"n_images": len(paths), "workers": workers, "sift": sift.as_dict(), "runs": runs,
            "bare_sift_images_per_s": bare, "ingest_images_per_s": ing, "ingest_over_bare": ing / bare,
@@ -292,21 +268,15 @@ def _ingest_bench(seq_by_key: dict, sift, n_images: int, workers: int, say) -> d
 # -- 4. scale ------------------------------------------------------------------------------------
 
 def _synthetic_build(path: str, spec_dict: dict) -> dict:
-    from bench.synthetic import SyntheticSpec, build_store
-
     seconds = build_store(Path(path), SyntheticSpec(**spec_dict))
-    return {"build_s": seconds, "peak_rss_mb": _peak_rss_mb()}
+    return {"build_s": seconds, "peak_rss_mb": peak_rss_mb()}
 
 
 def _synthetic_query(path: str, spec_dict: dict, places: list[int], shortlist_size: int) -> dict:
-    from bench.synthetic import SyntheticSpec, lost_query
-
     return lost_query(Path(path), SyntheticSpec(**spec_dict), places, shortlist_size)
 
 
 def _scale(out_dir: Path, p: BenchParams, say) -> dict:
-    from bench.synthetic import SyntheticSpec
-
     spec = SyntheticSpec(n_images=p.synthetic_images, descriptors_per_image=p.synthetic_descriptors)
     path = out_dir / f"synthetic_{spec.n_images}_{spec.descriptors_per_image}.sqlite"
     ctx = mp.get_context("spawn")
@@ -327,33 +297,35 @@ def _scale(out_dir: Path, p: BenchParams, say) -> dict:
 
 # -- main ----------------------------------------------------------------------------------------
 
-def run_bench(root: Path, drive: str | None, db_path: Path, fast_db_path: Path, params: BenchParams,
+def run_bench(root: Path | None, drive: str | None, db_path: Path, fast_db_path: Path, params: BenchParams,
               say=print) -> dict:
-    from visloc.cli import _open_sequence
-    from visloc.fast import FastDatabase, FastParams
-    from visloc.params import PAPER_SIFT
-
+    """Every section, on drive ``drive`` of the KITTI root ``root`` (None: the default data root); builds
+    the stores of both SIFT settings at ``db_path`` and ``fast_db_path`` when they lack images."""
     result: dict = {"params": asdict(params), "load_before": _load()}
     say(f"load before: {result['load_before']}")
-    _ensure_store(db_path, root, drive, PAPER_SIFT, params.workers, say)
-    _ensure_store(fast_db_path, root, drive, PAPER_SIFT.replace(image_scale=params.fast_scale), params.workers, say)
-    seq_by_key = {c: _open_sequence(root, drive, c) for c in ("image_00", "image_01")}
-    datasets = {"full": _load_store(db_path, drive), "scaled": _load_store(fast_db_path, drive)}
+    query_camera, db_camera = _cameras(root, drive)
+    seq_by_key = {"queries": open_source(root, drive=drive, camera=query_camera),
+                  "database": open_source(root, drive=drive, camera=db_camera)}
+    result.update(drive=seq_by_key["queries"].source, query_camera=query_camera, db_camera=db_camera)
+    _ensure_store(db_path, seq_by_key, PAPER_SIFT, params.workers, say)
+    _ensure_store(fast_db_path, seq_by_key, PAPER_SIFT.replace(image_scale=params.fast_scale), params.workers, say)
+    datasets = {"full": _load_store(db_path, seq_by_key), "scaled": _load_store(fast_db_path, seq_by_key)}
     fp = FastParams(shortlist_size=params.shortlist_size)
     t0 = time.perf_counter()
-    fast_dbs = {"gate": FastDatabase.build(datasets["full"][1].descriptors_u8, fp.replace(shortlist_size=0)),
-                "gate_shortlist": FastDatabase.build(datasets["full"][1].descriptors_u8, fp),
-                "fast": FastDatabase.build(datasets["scaled"][1].descriptors_u8, fp)}
+    # lever -> (the fast retrieval's parameters, its global vectors of the lever's database)
+    indexes = {lever: (lever_params, build_global_index(datasets[key][1].descriptors_u8, lever_params))
+               for lever, key, lever_params in (("gate", "full", fp.replace(shortlist_size=0)),
+                                                ("gate_shortlist", "full", fp), ("fast", "scaled", fp))}
     result["fast_params"] = fp.as_dict()
     result["global_index_build_s"] = (time.perf_counter() - t0) / 3
     if not params.skip_accuracy:
         say("1. accuracy, every series of the paper's protocol (1 s exclusion):")
-        result["accuracy"] = _accuracy({"full": db_path, "scaled": fast_db_path}, datasets, fast_dbs, say)
+        result["accuracy"] = _accuracy(datasets, indexes, say)
     say(f"2. latency, {params.series} live series of 6 queries (SIFT + retrieval + geometry + filter):")
-    result["latency"] = _latency(datasets, fast_dbs, seq_by_key, params.series, say)
+    result["latency"] = _latency(datasets, indexes, seq_by_key, params.series, say)
     r = result["latency"]["speed_ratio_paper_over_fast"]
     say(f"  speed ratio paper / fast per query: median {r['p50']:.0f}x (min {r['min']:.0f}x, max {r['max']:.0f}x)")
-    result["peak_rss_mb"] = _peak_rss_mb()
+    result["peak_rss_mb"] = peak_rss_mb()
     say("3. ingest:")
     result["ingest"] = _ingest_bench(seq_by_key, PAPER_SIFT, params.ingest_images, params.workers, say)
     if not params.skip_synthetic:
@@ -394,9 +366,3 @@ def _targets(result: dict) -> dict:
 
 def write_json(path: Path, result: dict) -> None:
     Path(path).write_text(json.dumps(result, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
-
-
-if __name__ == "__main__":  # pragma: no cover - use 'visloc bench'
-    from visloc.cli import main
-
-    sys.exit(main(["bench", *sys.argv[1:]]))

@@ -24,9 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
-from db import FeatureStore, ImageRecord
-from visloc.fast import GlobalEncoder, count_correspondences_with, fit_pca, shortlist, train_codebook
+from visloc.db import ImageRecord
+from visloc.matching import count_correspondences_with
 from visloc.params import PAPER_MATCH
+from visloc.vlad import GlobalEncoder, fit_pca, shortlist, train_codebook
+from visloc.workspace import Workspace
 
 LANDMARKS_PER_PLACE = 16
 VISIBLE_PLACES = 2
@@ -96,37 +98,36 @@ def _record(place: int) -> ImageRecord:
 def build_store(path: Path, spec: SyntheticSpec, *, batch_size: int = 2000, progress=None) -> float:
     """Write the synthetic database to ``path`` (reused when it already holds this spec). Returns seconds."""
     start = time.perf_counter()
-    with FeatureStore(path, create=True) as store:
-        if store.get_setting("synthetic") == spec.key() and store.get_array("vlad_codebook") is not None:
+    if path.exists():
+        ws = Workspace(path)
+        if ws.setting("synthetic") == spec.key() and ws.has_global_index(VECTORS_NAME):
             return 0.0
     path.unlink(missing_ok=True)
     for suffix in ("-wal", "-shm"):
         Path(str(path) + suffix).unlink(missing_ok=True)
-    with FeatureStore(path, create=True) as store:
-        encoder = None
-        for first in range(0, spec.n_images, batch_size):
-            places = range(first, min(first + batch_size, spec.n_images))
-            descs = [database_image(p, spec) for p in places]
-            if encoder is None:  # train on the first batch: codebook, then PCA of its VLADs
-                sample = np.concatenate(descs)
-                codebook = train_codebook(sample, spec.n_words, spec.seed)
-                vlads = np.stack([GlobalEncoder(codebook).vlad(d) for d in descs])
-                mean, basis = fit_pca(vlads, min(spec.pca_dim, len(descs)))
-                encoder = GlobalEncoder(codebook, mean, basis)
-                store.put_array("vlad_codebook", codebook)
-                store.put_array("vlad_pca_mean", mean)
-                store.put_array("vlad_pca_basis", basis)
-            keypoints = np.zeros((spec.descriptors_per_image, 6), np.float32)
-            store.add_images([(_record(p), keypoints[: len(d)], d) for p, d in zip(places, descs)])
-            if progress:
-                progress(len(descs))
-        # vectors in a second pass over the stored images, streamed in chunks
-        image_ids = store.image_ids(SOURCE, CAMERA)
-        for first in range(0, image_ids.size, batch_size):
-            chunk = image_ids[first : first + batch_size]
-            vecs = np.stack([encoder.encode(d) for _, d in store.iter_descriptors(chunk)])
-            store.add_global_vectors(VECTORS_NAME, chunk.tolist(), vecs)
-        store.require_setting("synthetic", spec.key())
+    ws = Workspace(path, create=True)
+    encoder = None
+    for first in range(0, spec.n_images, batch_size):
+        places = range(first, min(first + batch_size, spec.n_images))
+        descs = [database_image(p, spec) for p in places]
+        if encoder is None:  # train on the first batch: codebook, then PCA of its VLADs
+            sample = np.concatenate(descs)
+            codebook = train_codebook(sample, spec.n_words, spec.seed)
+            vlads = np.stack([GlobalEncoder(codebook).vlad(d) for d in descs])
+            mean, basis = fit_pca(vlads, min(spec.pca_dim, len(descs)))
+            encoder = GlobalEncoder(codebook, mean, basis)
+        keypoints = np.zeros((spec.descriptors_per_image, 6), np.float32)
+        ws.add_images([(_record(p), keypoints[: len(d)], d) for p, d in zip(places, descs)])
+        if progress:
+            progress(len(descs))
+    # vectors in a second pass over the stored images, streamed in chunks
+    image_ids = ws.image_ids(SOURCE, CAMERA)
+    for first in range(0, image_ids.size, batch_size):
+        chunk = image_ids[first : first + batch_size]
+        vecs = np.stack([encoder.encode(d) for _, d in ws.iter_descriptors(chunk)])
+        ws.add_global_vectors(VECTORS_NAME, chunk.tolist(), vecs)
+    ws.save_global_encoder(VECTORS_NAME, encoder)  # last: its presence marks a finished store
+    ws.record_setting("synthetic", spec.key())
     return time.perf_counter() - start
 
 
@@ -136,27 +137,26 @@ def lost_query(path: Path, spec: SyntheticSpec, places: list[int], shortlist_siz
     Runs in its own process (see ``bench.run``), so peak memory is this test's alone.
     """
     t0 = time.perf_counter()
-    with FeatureStore(path) as store:
-        encoder = GlobalEncoder(store.get_array("vlad_codebook"), store.get_array("vlad_pca_mean"),
-                                store.get_array("vlad_pca_basis"))
-        ids, vectors = store.global_vectors(VECTORS_NAME)
-        load_s = time.perf_counter() - t0
-        rss_after_load_mb = peak_rss_mb()
-        frame_of = {int(i): p for i, p in zip(store.image_ids(SOURCE, CAMERA), range(spec.n_images))}
-        rows = []
-        for place in places:
-            q = query_image(place, spec)
-            t = time.perf_counter()
-            short_ids = ids[shortlist(vectors, encoder.encode(q), shortlist_size)]
-            t_short = time.perf_counter()
-            counts = {int(i): count_correspondences_with("faiss", q, d, PAPER_MATCH)
-                      for i, d in store.iter_descriptors(short_ids.tolist())}
-            best_id = max(counts, key=lambda i: (counts[i], -i))
-            t_best = time.perf_counter()
-            rows.append({"place": place, "shortlist_ms": (t_short - t) * 1000.0,
-                         "candidates_ms": (t_best - t) * 1000.0,
-                         "shortlist_has_place": bool(any(abs(frame_of[int(i)] - place) <= 1 for i in short_ids)),
-                         "best_error_m": float(abs(frame_of[best_id] - place))})
+    ws = Workspace(path)
+    ids, index = ws.load_global_index(VECTORS_NAME)
+    vectors, encoder = index.vectors_f32, index.encoder
+    load_s = time.perf_counter() - t0
+    rss_after_load_mb = peak_rss_mb()
+    frame_of = {int(i): p for i, p in zip(ws.image_ids(SOURCE, CAMERA), range(spec.n_images))}
+    rows = []
+    for place in places:
+        q = query_image(place, spec)
+        t = time.perf_counter()
+        short_ids = ids[shortlist(vectors, encoder.encode(q), shortlist_size)]
+        t_short = time.perf_counter()
+        counts = {int(i): count_correspondences_with("faiss", q, d, PAPER_MATCH)
+                  for i, d in ws.iter_descriptors(short_ids.tolist())}
+        best_id = max(counts, key=lambda i: (counts[i], -i))
+        t_best = time.perf_counter()
+        rows.append({"place": place, "shortlist_ms": (t_short - t) * 1000.0,
+                     "candidates_ms": (t_best - t) * 1000.0,
+                     "shortlist_has_place": bool(any(abs(frame_of[int(i)] - place) <= 1 for i in short_ids)),
+                     "best_error_m": float(abs(frame_of[best_id] - place))})
     ms = np.array([r["candidates_ms"] for r in rows])
     return {
         "n_images": spec.n_images, "descriptors_per_image": spec.descriptors_per_image,

@@ -1,9 +1,14 @@
-"""visloc's browser dashboard (viser): scrub through a drive, see the trajectory and
+"""visloc's browser dashboard (viser): scrub through a drive, see the trajectory and its
 uncertainty in 3D, tune tau1, tau2, R, Q and P0 live. Start it with ``visloc dashboard``.
 
-It calls only the engine's public API (``import visloc``)."""
+Layout, in viser's own style: ``state`` (what the controls ask for, what the page shows),
+``gui`` (the control panel, built once), ``scene`` and ``panels`` (pure drawing: the 3D
+scene, the step table, the plots and pictures), ``app`` (callbacks record, one apply path
+redraws), ``jobs`` (the background worker), ``server`` (``serve``). It calls only the
+engine's public API (``import visloc``).
+"""
 
-from dashboard.app import Dashboard
-from dashboard.server import serve
+from visloc.dashboard.app import DashboardApp
+from visloc.dashboard.server import serve
 
-__all__ = ["Dashboard", "serve"]
+__all__ = ["DashboardApp", "serve"]

@@ -1,15 +1,20 @@
-"""Small presentation helpers for the 3D scene: segments, camera orientation, colours.
+"""Drawing the 3D scene: pure functions from a run's records (metres) to viser scene nodes.
 
-The scene is the engine's local metric frame: x = east m, y = north m, z = up m,
-origin at the first database image's geotag. The trajectory lies at ground level.
+The scene is the engine's local metric frame: x = east m, y = north m, z = up m, origin at
+the first database image's geotag. The trajectory lies at ground level. Node names are
+paths: ``/truth/...``, ``/database/...``, ``/measurement/...``, ``/estimate/...``,
+``/current/...``.
 """
 
 from __future__ import annotations
 
 import numpy as np
+import viser
 import viser.transforms as vtf
 
-# RGB colours, also used by the legend
+import visloc
+
+# RGB colours, also used by the legend and the plots
 TRUTH_RGB = (30, 150, 60)
 MEASUREMENT_RGB = (235, 120, 0)
 ESTIMATE_RGB = (40, 90, 220)
@@ -19,6 +24,11 @@ CURRENT_RGB = (220, 30, 120)
 
 CAMERA_HEIGHT_M = 1.65  # KITTI's cameras are about 1.65 m above the road
 TRACK_HEIGHT_M = 0.05  # just above the grid, so lines do not flicker
+FRUSTUM_SCALE_M = 5.0
+
+
+def css(rgb: tuple[int, int, int]) -> str:
+    return f"rgb({rgb[0]},{rgb[1]},{rgb[2]})"
 
 
 def polyline_segments(points_xy: np.ndarray, z_m: float = TRACK_HEIGHT_M) -> np.ndarray:
@@ -48,7 +58,103 @@ def camera_wxyz(heading_deg: float) -> np.ndarray:
     return vtf.SO3.from_matrix(np.stack([right, down, forward], axis=1)).wxyz
 
 
-def swatch_html(rgb: tuple[int, int, int], text: str) -> str:
-    r, g, b = rgb
-    return (f'<span style="display:inline-block;width:11px;height:11px;border-radius:2px;margin:0 5px 0 2px;'
-            f'background:rgb({r},{g},{b});vertical-align:-1px"></span>{text}')
+def positions(values: list) -> np.ndarray:
+    """(N, 2) array of (east_m, north_m) positions, NaN rows where a value is None."""
+    out = np.full((len(values), 2), np.nan)
+    for i, v in enumerate(values):
+        if v is not None:
+            out[i] = v
+    return out
+
+
+def initial_view(truth_m: np.ndarray, db_m: np.ndarray) -> tuple[tuple, tuple]:
+    """(look_at, camera position): from behind the start, to one side, from above, so the whole track is
+    in view and the frustums (facing along the track) are seen from behind, their images showing."""
+    all_xy = np.concatenate([truth_m, db_m])
+    lo, hi = all_xy.min(axis=0), all_xy.max(axis=0)
+    center = 0.5 * (lo + hi)
+    span = max(float(max(hi - lo)), 20.0)
+    along = truth_m[-1] - truth_m[0]
+    along = along / np.linalg.norm(along) if np.linalg.norm(along) > 0 else np.array([0.0, 1.0])
+    across = np.array([along[1], -along[0]])  # to the right of the direction of travel
+    eye = center + span * (-0.75 * along + 0.55 * across)
+    return (float(center[0]), float(center[1]), 0.0), (float(eye[0]), float(eye[1]), 0.75 * span)
+
+
+def draw_static(scene: viser.SceneApi, truth_m: np.ndarray, db_m: np.ndarray) -> None:
+    """The grid, the database geotags and the whole ground-truth track."""
+    all_xy = np.concatenate([truth_m, db_m])
+    lo, hi = all_xy.min(axis=0), all_xy.max(axis=0)
+    center = 0.5 * (lo + hi)
+    extent_m = float(max(hi - lo)) + 40.0
+    scene.add_grid("/grid", width=extent_m, height=extent_m, plane="xy", cell_size=5.0, section_size=25.0,
+                   position=(float(center[0]), float(center[1]), 0.0))
+    scene.add_point_cloud("/database/geotags", np.c_[db_m, np.full(len(db_m), TRACK_HEIGHT_M)],
+                          colors=DATABASE_RGB, point_size=0.6, point_shape="circle")
+    scene.add_line_segments("/truth/track", polyline_segments(truth_m), colors=TRUTH_RGB, thickness=0.25)
+
+
+def _ellipse_segments(center_m: np.ndarray, cov_m2, z_m: float) -> np.ndarray:
+    return closed_loop_segments(visloc.covariance_ellipse_m(center_m, np.asarray(cov_m2, float), n_sigma=2.0), z_m)
+
+
+def draw_run(scene: viser.SceneApi, records: list[visloc.StepRecord]) -> None:
+    """Every step of a run: truths, measurements (joined to their truth), the estimate track with its
+    2-sigma ellipses, and the refined measurements' own 2-sigma ellipses."""
+    truth = positions([r.truth_m for r in records])
+    meas = positions([r.measurement_m for r in records])
+    est = positions([r.estimate_m for r in records])
+    z = TRACK_HEIGHT_M
+    scene.add_point_cloud("/truth/queries", np.c_[truth, np.full(len(records), z)], colors=TRUTH_RGB,
+                          point_size=0.9, point_shape="circle")
+    ok = np.all(np.isfinite(meas), axis=1)
+    scene.add_point_cloud("/measurement/points", np.c_[meas[ok], np.full(ok.sum(), z + 0.02)],
+                          colors=MEASUREMENT_RGB, point_size=1.4, point_shape="diamond")
+    links = np.stack([np.c_[truth[ok], np.full(ok.sum(), z)], np.c_[meas[ok], np.full(ok.sum(), z)]], axis=1)
+    scene.add_line_segments("/measurement/offsets", links, colors=MEASUREMENT_RGB, thickness=0.05)
+    scene.add_line_segments("/estimate/track", polyline_segments(est, z + 0.04), colors=ESTIMATE_RGB, thickness=0.25)
+    ok_est = np.all(np.isfinite(est), axis=1)
+    scene.add_point_cloud("/estimate/points", np.c_[est[ok_est], np.full(ok_est.sum(), z + 0.04)],
+                          colors=ESTIMATE_RGB, point_size=1.0, point_shape="circle")
+    ellipses = [_ellipse_segments(e, r.estimate_cov_m2, z + 0.03) for r, e in zip(records, est)
+                if np.all(np.isfinite(e)) and r.estimate_cov_m2 is not None]
+    if ellipses:
+        scene.add_line_segments("/estimate/ellipses", np.concatenate(ellipses), colors=ELLIPSE_RGB, thickness=0.08)
+    own = [_ellipse_segments(m, r.measurement_cov_m2, z + 0.05) for r, m in zip(records, meas)
+           if r.measurement_source == visloc.GEOMETRY and r.measurement_cov_m2]
+    scene.add_line_segments("/measurement/ellipses", np.concatenate(own) if own else np.zeros((0, 2, 3)),
+                            colors=MEASUREMENT_RGB, thickness=0.03)
+
+
+def draw_current(scene: viser.SceneApi, record: visloc.StepRecord) -> None:
+    """The current step: its truth, measurement and estimate as spheres, the estimate's 2-sigma ellipse."""
+    z = TRACK_HEIGHT_M
+    tx, ty = record.truth_m
+    scene.add_icosphere("/current/truth", radius=0.9, color=TRUTH_RGB, position=(tx, ty, z))
+    if record.measurement_m is not None:
+        mx, my = record.measurement_m
+        scene.add_icosphere("/current/measurement", radius=0.9, color=MEASUREMENT_RGB, position=(mx, my, z))
+    else:
+        scene.add_icosphere("/current/measurement", radius=0.9, color=MEASUREMENT_RGB, visible=False)
+    if record.estimate_m is not None and record.estimate_cov_m2 is not None:
+        ex, ey = record.estimate_m
+        scene.add_line_segments("/current/ellipse", _ellipse_segments(np.array(record.estimate_m),
+                                                                      record.estimate_cov_m2, z + 0.06),
+                                colors=CURRENT_RGB, thickness=0.3)
+        scene.add_icosphere("/current/estimate", radius=0.9, color=ESTIMATE_RGB, position=(ex, ey, z + 0.04))
+
+
+def draw_cameras(scene: viser.SceneApi, fov_rad: float, aspect: float, query_xy: tuple[float, float],
+                 query_heading_deg: float, query_image: np.ndarray | None, match_xy: tuple[float, float] | None,
+                 match_heading_deg: float, match_image: np.ndarray | None) -> None:
+    """The query camera at its true pose and the best match's camera at its geotag (the paper's
+    measurement), each showing its image when there is one."""
+    scene.add_camera_frustum("/current/query_camera", fov=fov_rad, aspect=aspect, scale=FRUSTUM_SCALE_M,
+                             color=TRUTH_RGB, image=query_image, wxyz=camera_wxyz(query_heading_deg),
+                             position=(query_xy[0], query_xy[1], CAMERA_HEIGHT_M), thickness=0.08)
+    if match_xy is None:
+        scene.add_camera_frustum("/current/match_camera", fov=fov_rad, aspect=aspect, visible=False)
+        return
+    scene.add_camera_frustum("/current/match_camera", fov=fov_rad, aspect=aspect, scale=FRUSTUM_SCALE_M,
+                             color=MEASUREMENT_RGB, image=match_image, wxyz=camera_wxyz(match_heading_deg),
+                             position=(match_xy[0], match_xy[1], CAMERA_HEIGHT_M), thickness=0.08)

@@ -1,4 +1,4 @@
-"""Starting and stopping the dashboard's viser server."""
+"""Starting and stopping the dashboard: ``serve`` runs it until stopped."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import viser
 
-from dashboard.app import Dashboard
+from visloc.dashboard.app import DashboardApp
 
 
 def serve(store_path: Path, *, host: str = "127.0.0.1", port: int = 8080, db_camera: str = "image_01",
@@ -16,7 +16,7 @@ def serve(store_path: Path, *, host: str = "127.0.0.1", port: int = 8080, db_cam
     """Serve the dashboard until ``stop`` is set (or forever). viser moves to the next free
     port when ``port`` is taken, so the URL announced is the one actually served."""
     server = viser.ViserServer(host=host, port=port, label="visloc", verbose=False)
-    dashboard = Dashboard(server, store_path, db_camera=db_camera, query_camera=query_camera)
+    app = DashboardApp(server, store_path, db_camera=db_camera, query_camera=query_camera)
     announce(f"visloc dashboard: http://{host}:{server.get_port()}  (store {store_path}; Ctrl-C stops it)")
     if ready is not None:
         ready.set()
@@ -25,5 +25,5 @@ def serve(store_path: Path, *, host: str = "127.0.0.1", port: int = 8080, db_cam
         while not stop.wait(0.5):  # short waits keep Ctrl-C responsive
             pass
     finally:
-        dashboard.close()
+        app.close()
         server.stop()

@@ -2,20 +2,21 @@
 
 This package is the only place in the project that speaks SQL. It knows nothing
 about SIFT or Kalman filters: it stores numpy arrays and plain metadata and hands
-them back.
+them back. ``store`` holds ``FeatureStore``, ``schema`` the tables and migrations,
+``records`` the plain records and errors.
 """
 
-from db.store import (
-    SCHEMA_VERSION,
+from visloc.db.records import (
     CameraRecord,
     EmptyStoreError,
-    FeatureStore,
     ImageRecord,
     NotAStoreError,
     SettingsMismatchError,
-    StoreError,
     StoredImage,
+    StoreError,
 )
+from visloc.db.schema import SCHEMA_VERSION
+from visloc.db.store import FeatureStore
 
 __all__ = [
     "SCHEMA_VERSION",

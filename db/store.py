@@ -26,97 +26,25 @@ Writes happen in transactions (``FeatureStore.add_images`` commits a batch at
 once), the journal is in WAL mode, and an interrupted write rolls back: a store
 never holds half an image.
 
-Schema versions: 1 had no attitudes and no camera extrinsics. Opening a version-1
-store migrates it in place to version 2 (``ALTER TABLE ... ADD COLUMN``, every
-existing row and cached count kept, the new columns NULL); ``visloc ingest`` then
-fills the missing attitudes and extrinsics from the source without re-extracting
-any feature.
+Opening a store of an older schema version migrates it in place (``visloc.db.schema``);
+``visloc ingest`` then fills what the new columns lack from the source without
+re-extracting any feature.
 """
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import sqlite3
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import sqlite_utils
 
-SCHEMA_VERSION = 2
-# columns added by each version after the first: table -> (column, SQL type)
-_MIGRATIONS = {
-    2: [("images", "roll_rad", "REAL"), ("images", "pitch_rad", "REAL"), ("images", "yaw_rad", "REAL"),
-        ("cameras", "t_camera_imu_json", "TEXT")],
-}
-KEYPOINT_COLUMNS = 6  # x_px, y_px, size_px, angle_deg, response, octave
-DESCRIPTOR_DIM = 128
-
-_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # pair_counts, a cache, is added when missing
-
-
-class StoreError(Exception):
-    """Base class for every error the store raises; its message is one line."""
-
-
-class NotAStoreError(StoreError):
-    """The file is not SQLite, or is SQLite but not a visloc store."""
-
-
-class EmptyStoreError(StoreError):
-    """The store exists but holds no images (or no images of the requested camera)."""
-
-
-class SettingsMismatchError(StoreError):
-    """Features were requested or added with SIFT settings other than the store's."""
-
-
-@dataclass(frozen=True)
-class ImageRecord:
-    """Metadata of one image, as it goes into the store."""
-
-    source: str  # drive or dataset name, e.g. "2011_09_26_drive_0001_sync"
-    camera: str  # e.g. "image_01"
-    frame: int  # index of the image within (source, camera)
-    path: str  # original image file, for display only; the store never reads it
-    timestamp_s: float  # seconds since the Unix epoch
-    lat_deg: float
-    lon_deg: float
-    alt_m: float | None = None
-    heading_deg: float | None = None  # compass: 0 = north, clockwise
-    width_px: int = 0
-    height_px: int = 0
-    sift_ms: float | None = None  # time SIFT took on this image when it was ingested
-    # attitude of the geotag's reference frame (KITTI: the OXTS/IMU unit, x forward, y left,
-    # z up), radians, as OXTS records give it: roll about x, pitch about y, yaw about z with
-    # 0 = east and counter-clockwise positive. None when the source has none (CSV).
-    roll_rad: float | None = None
-    pitch_rad: float | None = None
-    yaw_rad: float | None = None
-
-
-@dataclass(frozen=True)
-class StoredImage(ImageRecord):
-    """An image row read back from the store (metadata only, no arrays)."""
-
-    image_id: int = 0
-    n_keypoints: int = 0
-
-
-@dataclass(frozen=True)
-class CameraRecord:
-    source: str
-    camera: str
-    P_rect: np.ndarray | None  # (3, 4) float64, pixels
-    width_px: int
-    height_px: int
-    T_camera_imu: np.ndarray | None = None  # (4, 4) float64, metres: X_camera = T_camera_imu @ X_imu
-
-
-def _now_iso() -> str:
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, EmptyStoreError, ImageRecord,
+                               NotAStoreError, SettingsMismatchError, StoredImage, StoreError)
+from visloc.db.schema import (REQUIRED_TABLES, SCHEMA_VERSION, create_pair_counts, create_schema,
+                              ensure_vector_tables, migrate, now_iso)
 
 
 class FeatureStore:
@@ -165,85 +93,28 @@ class FeatureStore:
         if not tables:
             if not create:
                 raise EmptyStoreError(f"{label}: empty database file (build it with 'visloc ingest')")
-            self._create_schema()
+            create_schema(db)
         elif "visloc_schema" not in tables:
             shown = ", ".join(sorted(tables)[:5])
             raise NotAStoreError(f"{label}: SQLite database but not a visloc store (its tables: {shown})")
         else:
             row = next(db.query("SELECT version FROM visloc_schema LIMIT 1"), None)
             version = None if row is None else row["version"]
-            if isinstance(version, int) and 1 <= version < SCHEMA_VERSION and not (_TABLES - tables):
-                self._migrate(version)
+            if isinstance(version, int) and 1 <= version < SCHEMA_VERSION and not (REQUIRED_TABLES - tables):
+                migrate(db, version)
                 version = SCHEMA_VERSION
             if version != SCHEMA_VERSION:
                 raise NotAStoreError(
                     f"{label}: visloc store schema version {version}, this visloc reads version {SCHEMA_VERSION}"
                 )
-            missing = _TABLES - tables
+            missing = REQUIRED_TABLES - tables
             if missing:
                 raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}")
         if on_disk and db.journal_mode != "wal":
             db.enable_wal()
         if "pair_counts" not in db.table_names():
             with db.atomic():
-                self._create_pair_counts()
-
-    def _migrate(self, version: int) -> None:
-        """Bring a store of an older schema version to ``SCHEMA_VERSION`` in one transaction."""
-        with self.db.atomic():
-            for target in range(version + 1, SCHEMA_VERSION + 1):
-                for table, column, sql_type in _MIGRATIONS[target]:
-                    if column not in self.db[table].columns_dict:
-                        self.db.execute(f"ALTER TABLE [{table}] ADD COLUMN [{column}] {sql_type}")
-            self.db.execute("UPDATE visloc_schema SET version = ?", [SCHEMA_VERSION])
-
-    def _create_schema(self) -> None:
-        db = self.db
-        with db.atomic():
-            db["visloc_schema"].create({"version": int, "created_at": str})
-            db["visloc_schema"].insert({"version": SCHEMA_VERSION, "created_at": _now_iso()})
-            db["settings"].create({"key": str, "value_json": str}, pk="key")
-            db["cameras"].create(
-                {"source": str, "camera": str, "p_rect_json": str, "width_px": int, "height_px": int,
-                 "t_camera_imu_json": str},
-                pk=("source", "camera"),
-            )
-            db["images"].create(
-                {
-                    "id": int,
-                    "source": str,
-                    "camera": str,
-                    "frame": int,
-                    "path": str,
-                    "timestamp_s": float,
-                    "lat_deg": float,
-                    "lon_deg": float,
-                    "alt_m": float,
-                    "heading_deg": float,
-                    "width_px": int,
-                    "height_px": int,
-                    "sift_ms": float,
-                    "roll_rad": float,
-                    "pitch_rad": float,
-                    "yaw_rad": float,
-                    "n_keypoints": int,
-                    "keypoints_f32": bytes,
-                    "descriptors_u8": bytes,
-                    "created_at": str,
-                },
-                pk="id",
-                not_null={"source", "camera", "frame", "timestamp_s", "lat_deg", "lon_deg", "n_keypoints"},
-            )
-            self._create_pair_counts()
-            db["images"].create_index(["source", "camera", "frame"], unique=True)
-            db["images"].create_index(["source", "camera", "timestamp_s"])
-
-    def _create_pair_counts(self) -> None:
-        self.db["pair_counts"].create(
-            {"query_image_id": int, "db_image_id": int, "tau1": float, "tau2": float,
-             "n_correspondences": int, "match_ms": float},
-            pk=("query_image_id", "db_image_id", "tau1", "tau2"),
-        )
+                create_pair_counts(db)
 
     def close(self) -> None:
         self.db.close()
@@ -338,7 +209,7 @@ class FeatureStore:
                 n_keypoints=int(descriptors.shape[0]),
                 keypoints_f32=keypoints.tobytes(),
                 descriptors_u8=np.ascontiguousarray(descriptors).tobytes(),
-                created_at=_now_iso(),
+                created_at=now_iso(),
             )
             rows.append(row)
         if not rows:
@@ -440,23 +311,9 @@ class FeatureStore:
         rows = self.db.execute(f"SELECT id FROM images {where} ORDER BY source, camera, timestamp_s, frame", args)
         return np.array([r[0] for r in rows], np.int64)
 
-    def geotags_of(self, image_ids: Iterable[int]) -> dict[int, tuple[float, float]]:
-        """image_id -> (lat_deg, lon_deg) geotag."""
-        ids = [int(i) for i in image_ids]
-        marks = ",".join("?" * len(ids))
-        return {r[0]: (r[1], r[2]) for r in self.db.execute(
-            f"SELECT id, lat_deg, lon_deg FROM images WHERE id IN ({marks})", ids)}
-
-    def _ensure_fast_tables(self) -> None:
-        if "global_vectors" not in self.db.table_names():
-            with self.db.atomic():
-                self.db["global_vectors"].create({"name": str, "image_id": int, "vector_f32": bytes},
-                                                 pk=("name", "image_id"))
-                self.db["arrays"].create({"key": str, "dtype": str, "shape_json": str, "data": bytes}, pk="key")
-
     def add_global_vectors(self, name: str, image_ids: Sequence[int], vectors_f32: np.ndarray) -> None:
         """Store one float32 vector per image under ``name`` (replacing what was there), one transaction."""
-        self._ensure_fast_tables()
+        ensure_vector_tables(self.db)
         v = np.ascontiguousarray(vectors_f32, np.float32)
         if v.ndim != 2 or v.shape[0] != len(image_ids):
             raise StoreError(f"{self.label}: global vectors must be ({len(image_ids)}, D), got {v.shape}")
@@ -485,7 +342,7 @@ class FeatureStore:
         return ids, out
 
     def put_array(self, key: str, array: np.ndarray) -> None:
-        self._ensure_fast_tables()
+        ensure_vector_tables(self.db)
         a = np.ascontiguousarray(array)
         with self.db.atomic():
             self.db["arrays"].upsert({"key": key, "dtype": a.dtype.str, "shape_json": json.dumps(list(a.shape)),

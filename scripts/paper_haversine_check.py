@@ -4,8 +4,11 @@ Prints the Haversine distances computed correctly and with latitude and longitud
 swapped. The swapped version reproduces the paper's numbers to rounding, which
 suggests the paper's errors overstate east-west distances by 1/cos(49 deg) = 1.52.
 
-    .venv/bin/python scripts/paper_haversine_check.py
+    .venv/bin/python scripts/paper_haversine_check.py [--json PATH]
 """
+
+import json
+import sys
 
 import numpy as np
 
@@ -27,14 +30,22 @@ def distances(points, swapped):
     return haversine_distance_m(lat, lon, tlat, tlon)
 
 
-def main():
-    fmt = lambda v: " ".join(f"{x:7.2f}" for x in v)
+def main(argv: list[str]) -> int:
+    fmt = lambda v: " ".join(f"{x:7.2f}" for x in v)  # noqa: E731
     print(" " * 50 + " ".join(f"{s:>7}" for s in ["t-5", "t-4", "t-3", "t-2", "t-1", "t"]))
+    result = {}
     for name, points, paper in (("measurement", BEST_MATCH, PAPER_MEASUREMENT_M), ("estimate", ESTIMATE, PAPER_ESTIMATE_M)):
+        swapped, correct = distances(points, True), distances(points, False)
         print(f"{name + ' error, paper (m)':50}{fmt(paper)}")
-        print(f"{name + ' error, Haversine lat/lon swapped (m)':50}{fmt(distances(points, True))}")
-        print(f"{name + ' error, Haversine correct (m)':50}{fmt(distances(points, False))}")
+        print(f"{name + ' error, Haversine lat/lon swapped (m)':50}{fmt(swapped)}")
+        print(f"{name + ' error, Haversine correct (m)':50}{fmt(correct)}")
+        result[name] = {"paper_m": paper, "swapped_m": swapped.tolist(), "correct_m": correct.tolist()}
+    if argv[:1] == ["--json"] and len(argv) == 2:
+        with open(argv[1], "w") as fh:
+            json.dump(result, fh, indent=1)
+        print(f"wrote {argv[1]}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main(sys.argv[1:]))

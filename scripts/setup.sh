@@ -10,5 +10,5 @@ if ! { .venv/bin/python -m pip install --upgrade pip && .venv/bin/python -m pip 
     echo "setup: pip install failed (log above, also in $log)" >&2
     exit 1
 fi
-.venv/bin/python -c "import visloc, db, filterpy, pytest"  # fail here, not later, if the install is broken
+.venv/bin/python -c "import visloc, visloc.db, visloc.dashboard, visloc.bench, filterpy, pytest"  # fail here, not later, if the install is broken
 echo "setup: .venv ready ($(.venv/bin/python -c 'import visloc; print("visloc", visloc.__version__)'))"

@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 import pytest
 
-from db import FeatureStore
-from visloc.cli import default_data_root
+from visloc.db import FeatureStore
+from visloc.sources import default_data_root
 
 REPO = Path(__file__).resolve().parent.parent
 KITTI_DRIVE = "2011_09_26_drive_0001"

@@ -245,22 +245,17 @@ def test_bad_mode_parameters_are_one_line_errors(synthetic, tmp_path, command, f
     one_line_error(run_cli(*args, flag, value), name)
 
 
-def test_refined_mode_without_calibration_falls_back_to_the_paper_with_the_reason(synthetic, tmp_path):
+def test_refined_mode_without_calibration_is_refused_naming_what_is_missing(synthetic, tmp_path):
     _, _, query_csv, store = synthetic
-    outs = {}
-    for mode in ("paper", "refined"):
-        outs[mode] = tmp_path / f"{mode}.json"
-        result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "3",
-                         "--start-frame", "1", "--mode", mode, "--json", outs[mode])
-        assert result.returncode == 0, result.stderr
-    paper, refined = (json.loads(outs[m].read_text()) for m in ("paper", "refined"))
-    assert refined["mode"] == "refined" and paper["mode"] == "paper"
-    for p, r in zip(paper["steps"], refined["steps"]):
-        assert p["measurement_source"] == r["measurement_source"] == "geotag"
-        assert p["fallback_reason"] is None
-        assert "no intrinsics" in r["fallback_reason"]  # a CSV drive has no camera calibration
-        assert r["best_db_frame"] == p["best_db_frame"] and r["measurement_error_m"] == p["measurement_error_m"]
-    assert "Fallbacks to the geotag" in result.stdout
+    # a CSV drive has no camera calibration: nothing to pose, so the refined method cannot be built
+    one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "3",
+                           "--start-frame", "1", "--mode", "refined"),
+                   "the refined method needs a calibrated database: database dbdrive/camera: no intrinsics")
+    result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "3",
+                     "--start-frame", "1", "--mode", "paper", "--json", tmp_path / "paper.json")
+    assert result.returncode == 0, result.stderr
+    assert all(s["measurement_source"] == "geotag" and s["fallback_reason"] is None
+               for s in json.loads((tmp_path / "paper.json").read_text())["steps"])
 
 
 def test_both_modes_report_the_same_keys(tmp_path):

@@ -7,24 +7,22 @@ import time
 import numpy as np
 import pytest
 
-from db import FeatureStore
 from visloc import (
     PAPER_FILTER,
+    PAPER_METHOD,
     FilterParams,
     InputError,
-    Localizer,
     MatchCancelled,
     MatchParams,
     ParameterError,
-    Query,
     RetrievalParams,
     SiftParams,
     Workspace,
+    build_localizer,
     correspondence_figure,
     covariance_ellipse_m,
     drive_query_indices,
     drive_summary,
-    ingest,
     match_drive,
     open_csv,
     run_filter,
@@ -37,12 +35,9 @@ from conftest import write_csv_drive
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("drive")
-    path = tmp / "s.sqlite"
-    with FeatureStore(path, create=True) as store:
-        for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-            ingest(store, open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(),
-                   workers=1)
-    ws = Workspace(path)
+    ws = Workspace(tmp / "s.sqlite", create=True)
+    for name, offset in (("dbdrive", 0), ("querydrive", 30)):
+        ws.ingest(open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
     return ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
 
 
@@ -84,12 +79,11 @@ def test_match_then_track_equals_the_localizer(workspace):
     indices = drive_query_indices(queries.timestamps_s, 0.0, 1.0)
     matches = match_drive(queries, db, match, retrieval, indices)
     records = track_drive(matches, queries, db, PAPER_FILTER)
-    loc = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match, retrieval, PAPER_FILTER)
+    loc = build_localizer(PAPER_METHOD, db, match, retrieval, PAPER_FILTER)
     for k, q in enumerate(indices):
-        result = loc.step(Query(queries.descriptors_u8[q], float(queries.timestamps_s[q])))
+        result = loc.step(queries.query(q))
         assert records[k].best_db_frame == db.images[result.best_index].frame
-        est_lat, est_lon = db.frame.to_geo(result.filter.x[:2])
-        assert records[k].estimate_lat_deg == pytest.approx(float(est_lat), abs=1e-12)
+        np.testing.assert_array_equal(records[k].estimate_m, result.filter.x[:2])  # metres, not degrees
         np.testing.assert_allclose(records[k].estimate_cov_m2, result.filter.position_cov_m2)
     # the exclusion holds and the neighbour 0.5 s away is 1 m off
     assert all(abs(r.best_offset_s) >= 0.5 for r in records)
@@ -173,7 +167,7 @@ def test_correspondence_figure_stacks_the_images_and_draws_lines():
 
 
 def test_latest_job_supersedes_older_ones():
-    from dashboard.jobs import LatestJobRunner
+    from visloc.dashboard.jobs import LatestJobRunner
 
     errors, finished, stopped = [], [], []
     runner = LatestJobRunner(on_error=lambda name, exc: errors.append((name, str(exc))))

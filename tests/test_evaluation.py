@@ -5,10 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from db import FeatureStore
-from visloc import PAPER_FILTER, MatchParams, RetrievalParams, SiftParams, evaluate, ingest, load_database, load_query_set, open_csv
-from visloc.localizer import PairCountCache
-from visloc.report import save_error_plot, series_tables, summary_text, write_json
+from visloc import PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, SiftParams, Workspace, evaluate, open_csv
+from visloc.report import evaluation_json, save_error_plot, series_tables, summary_text, write_json
 
 from conftest import write_csv_drive
 
@@ -16,13 +14,10 @@ from conftest import write_csv_drive
 @pytest.fixture(scope="module")
 def drives(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("eval")
-    store = FeatureStore(tmp / "s.sqlite", create=True)
+    ws = Workspace(tmp / "s.sqlite", create=True)
     for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-        ingest(store, open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
-    db = load_database(store, "dbdrive", "camera", SiftParams())
-    queries = load_query_set(store, "querydrive", "camera", SiftParams())
-    yield tmp, store, db, queries
-    store.close()
+        ws.ingest(open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
+    return tmp, ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera", SiftParams())
 
 
 def test_every_series_finds_its_own_frame_without_exclusion(drives):
@@ -54,14 +49,12 @@ def test_exclusion_pushes_the_match_to_a_neighbour(drives):
 
 
 def test_cached_counts_give_identical_results(drives):
-    _, store, db, queries = drives
-    match = MatchParams()
-    keys = [im.image_id for im in db.images]
-    cold = PairCountCache(db.descriptors_u8, match, db_keys=keys)
+    _, ws, db, queries = drives
+    match = MatchParams(tau1=0.79)  # thresholds no other test caches counts for
+    cold = ws.pair_cache(db, queries, match)
     first = evaluate(queries, db, match, RetrievalParams(), PAPER_FILTER, n_steps=3, cache=cold)
-    store.add_pair_counts(cold.take_new_entries(), match.tau1, match.tau2)
-    warm = PairCountCache(db.descriptors_u8, match, db_keys=keys,
-                          known=store.pair_counts(queries.image_ids, match.tau1, match.tau2))
+    assert ws.save_pair_counts(cold) > 0
+    warm = ws.pair_cache(db, queries, match)
     second = evaluate(queries, db, match, RetrievalParams(), PAPER_FILTER, n_steps=3, cache=warm)
     assert warm.take_new_entries() == {}
     for a, b in zip(first.series, second.series):
@@ -75,11 +68,15 @@ def test_reports_are_written(drives, tmp_path):
     summary = result.summary()
     text = summary_text(summary)
     assert "final estimate error (m)" in text and "series evaluated: 1" in text
-    tables = series_tables(result.series[0])
+    tables = series_tables(result.series[0], db.frame)
     assert "Table 2" in tables and "Table 3" in tables and tables.count("\n") > 10
-    write_json(tmp_path / "r.json", {**summary, "series": result.series})
+    write_json(tmp_path / "r.json", evaluation_json(result))
     loaded = json.loads((tmp_path / "r.json").read_text())
-    assert loaded["series"][0][0]["query_frame"] == 2
+    first = loaded["series"][0][0]
+    assert first["query_frame"] == 2
+    # positions leave the engine as latitude and longitude: the truth is the query's own geotag
+    assert (first["truth_lat_deg"], first["truth_lon_deg"]) == (queries.lat_deg[2], queries.lon_deg[2])
+    assert abs(first["estimate_lat_deg"] - queries.lat_deg[2]) < 1e-6 and "truth_m" not in first
     save_error_plot(summary, tmp_path / "r.png", "test")
     assert (tmp_path / "r.png").read_bytes()[:4] == b"\x89PNG"
 

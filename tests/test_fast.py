@@ -1,22 +1,24 @@
-"""The fast path (issue 5) gives the paper's answers: same neighbours, same counts, the exact
-best match whenever the truth is inside the gate or the shortlist. No timing here: that is
-``visloc bench``'s job."""
+"""The fast path gives the paper's answers: same neighbours, same counts, the exact best match
+whenever the truth is inside the gate or the shortlist. No timing here: that is ``visloc bench``'s job."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from bench.synthetic import SyntheticSpec, database_image, query_image
-from db import ImageRecord
+from visloc.bench.synthetic import SyntheticSpec, database_image, query_image
+from visloc.db import ImageRecord
 from visloc.errors import ParameterError
-from visloc.fast import (FastDatabase, FastParams, count_correspondences_with, count_many, counts_with,
-                         fast_retrieve, gate_mask, gate_radius_m, nearest_two_faiss, shortlist, strongest)
-from visloc.features import extract_sift
-from visloc.localizer import Localizer, Query
-from visloc.matching import count_correspondences, nearest_two
-from visloc.params import PAPER_FILTER, PAPER_MATCH, MatchParams, RetrievalParams, SiftParams
-from visloc.retrieval import brute_force_counts, retrieve
+from visloc.features import Query, extract_sift
+from visloc.localizer import Localizer
+from visloc.matching import (backend_counter, backend_counts, brute_force_counter, brute_force_counts,
+                             count_correspondences, count_correspondences_with, count_many, nearest_two,
+                             nearest_two_faiss)
+from visloc.measurement import GeotagMeasurer
+from visloc.params import PAPER_FILTER, PAPER_MATCH, FastParams, MatchParams, RetrievalParams, SiftParams
+from visloc.retrieval import (ShortlistRetriever, WindowRetriever, build_global_index, gate_mask, gate_radius_m,
+                              retrieve, shortlist_retrieve)
+from visloc.vlad import shortlist
 
 from conftest import panorama
 
@@ -71,7 +73,7 @@ def test_batched_counts_equal_one_by_one_counts():
         for block in (64 << 20, 300 * 400 * 4):
             got = count_many(query, images, candidates, match, block_bytes=block)
             np.testing.assert_array_equal(got, want)
-        np.testing.assert_array_equal(counts_with("batched", query, images, match)(candidates), want)
+        np.testing.assert_array_equal(backend_counts("batched", query, images, match)(candidates), want)
 
 
 def test_gate_contains_exactly_the_images_within_the_radius():
@@ -91,77 +93,78 @@ def synthetic_db(n: int = SPEC.n_images):
     return descriptors, east_north, np.arange(n, dtype=float)
 
 
+def fast_retrieval(q, descriptors, east_north, times, index, params, query_s, prediction=None):
+    counts = backend_counts("batched", q, descriptors, PAPER_MATCH)
+    return shortlist_retrieve(index.encoder.encode(q), counts, times, east_north, index.vectors_f32, params, query_s,
+                              RetrievalParams(window_s=1e9, exclusion_s=0.0), prediction)
+
+
 def test_gated_retrieval_returns_the_exact_answer_when_the_truth_is_inside_the_gate():
     descriptors, east_north, times = synthetic_db()
-    fast = FastDatabase.build(descriptors, FastParams(shortlist_size=0, n_words=16))
-    retrieval_params = RetrievalParams(window_s=1e9, exclusion_s=0.0)
+    params = FastParams(shortlist_size=0, n_words=16)
+    index = build_global_index(descriptors, params)
     for place in (20, 151, 280):
         q = query_image(place, SPEC)
-        exact = retrieve(brute_force_counts(q, descriptors, PAPER_MATCH), times, float(place), None, retrieval_params)
+        exact = retrieve(brute_force_counts(q, descriptors, PAPER_MATCH), times, float(place), None,
+                         RetrievalParams(window_s=1e9, exclusion_s=0.0))
         assert abs(exact.best_index - place) <= 1
-        got = fast_retrieve(q, counts_with("batched", q, descriptors, PAPER_MATCH), times, east_north, fast,
-                            float(place), retrieval_params, np.array([place + 6.0, 0.0]), np.eye(2) * 9.0)
+        got = fast_retrieval(q, descriptors, east_north, times, index, params, float(place),
+                             (np.array([place + 6.0, 0.0]), np.eye(2) * 9.0))
         assert got.gated and not got.widened
-        assert got.retrieval.best_index == exact.best_index
-        assert got.retrieval.best_count == exact.best_count
+        assert got.best_index == exact.best_index
+        assert got.best_count == exact.best_count
         in_gate = np.flatnonzero(np.abs(east_north[:, 0] - place - 6) <= 20)  # the minimum radius, 20 m
-        np.testing.assert_array_equal(got.retrieval.allowed, in_gate)
-        assert got.n_gate == in_gate.size < len(descriptors)
+        np.testing.assert_array_equal(got.allowed, in_gate)
+        assert in_gate.size < len(descriptors)
 
 
 def test_retrieval_widens_when_lost_or_when_the_gate_sees_nothing():
     descriptors, east_north, times = synthetic_db()
-    fast = FastDatabase.build(descriptors, FastParams(shortlist_size=8, n_words=16))
-    params = RetrievalParams(window_s=1e9, exclusion_s=0.0)
+    params = FastParams(shortlist_size=8, n_words=16)
+    index = build_global_index(descriptors, params)
     q = query_image(200, SPEC)
-    counts = counts_with("batched", q, descriptors, PAPER_MATCH)
-    lost = fast_retrieve(q, counts, times, east_north, fast, 200.0, params)  # no prediction: first or lost
-    assert not lost.gated and lost.n_gate == len(descriptors) and abs(lost.retrieval.best_index - 200) <= 1
+    lost = fast_retrieval(q, descriptors, east_north, times, index, params, 200.0)  # no prediction: first or lost
+    assert not lost.gated and lost.allowed.size == len(descriptors) and abs(lost.best_index - 200) <= 1
+    assert lost.candidates.size == 8
     # a confident prediction 100 m off: nothing in the gate matches, so the search widens to everything
-    wrong = fast_retrieve(q, counts, times, east_north, fast, 200.0, params, np.array([60.0, 0.0]), np.eye(2))
+    wrong = fast_retrieval(q, descriptors, east_north, times, index, params, 200.0, (np.array([60.0, 0.0]), np.eye(2)))
     assert wrong.widened and not wrong.gated
-    assert wrong.retrieval.best_index == lost.retrieval.best_index
+    assert wrong.best_index == lost.best_index
 
 
 def test_global_shortlist_finds_the_right_place_on_a_synthetic_database():
     descriptors, _, _ = synthetic_db()
-    fast = FastDatabase.build(descriptors, FastParams(n_words=16, pca_dim=64))
-    assert fast.vectors_f32.shape == (SPEC.n_images, 64)
+    index = build_global_index(descriptors, FastParams(n_words=16, pca_dim=64))
+    assert index.vectors_f32.shape == (SPEC.n_images, 64)
     hits = []
     for place in range(5, SPEC.n_images, 37):
-        top = shortlist(fast.vectors_f32, fast.encoder.encode(query_image(place, SPEC)), 8)
+        top = shortlist(index.vectors_f32, index.encoder.encode(query_image(place, SPEC)), 8)
         assert len(top) == 8
         hits.append(abs(int(top[0]) - place) <= 2)
     assert np.mean(hits) >= 0.9
     among = np.arange(100, 140)
-    assert set(shortlist(fast.vectors_f32, fast.encoder.encode(query_image(120, SPEC)), 5, among=among)) <= set(among)
+    assert set(shortlist(index.vectors_f32, index.encoder.encode(query_image(120, SPEC)), 5, among=among)) <= set(among)
 
 
 def test_fast_localizer_tracks_like_the_paper_on_a_synthetic_road():
     descriptors, east_north, times = synthetic_db()
-    args = (times, east_north, descriptors, PAPER_MATCH, RetrievalParams(window_s=20.0, exclusion_s=0.0),
-            PAPER_FILTER)
-    paper = Localizer(*args)
-    fast = Localizer(*args, fast=FastDatabase.build(descriptors, FastParams(n_words=16)))
+    retrieval = RetrievalParams(window_s=20.0, exclusion_s=0.0)
+    params = FastParams(n_words=16)
+    paper = Localizer(WindowRetriever(times, brute_force_counter(descriptors, PAPER_MATCH), retrieval),
+                      GeotagMeasurer(east_north), PAPER_FILTER)
+    fast = Localizer(ShortlistRetriever(times, east_north, build_global_index(descriptors, params), params,
+                                        backend_counter("batched", descriptors, PAPER_MATCH), retrieval),
+                     GeotagMeasurer(east_north), PAPER_FILTER)
     for place in range(30, 90, 10):  # 10 m per second: the filter's gate follows
         q = Query(query_image(place, SPEC), float(place))
         a, b = paper.step(q), fast.step(q)
         assert b.best_index == a.best_index
         assert b.retrieval.candidates.size <= 8 < a.retrieval.candidates.size
-    assert fast.last_fast.gated
-
-
-def test_keypoint_cap_keeps_the_strongest():
-    keypoints = np.zeros((6, 6), np.float32)
-    keypoints[:, 4] = [0.1, 0.5, 0.3, 0.5, 0.05, 0.9]
-    np.testing.assert_array_equal(strongest(keypoints, 3), [1, 3, 5])
-    np.testing.assert_array_equal(strongest(keypoints, 0), np.arange(6))
-    with pytest.raises(ParameterError, match="max_keypoints"):
-        FastDatabase.build([sift_like(np.random.default_rng(0), 50)] * 3, FastParams(max_keypoints=10, n_words=4))
+        assert b.retrieval.gated == (place > 30)  # the first query has no prediction to gate with
 
 
 @pytest.mark.parametrize("field,value", [("gate_sigmas", 0), ("shortlist_size", -1), ("nn_backend", "annoy"),
-                                         ("n_words", 0), ("max_keypoints", 1.5)])
+                                         ("n_words", 0), ("pca_dim", 1.5)])
 def test_fast_params_name_the_bad_parameter(field, value):
     with pytest.raises(ParameterError, match=field):
         FastParams(**{field: value})

@@ -10,11 +10,13 @@ import pytest
 
 from visloc.geometry import (CameraModel, essential_inliers, imu_east_north_covariance, imu_pose_from_camera,
                              imu_poses, invert, project, rotation_from_rpy, solve_pnp, triangulate)
-from visloc.params import RefinedParams
-from visloc.refined import (GEOMETRY, GEOTAG, DatabaseGeometry, StructureCache, filter_measurements,
-                            measurement_from_retrieval)
+from visloc.drive import filter_measurements
+from visloc.errors import InputError
+from visloc.features import Query
+from visloc.measurement import GEOMETRY, GEOTAG, geotag_measurement
+from visloc.params import FilterParams, RefinedParams
+from visloc.pose import DatabaseGeometry, PoseMeasurer, StructureCache, pose_measurement
 from visloc.retrieval import Retrieval
-from visloc.params import FilterParams
 from visloc.tracking import run_filter
 
 K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
@@ -177,27 +179,24 @@ def test_measurement_gives_back_the_known_query_position_within_centimetres():
     geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0])
     params = RefinedParams(neighbour_gaps=(1, 2), n_views=2)
     cache = StructureCache()
-    m = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
-                                   query_camera=CAMERA, params=params, cache=cache)
+    m = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, params, cache)
     assert m.source == GEOMETRY and m.fallback_reason is None, m.fallback_reason
     assert np.linalg.norm(m.east_north_m - truth) < 0.05
     assert m.n_pnp_inliers > 100 and m.sigma_m < 0.1 and m.heading_deg == pytest.approx(90 - np.degrees(0.02), abs=0.2)
     assert len(cache) > 0
     # the paper's measurement of the same retrieval is the best match's geotag, 5 m off here
-    paper = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="paper")
+    paper = geotag_measurement(retrieval_over(5), geotags)
     assert paper.source == GEOTAG and paper.cov_m2 is None
     np.testing.assert_array_equal(paper.east_north_m, geotags[2])
     # deterministic: the same inputs give the same measurement, with or without the cache
-    again = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
-                                       query_camera=CAMERA, params=params)
+    again = PoseMeasurer(geotags, geometry, CAMERA, params).measure(Query(dq, 0.0, keypoints_f32=xq), retrieval_over(5))
     np.testing.assert_array_equal(again.east_north_m, m.east_north_m)
     np.testing.assert_array_equal(again.cov_m2, m.cov_m2)
 
 
 def test_a_stopped_car_has_no_baseline_and_falls_back_to_the_geotag():
     geometry, geotags, xq, dq, _ = synthetic_database([5.0, 5.0, 5.0, 5.0, 5.0])
-    m = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
-                                   query_camera=CAMERA, params=RefinedParams(neighbour_gaps=(1, 2)))
+    m = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, RefinedParams(neighbour_gaps=(1, 2)))
     assert m.source == GEOTAG and m.cov_m2 is None
     assert "car stopped" in m.fallback_reason
     np.testing.assert_array_equal(m.east_north_m, geotags[2])
@@ -205,49 +204,49 @@ def test_a_stopped_car_has_no_baseline_and_falls_back_to_the_geotag():
 
 def test_too_few_points_fall_back_with_the_reason():
     geometry, geotags, xq, dq, _ = synthetic_database([3.0, 6.0, 9.0], n_points=40)
-    m = measurement_from_retrieval(xq, dq, retrieval_over(3), geotags, mode="refined", geometry=geometry,
-                                   query_camera=CAMERA, params=RefinedParams(neighbour_gaps=(1,), min_verified_inliers=60))
+    m = pose_measurement(xq, dq, retrieval_over(3), geotags, geometry, CAMERA,
+                         RefinedParams(neighbour_gaps=(1,), min_verified_inliers=60))
     assert m.source == GEOTAG and m.fallback_reason.startswith("verification: best candidate has")
 
 
 @pytest.mark.parametrize("what,reason", [
-    ("query_camera", "query camera has no calibration"),
-    ("database_camera", "no extrinsics"),
     ("keypoints", "query keypoints not given"),
     ("excluded_neighbours", "car stopped"),
 ])
-def test_missing_inputs_fall_back_with_the_reason(what, reason):
+def test_a_query_without_what_a_pose_needs_falls_back_with_the_reason(what, reason):
     geometry, geotags, xq, dq, _ = synthetic_database([3.0, 6.0, 9.0])
     retrieval = retrieval_over(3)
-    kwargs = dict(mode="refined", geometry=geometry, query_camera=CAMERA, params=RefinedParams(neighbour_gaps=(1,)))
-    if what == "query_camera":
-        kwargs["query_camera"] = None
-    elif what == "database_camera":
-        kwargs["geometry"] = DatabaseGeometry(geometry.T_world_camera, geometry.keypoints_xy_px,
-                                              geometry.descriptors_u8, None, "database x: no extrinsics")
-    elif what == "keypoints":
+    if what == "keypoints":
         xq = None
     elif what == "excluded_neighbours":  # the retrieval allows only the view itself: no neighbour to triangulate with
         retrieval = Retrieval(candidates=np.array([1]), counts=np.array([80]), best_index=1)
-    m = measurement_from_retrieval(xq, dq, retrieval, geotags, **kwargs)
+    m = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, RefinedParams(neighbour_gaps=(1,)))
     assert m.source == GEOTAG and reason in m.fallback_reason
     np.testing.assert_array_equal(m.east_north_m, geotags[retrieval.best_index])
 
 
-def test_no_match_gives_no_measurement_in_either_mode():
+def test_the_pose_measurer_is_refused_without_calibrated_cameras():
+    geometry, geotags, _, _, _ = synthetic_database([3.0, 6.0, 9.0])
+    with pytest.raises(InputError, match="calibrated query camera: queries q/camera have no intrinsics"):
+        PoseMeasurer(geotags, geometry, None, RefinedParams(), query_what="queries q/camera")
+    uncalibrated = DatabaseGeometry(geometry.T_world_camera, geometry.keypoints_xy_px, geometry.descriptors_u8, None,
+                                    "database x: no intrinsics (P_rect) in the store")
+    with pytest.raises(InputError, match="calibrated database: database x: no intrinsics"):
+        PoseMeasurer(geotags, uncalibrated, CAMERA, RefinedParams())
+
+
+def test_no_match_gives_no_measurement_in_either_method():
     geometry, geotags, xq, dq, _ = synthetic_database([3.0, 6.0, 9.0])
     none = Retrieval(candidates=np.arange(3), counts=np.zeros(3, np.int64), best_index=None)
-    for mode in ("paper", "refined"):
-        m = measurement_from_retrieval(xq, dq, none, geotags, mode=mode, geometry=geometry, query_camera=CAMERA)
+    for m in (geotag_measurement(none, geotags), pose_measurement(xq, dq, none, geotags, geometry, CAMERA)):
         assert m.source is None and m.east_north_m is None
 
 
 def test_filter_measurements_uses_each_measurements_own_covariance():
     geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0])
     params = RefinedParams(neighbour_gaps=(1, 2))
-    geo = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="refined", geometry=geometry,
-                                     query_camera=CAMERA, params=params)
-    paper = measurement_from_retrieval(xq, dq, retrieval_over(5), geotags, mode="paper")
+    geo = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, params)
+    paper = geotag_measurement(retrieval_over(5), geotags)
     fp = FilterParams()
     steps = filter_measurements([paper, geo], fp)
     expected = run_filter([paper.east_north_m, geo.east_north_m], fp, covariances_m2=[None, geo.cov_m2])

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from db import FeatureStore, SettingsMismatchError
+from visloc.db import FeatureStore, SettingsMismatchError
 from visloc.errors import InputError
 from visloc.ingest import ingest
 from visloc.params import SiftParams
@@ -53,8 +53,9 @@ def test_ctrl_c_commits_finished_images_and_resume_completes(tmp_path, csv_drive
     seq = open_csv(csv_drive)
     done = []
 
-    def interrupt_after_five(n):
-        done.append(n)
+    def interrupt_after_five(n_done, n_total):
+        if n_done:
+            done.append(n_done)
         if len(done) == 5:
             raise KeyboardInterrupt
 

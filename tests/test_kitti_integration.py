@@ -87,11 +87,16 @@ def test_same_camera_without_exclusion_finds_the_query_image_itself(evaluation, 
     assert all(s["measurement_error_m"] == 0.0 for s in steps)
 
 
-def test_readme_python_example_runs(evaluation, kitti_root, capsys):
+def readme_python_block(k: int) -> str:
+    """The k-th Python block of the README's "Python API" section."""
     from conftest import REPO
 
-    readme = (REPO / "README.md").read_text()
-    code = readme.split("## Python API", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    section = (REPO / "README.md").read_text().split("## Python API", 1)[1].split("\n## ", 1)[0]
+    return section.split("```python\n")[k + 1].split("```", 1)[0]
+
+
+def test_readme_python_example_runs(evaluation, kitti_root, capsys):
+    code = readme_python_block(0)
     tmp, report, _ = evaluation
     code = code.replace('"out/visloc.sqlite"', repr(str(tmp / "kitti.sqlite")))
     code = code.replace('"../shared/data/kitti"', repr(str(kitti_root)))
@@ -104,10 +109,7 @@ def test_readme_python_example_runs(evaluation, kitti_root, capsys):
 
 
 def test_readme_drive_example_runs(evaluation, capsys):
-    from conftest import REPO
-
-    readme = (REPO / "README.md").read_text()
-    code = readme.split("## Dashboard", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    code = readme_python_block(1)
     tmp, report, _ = evaluation
     code = code.replace('"out/visloc.sqlite"', repr(str(tmp / "kitti.sqlite")))
     exec(compile(code, "README.md", "exec"), {})

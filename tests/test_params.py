@@ -32,7 +32,7 @@ def test_out_of_range_is_refused_naming_the_parameter(cls, kwargs, name):
 
 
 @pytest.mark.parametrize("tau1,tau2", [(1.0, -1.0), (1e-9, 1.0), (0.8, 0.97)])
-def test_bounds_are_inclusive_where_the_issue_says(tau1, tau2):
+def test_bounds_are_inclusive_as_the_paper_states(tau1, tau2):
     MatchParams(tau1, tau2)
 
 

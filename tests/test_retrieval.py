@@ -5,9 +5,12 @@ import pytest
 
 from visloc.errors import ParameterError
 from visloc.evaluation import series_schedule
-from visloc.localizer import Localizer, PairCountCache, Query
+from visloc.features import Query
+from visloc.localizer import Localizer
+from visloc.matching import PairCountCache, brute_force_counter
+from visloc.measurement import GeotagMeasurer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
-from visloc.retrieval import candidate_mask, retrieve
+from visloc.retrieval import WindowRetriever, candidate_mask, retrieve
 
 T = np.arange(0.0, 100.0, 1.0)  # database timestamps, one image per second
 
@@ -44,7 +47,9 @@ def _db(n=30, seed=0):
 def test_localizer_follows_the_window_and_rescans_when_lost():
     descriptors = _db()
     en = np.stack([np.arange(30.0) * 10, np.zeros(30)], axis=1)
-    loc = Localizer(T[:30], en, descriptors, MatchParams(0.8, 0.9), RetrievalParams(window_s=5.0), FilterParams())
+    retriever = WindowRetriever(T[:30], brute_force_counter(descriptors, MatchParams(0.8, 0.9)),
+                                RetrievalParams(window_s=5.0))
+    loc = Localizer(retriever, GeotagMeasurer(en), FilterParams())
     first = loc.step(Query(descriptors[12], 12.0))
     assert first.best_index == 12 and first.retrieval.candidates.size == 30
     np.testing.assert_allclose(first.measurement_m, [120, 0])
@@ -54,22 +59,28 @@ def test_localizer_follows_the_window_and_rescans_when_lost():
     assert lost.best_index is None and lost.measurement_m is None and lost.filter.innovation is None
     again = loc.step(Query(descriptors[29], 15.0))
     assert again.retrieval.candidates.size == 30 and again.best_index == 29  # whole database again
+    loc.reset()  # a new track: the window is forgotten too
+    assert loc.step(Query(descriptors[3], 16.0)).retrieval.candidates.size == 30
 
 
 def test_pair_cache_computes_each_pair_once_and_seeds_from_known_counts():
     descriptors = _db(5)
     cache = PairCountCache(descriptors, MatchParams(0.8, 0.9), db_keys=[100, 101, 102, 103, 104])
-    counts = cache(Query(descriptors[2], 0.0, key="q"))
+    counts = cache(descriptors[2], "q")
     first = counts(np.arange(5))
     entries = cache.take_new_entries()
     assert first[2] == 40 and len(entries) == 5 and cache.take_new_entries() == {}
-    again = cache(Query(descriptors[2], 0.0, key="q"))(np.arange(5))
+    again = cache(descriptors[2], "q")(np.arange(5))
     assert again.tolist() == first.tolist() and cache.fresh_ms == 0.0
     seeded = PairCountCache(descriptors, MatchParams(0.8, 0.9), db_keys=[100, 101, 102, 103, 104],
                             known=entries)
-    assert seeded(Query(descriptors[2], 0.0, key="q"))(np.arange(5)).tolist() == first.tolist()
+    assert seeded(descriptors[2], "q")(np.arange(5)).tolist() == first.tolist()
     assert seeded.take_new_entries() == {}
     assert seeded.cost_ms("q", np.arange(5)) == pytest.approx(cache.cost_ms("q", np.arange(5)))
+    with pytest.raises(ValueError, match="needs queries with a key"):
+        cache(descriptors[2], None)
+    with pytest.raises(ParameterError, match="cache holds counts for"):
+        cache.check_thresholds(MatchParams(0.7, 0.9))
 
 
 def test_stride_schedule_takes_every_tenth_frame_of_kitti():

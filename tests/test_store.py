@@ -6,7 +6,7 @@ import sqlite3
 import numpy as np
 import pytest
 
-from db import (CameraRecord, EmptyStoreError, FeatureStore, ImageRecord, NotAStoreError, SettingsMismatchError,
+from visloc.db import (CameraRecord, EmptyStoreError, FeatureStore, ImageRecord, NotAStoreError, SettingsMismatchError,
                 StoreError)
 
 
@@ -173,7 +173,7 @@ def make_version_1_store(path):
 
 
 def test_a_version_1_store_is_migrated_in_place_keeping_its_data(tmp_path):
-    from db import SCHEMA_VERSION
+    from visloc.db import SCHEMA_VERSION
 
     path = tmp_path / "v1.sqlite"
     kp, desc = make_version_1_store(path)

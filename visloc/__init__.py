@@ -1,72 +1,104 @@
 """visloc: localize a vehicle from one camera against a database of geotagged images.
 
-The paper's method (Zahedian et al.): SIFT correspondences by Lowe's ratio and
-cosine similarity pick the best-matching database image, whose geotag is the
-measurement of a constant-velocity Kalman filter.
+The paper's method (Zahedian et al.): SIFT correspondences by Lowe's ratio and cosine
+similarity pick the best-matching database image, whose geotag is the measurement of a
+constant-velocity Kalman filter. The refined method (beyond the paper) measures a metric
+position instead, from the database's own geometry, with its own covariance.
 
-The refined mode (beyond the paper) measures a metric position instead: the
-query's pose against structure triangulated from posed database images, with its
-own covariance (``measurement_from_retrieval``). A caller holding retrievals can
-make measurements once and re-run only the filter with other R/Q/P0 or gate
-(``filter_measurements``), and smooth a run offline (``rts_smooth``).
+The pipeline, one module per stage (each a set of pure functions over numpy arrays, plus
+the small classes that hold a stage's state):
 
-Public API (the dashboard and scripts use only these names):
+    features     SIFT keypoints and descriptors; ``Query``
+    matching     the paper's equations (1) and (2); exact GEMM, faiss and batched backends; counters
+    vlad         global descriptors (VLAD) for the fast path's shortlist
+    retrieval    candidates and the best match: the paper's window, or the filter-gated shortlist
+    measurement  what a retrieval tells the filter: the best match's geotag
+    geometry     rigid transforms, essential matrix, triangulation, PnP
+    pose         the refined measurement: a metric pose from the database's geometry
+    tracking     the constant-velocity Kalman filter, its gate, the RTS smoother
+    localizer    a retriever, a measurer and the filter composed; ``methods``: the named compositions
+    runs         the one query loop and what each query costs
+
+Around it: ``sources`` (KITTI drives, CSV drives), ``ingest`` and ``workspace`` (the store,
+``visloc.db``, and the only door to it), ``database`` (what is loaded from it), ``evaluation``
+(the paper's protocol), ``drive`` (whole-drive runs), ``records`` and ``report`` (results and
+their tables, JSON and plots), ``cli`` and ``commands`` (the ``visloc`` command), and the
+browser dashboard ``visloc.dashboard``.
+
+Public API: the names below (the dashboard and scripts use only these).
 """
 
-from visloc.database import GeoDatabase, QuerySet, load_database, load_query_set
-from visloc.drive import DriveMatches, MatchCancelled, drive_query_indices, drive_summary, match_drive, track_drive
+from visloc.database import GeoDatabase, QuerySet
+from visloc.drive import DriveMatches, drive_query_indices, drive_summary, filter_measurements, match_drive, track_drive
 from visloc.errors import InputError, ParameterError, VislocError
-from visloc.evaluation import Evaluation, StepRecord, evaluate, series_schedule
-from visloc.fast import FAST, FastDatabase, FastParams, FastRetrieval, count_many, fast_retrieve, nearest_two_faiss
-from visloc.features import Features, extract_sift, make_sift
+from visloc.evaluation import Evaluation, evaluate, series_schedule, step_labels
+from visloc.features import Features, Query, extract_sift, make_sift
 from visloc.figures import correspondence_figure
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
 from visloc.geometry import CameraModel, PnPResult, Triangulation, essential_inliers, solve_pnp, triangulate
-from visloc.ingest import IngestReport, ingest
-from visloc.localizer import Localizer, PairCountCache, Query, StepResult
-from visloc.matching import NearestTwo, correspondence_mask, correspondences, count_correspondences, nearest_two
+from visloc.ingest import IngestReport
+from visloc.localizer import Localizer, StepResult, StepTimings
+from visloc.matching import (MatchCancelled, NearestTwo, PairCountCache, backend_counter, brute_force_counter,
+                             cancellable, correspondence_mask, correspondences, count_correspondences, count_many,
+                             nearest_two, nearest_two_faiss)
+from visloc.measurement import GEOMETRY, GEOTAG, GeotagMeasurer, Measurement, MemoisedMeasurer, geotag_measurement
+from visloc.methods import METHODS, PAPER_METHOD, REFINED_METHOD, Method, build_localizer, method_named
 from visloc.params import (
+    FAST,
     PAPER_EVAL_RETRIEVAL,
     PAPER_FILTER,
     PAPER_MATCH,
     PAPER_RETRIEVAL,
     PAPER_SIFT,
-    MODES,
     REFINED,
+    FastParams,
     FilterParams,
     MatchParams,
     RefinedParams,
     RetrievalParams,
     SiftParams,
 )
-from visloc.refined import (
-    DatabaseGeometry,
-    Measurement,
-    StructureCache,
-    filter_measurements,
-    measurement_from_retrieval,
-    paper_measurement,
-)
-from visloc.retrieval import Retrieval, candidate_mask, retrieve
-from visloc.sources import Frame, Sequence, load_gray, open_csv, open_kitti, open_source
-from visloc.tracking import (ConstantVelocityKalman, FilterStep, SmoothedStep, covariance_ellipse_m,
-                             rts_smooth, run_filter)
+from visloc.pose import DatabaseGeometry, PoseMeasurer, StructureCache, pose_measurement
+from visloc.queries import extract_queries
+from visloc.records import RecordGeotags, StepRecord, record_geotags, step_record
+from visloc.retrieval import (Retrieval, ShortlistRetriever, WindowRetriever, build_global_index, candidate_mask,
+                              gate_mask, retrieve, shortlist_retrieve)
+from visloc.runs import TimedStep, latency_ms, run_queries
+from visloc.sources import Frame, Sequence, default_data_root, load_gray, open_csv, open_kitti, open_source
+from visloc.tracking import (ConstantVelocityKalman, FilterStep, SmoothedStep, covariance_ellipse_m, rts_smooth,
+                             run_filter)
+from visloc.vlad import GlobalEncoder, GlobalIndex, shortlist
 from visloc.workspace import Dataset, Workspace
 
 __version__ = "0.1.0"
 
 __all__ = [
-    "FAST", "FastDatabase", "FastParams", "FastRetrieval", "count_many", "fast_retrieve", "nearest_two_faiss",
-    "Dataset", "DriveMatches", "MatchCancelled", "Workspace", "correspondence_figure",
-    "covariance_ellipse_m", "drive_query_indices", "drive_summary", "match_drive", "track_drive",
-    "CameraModel", "DatabaseGeometry", "MODES", "Measurement", "PnPResult", "REFINED", "RefinedParams",
-    "SmoothedStep", "StructureCache", "Triangulation", "essential_inliers", "filter_measurements",
-    "measurement_from_retrieval", "paper_measurement", "rts_smooth", "solve_pnp", "triangulate",
-    "ConstantVelocityKalman", "Evaluation", "Features", "FilterParams", "FilterStep", "Frame", "GeoDatabase",
-    "IngestReport", "InputError", "LocalFrame", "Localizer", "MatchParams", "NearestTwo", "PAPER_EVAL_RETRIEVAL",
-    "PAPER_FILTER", "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PairCountCache", "ParameterError", "Query",
-    "QuerySet", "Retrieval", "RetrievalParams", "Sequence", "SiftParams", "StepRecord", "StepResult", "VislocError",
-    "candidate_mask", "correspondence_mask", "correspondences", "count_correspondences", "evaluate", "extract_sift",
-    "geodesic_distance_m", "haversine_distance_m", "ingest", "load_database", "load_query_set", "load_gray", "make_sift",
-    "nearest_two", "open_csv", "open_kitti", "open_source", "retrieve", "run_filter", "series_schedule",
+    # data and the store
+    "Dataset", "Frame", "GeoDatabase", "IngestReport", "QuerySet", "Sequence", "Workspace", "default_data_root",
+    "load_gray", "open_csv", "open_kitti", "open_source",
+    # parameters and methods
+    "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",
+    "PAPER_SIFT", "REFINED", "REFINED_METHOD", "FastParams", "FilterParams", "MatchParams", "Method", "RefinedParams",
+    "RetrievalParams", "SiftParams", "method_named",
+    # pipeline stages
+    "Features", "Query", "extract_sift", "make_sift", "extract_queries",
+    "MatchCancelled", "NearestTwo", "PairCountCache", "backend_counter", "brute_force_counter", "cancellable",
+    "correspondence_mask", "correspondences", "count_correspondences", "count_many", "nearest_two",
+    "nearest_two_faiss",
+    "GlobalEncoder", "GlobalIndex", "shortlist",
+    "Retrieval", "ShortlistRetriever", "WindowRetriever", "build_global_index", "candidate_mask", "gate_mask",
+    "retrieve", "shortlist_retrieve",
+    "GEOMETRY", "GEOTAG", "GeotagMeasurer", "Measurement", "MemoisedMeasurer", "geotag_measurement",
+    "CameraModel", "PnPResult", "Triangulation", "essential_inliers", "solve_pnp", "triangulate",
+    "DatabaseGeometry", "PoseMeasurer", "StructureCache", "pose_measurement",
+    "ConstantVelocityKalman", "FilterStep", "SmoothedStep", "covariance_ellipse_m", "rts_smooth", "run_filter",
+    "Localizer", "StepResult", "StepTimings", "build_localizer",
+    "TimedStep", "latency_ms", "run_queries",
+    # runs and results
+    "DriveMatches", "Evaluation", "RecordGeotags", "StepRecord", "drive_query_indices", "drive_summary", "evaluate",
+    "filter_measurements", "match_drive", "record_geotags", "series_schedule", "step_labels", "step_record",
+    "track_drive",
+    # geodesy, figures, errors
+    "LocalFrame", "geodesic_distance_m", "haversine_distance_m", "correspondence_figure",
+    "InputError", "ParameterError", "VislocError",
 ]

@@ -1,4 +1,4 @@
-"""A geotagged database loaded from the store into arrays for the engine."""
+"""A geotagged database and a set of queries, as arrays for the engine (``visloc.workspace`` loads them)."""
 
 from __future__ import annotations
 
@@ -6,12 +6,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from db import CameraRecord, EmptyStoreError, FeatureStore, StoredImage
+from visloc.db import CameraRecord, StoredImage
+from visloc.features import Query
 from visloc.geo import LocalFrame
 from visloc.geometry import CameraModel, imu_poses, invert
-from visloc.ingest import check_sift_settings
-from visloc.params import SiftParams
-from visloc.refined import DatabaseGeometry
+from visloc.pose import DatabaseGeometry
 
 
 @dataclass(frozen=True)
@@ -53,7 +52,7 @@ class GeoDatabase:
         return imu_poses(np.c_[self.east_north_m, up], rpy)
 
     def geometry(self) -> DatabaseGeometry:
-        """What the refined mode needs; ``camera`` is None (with the reason) when calibration is missing."""
+        """What the refined method needs; ``camera`` is None (with the reason) when calibration is missing."""
         camera, reason = camera_model(self.calibration, f"database {self.source}/{self.camera}")
         T_world_imu = self.T_world_imu()
         if camera is not None and not np.isfinite(T_world_imu).all(axis=(1, 2)).any():
@@ -76,39 +75,6 @@ def camera_model(record: CameraRecord | None, what: str) -> tuple[CameraModel | 
     return CameraModel.from_projection(record.P_rect, record.T_camera_imu), None
 
 
-def load_images(store: FeatureStore, source: str, camera: str, sift: SiftParams
-                ) -> tuple[tuple[StoredImage, ...], tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
-    """Stored images of (source, camera) in time order with their keypoints and descriptors."""
-    check_sift_settings(store, sift)
-    images = tuple(store.images(source, camera))
-    if not images:
-        have = ", ".join(f"{s['source']}/{s['camera']}" for s in store.sources()) or "nothing"
-        raise EmptyStoreError(f"{store.label}: no images of {source}/{camera} (it holds {have})")
-    features = store.features(im.image_id for im in images)
-    keypoints = tuple(features[im.image_id][0] for im in images)
-    descriptors = tuple(features[im.image_id][1] for im in images)
-    return images, keypoints, descriptors
-
-
-def load_database(store: FeatureStore, source: str, camera: str, sift: SiftParams,
-                  frame: LocalFrame | None = None) -> GeoDatabase:
-    """Load (source, camera) from ``store``; refuse a store built with other SIFT settings."""
-    images, keypoints, descriptors = load_images(store, source, camera, sift)
-    lat = np.array([im.lat_deg for im in images])
-    lon = np.array([im.lon_deg for im in images])
-    frame = frame or LocalFrame(float(lat[0]), float(lon[0]))
-    alt = np.array([np.nan if im.alt_m is None else im.alt_m for im in images], float)
-    rpy = np.array([[np.nan if v is None else v for v in (im.roll_rad, im.pitch_rad, im.yaw_rad)] for im in images],
-                   float).reshape(-1, 3)
-    return GeoDatabase(
-        source=source, camera=camera, images=images,
-        timestamps_s=np.array([im.timestamp_s for im in images]),
-        lat_deg=lat, lon_deg=lon, east_north_m=frame.to_local(lat, lon),
-        keypoints_f32=keypoints, descriptors_u8=descriptors,
-        calibration=store.get_camera(source, camera), frame=frame, up_m=alt - alt[0], rpy_rad=rpy,
-    )
-
-
 @dataclass(frozen=True)
 class QuerySet:
     """Query images of one camera with their ground truth, in time order."""
@@ -127,19 +93,19 @@ class QuerySet:
     heading_deg: np.ndarray | None = None  # (N,) ground-truth compass heading, NaN if unknown
     calibration: CameraRecord | None = None
 
+    def __len__(self) -> int:
+        return len(self.frames)
+
     def key(self, index: int) -> int:
         return self.image_ids[index] if self.image_ids else index
 
+    def query(self, index: int) -> Query:
+        """Query ``index`` as the localizer sees it: stored features, its time, the SIFT time measured at ingest."""
+        sift_ms = float(self.sift_ms[index]) if np.isfinite(self.sift_ms[index]) else 0.0
+        return Query(self.descriptors_u8[index], float(self.timestamps_s[index]), key=self.key(index),
+                     keypoints_f32=self.keypoints_f32[index] if self.keypoints_f32 else None, sift_ms=sift_ms)
 
-def load_query_set(store: FeatureStore, source: str, camera: str, sift: SiftParams) -> QuerySet:
-    """Stored images of (source, camera) as queries, with their geotags as ground truth."""
-    images, keypoints, descriptors = load_images(store, source, camera, sift)
-    return QuerySet(
-        source=source, camera=camera, frames=np.array([im.frame for im in images]),
-        timestamps_s=np.array([im.timestamp_s for im in images]), lat_deg=np.array([im.lat_deg for im in images]),
-        lon_deg=np.array([im.lon_deg for im in images]), descriptors_u8=descriptors,
-        sift_ms=np.array([np.nan if im.sift_ms is None else im.sift_ms for im in images]),
-        image_ids=tuple(im.image_id for im in images), paths=tuple(im.path for im in images),
-        keypoints_f32=keypoints, calibration=store.get_camera(source, camera),
-        heading_deg=np.array([np.nan if im.heading_deg is None else im.heading_deg for im in images]),
-    )
+    @property
+    def camera_model(self) -> CameraModel | None:
+        """The query camera's calibration, None when the store has none."""
+        return camera_model(self.calibration, f"queries {self.source}/{self.camera}")[0]

@@ -2,18 +2,14 @@
 
 The run is split in two so that live tuning stays cheap:
 
-- ``match_drive``: retrieval for every query (SIFT correspondences against the
-  candidates). Slow; depends on tau1, tau2, the query schedule and the exclusion
-  window. Counts go through a ``PairCountCache``, so a rerun only computes new pairs.
-- ``track_drive``: the Kalman filter over the resulting measurements. Milliseconds;
-  depends on R, Q and P0 (and, in the refined mode, the gate) only.
+- ``match_drive``: retrieval and measurement for every query (slow; depends on tau1, tau2,
+  the query schedule, the exclusion window and the method). Counts go through a
+  ``PairCountCache``, so a rerun only computes new pairs.
+- ``track_drive``: the Kalman filter over those measurements (milliseconds; depends on R,
+  Q, P0 and the gate only).
 
-Both modes work the same way: ``mode="paper"`` measures the best match's geotag,
-``mode="refined"`` a metric pose from the database's geometry (``visloc.refined``),
-falling back to the geotag with a reason.
-
-Unlike ``evaluate`` (six-query series), the filter here runs once over the whole
-drive, from the start time to the end, one query per ``interval_s``.
+Unlike ``evaluate`` (six-query series), the filter here runs once over the whole drive,
+from the start time to the end, one query per ``interval_s``.
 """
 
 from __future__ import annotations
@@ -25,16 +21,16 @@ import numpy as np
 
 from visloc.database import GeoDatabase, QuerySet
 from visloc.errors import ParameterError
-from visloc.evaluation import StepRecord, localization_inputs, step_record
-from visloc.localizer import Localizer, PairCountCache, Query, StepResult
-from visloc.params import REFINED, FilterParams, MatchParams, RefinedParams, RetrievalParams
-from visloc.refined import Measurement, StructureCache
-from visloc.retrieval import CountFn, Retrieval
-from visloc.tracking import run_filter
-
-
-class MatchCancelled(Exception):
-    """``match_drive`` stopped because its ``cancelled()`` callback said so."""
+from visloc.localizer import StepResult, StepTimings
+from visloc.matching import PairCountCache, cancellable
+from visloc.measurement import GEOMETRY, Measurement
+from visloc.methods import PAPER_METHOD, Method, build_localizer
+from visloc.params import FilterParams, MatchParams, RetrievalParams
+from visloc.pose import StructureCache
+from visloc.records import StepRecord, step_record
+from visloc.retrieval import Retrieval
+from visloc.runs import run_queries
+from visloc.tracking import FilterStep, run_filter
 
 
 def drive_query_indices(timestamps_s: np.ndarray, start_s: float, interval_s: float) -> np.ndarray:
@@ -59,91 +55,69 @@ def drive_query_indices(timestamps_s: np.ndarray, start_s: float, interval_s: fl
 
 @dataclass(frozen=True)
 class DriveMatches:
-    """Retrieval results of a drive run, one per query."""
+    """Retrievals and measurements of a drive run, one per query."""
 
     query_indices: np.ndarray  # (K,) indices into the QuerySet
     retrievals: tuple[Retrieval, ...]
+    measurements: tuple[Measurement, ...]
     match_params: MatchParams
     retrieval_params: RetrievalParams
-    latency_ms: np.ndarray  # (K,) query SIFT time + its candidate pairs' time when first computed + measurement
-    measurements: tuple[Measurement, ...] = ()  # (K,) what each query measured
-    mode: str = "paper"
-    refined_params: RefinedParams = REFINED
+    method: Method
+    latency_ms: np.ndarray  # (K,) see visloc.runs.latency_ms
 
     def __len__(self) -> int:
         return len(self.retrievals)
 
 
-def _cancellable(counts: CountFn, cancelled: Callable[[], bool] | None, chunk: int = 4) -> CountFn:
-    if cancelled is None:
-        return counts
-
-    def checked(candidates: np.ndarray) -> np.ndarray:
-        parts = []
-        for lo in range(0, len(candidates), chunk):
-            if cancelled():
-                raise MatchCancelled()
-            parts.append(counts(candidates[lo:lo + chunk]))
-        return np.concatenate(parts) if parts else np.zeros(0, np.int64)
-
-    return checked
-
-
 def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, retrieval_params: RetrievalParams,
-                query_indices: Sequence[int], *, cache: PairCountCache | None = None,
-                progress: Callable[[int, int], None] | None = None,
-                cancelled: Callable[[], bool] | None = None, mode: str = "paper",
-                refined_params: RefinedParams = REFINED, structure_cache: StructureCache | None = None
-                ) -> DriveMatches:
-    """Retrieve the best database match of every query in ``query_indices``, in order,
-    with the paper's search window around the previous best match, and measure it
-    (``mode``: "paper" or "refined").
+                query_indices: Sequence[int], *, method: Method = PAPER_METHOD,
+                cache: PairCountCache | None = None, progress: Callable[[int, int], None] | None = None,
+                cancelled: Callable[[], bool] | None = None, structures: StructureCache | None = None,
+                filter_params: FilterParams = FilterParams()) -> DriveMatches:
+    """Retrieve and measure every query in ``query_indices``, in order, with ``method``.
 
-    ``progress(done, total)`` is called after each query; ``cancelled()`` is polled
-    between small groups of candidate pairs and raises ``MatchCancelled`` when true.
-    Counts computed so far stay in ``cache`` either way; database structure built by
-    the refined mode stays in ``structure_cache``.
+    ``progress(done, total)`` is called after each query; ``cancelled()`` is polled between
+    small groups of candidate pairs and raises ``MatchCancelled`` when true. Counts computed so
+    far stay in ``cache`` either way; database structure built by the refined method stays in
+    ``structures``. ``filter_params`` only matter to a retrieval the filter gates (the fast one).
     """
-    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache)
+    cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
+    cache.check_thresholds(match_params)
+    localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
+                                query_camera=queries.camera_model,
+                                query_what=f"queries {queries.source}/{queries.camera}",
+                                counter=cancellable(cache, cancelled), structures=structures)
     indices = np.asarray(query_indices, np.int64)
-    localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
-                          FilterParams(), counter=lambda q: _cancellable(cache(q), cancelled), mode=mode,
-                          refined_params=refined_params, geometry=geometry, query_camera=query_camera,
-                          structure_cache=structure_cache)
-    retrievals, measurements, latency = [], [], []
-    for k, q in enumerate(indices):
-        key = queries.key(int(q))
-        keypoints = queries.keypoints_f32[q] if queries.keypoints_f32 else None
-        result = localizer.step(Query(queries.descriptors_u8[q], float(queries.timestamps_s[q]), key=key,
-                                      keypoints_f32=keypoints))
-        if cancelled is not None and cancelled():
-            raise MatchCancelled()
-        sift_ms = float(queries.sift_ms[q]) if np.isfinite(queries.sift_ms[q]) else 0.0
-        m = result.measurement
-        measure_ms = (m.compute_ms - m.structure_ms) if m is not None else 0.0  # query side only, as evaluate
-        retrievals.append(result.retrieval)
-        measurements.append(m)
-        latency.append(sift_ms + cache.cost_ms(key, result.retrieval.candidates) + measure_ms)
-        if progress:
-            progress(k + 1, len(indices))
-    return DriveMatches(indices, tuple(retrievals), match_params, retrieval_params, np.array(latency, float),
-                        tuple(measurements), mode, refined_params)
+    steps = run_queries(localizer, (queries.query(int(q)) for q in indices), cache=cache, cancelled=cancelled,
+                        progress=(lambda done: progress(done, len(indices))) if progress else None)
+    return DriveMatches(indices, tuple(s.result.retrieval for s in steps),
+                        tuple(s.result.measurement for s in steps), match_params, retrieval_params, method,
+                        np.array([s.latency_ms for s in steps], float))
+
+
+def filter_measurements(measurements: Sequence[Measurement], filter_params: FilterParams, *,
+                        gate_chi2: float = 0.0) -> list[FilterStep]:
+    """Re-run only the filter over measurements already made (no image work).
+
+    Each measurement's own covariance is used where it has one, the filter's R
+    (``filter_params.meas_var_m2``) otherwise; ``gate_chi2`` 0 = no gate.
+    """
+    return run_filter([m.east_north_m for m in measurements], filter_params,
+                      covariances_m2=[m.cov_m2 for m in measurements], gate_chi2=gate_chi2)
 
 
 def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filter_params: FilterParams, *,
                 gate_chi2: float | None = None) -> list[StepRecord]:
-    """Run the Kalman filter over a drive's measurements and describe every step against
-    its ground truth. Cheap: no matching. A refined measurement brings its own covariance;
-    geotags use ``filter_params``' R. ``gate_chi2`` (default: the refined mode's, 0 = off in
-    the paper mode) rejects measurements too far from the prediction."""
-    if gate_chi2 is None:
-        gate_chi2 = matches.refined_params.gate_chi2 if matches.mode == "refined" else 0.0
-    measurements = list(matches.measurements)
-    filtered = run_filter([m.east_north_m for m in measurements], filter_params,
-                          covariances_m2=[m.cov_m2 for m in measurements], gate_chi2=gate_chi2)
+    """Run the Kalman filter over a drive's measurements and describe every step against its
+    ground truth. A refined measurement brings its own covariance; geotags use
+    ``filter_params``' R. ``gate_chi2`` defaults to the method's gate (0 = off)."""
+    gate_chi2 = matches.method.gate_chi2 if gate_chi2 is None else gate_chi2
+    filtered = filter_measurements(matches.measurements, filter_params, gate_chi2=gate_chi2)
     records = []
-    for k, (q, retrieval, m, f) in enumerate(zip(matches.query_indices, matches.retrievals, measurements, filtered)):
-        result = StepResult(float(queries.timestamps_s[q]), retrieval, m.east_north_m, f, 0.0, m)
+    no_time = StepTimings(0.0, 0.0, 0.0)
+    for k, (q, retrieval, m, f) in enumerate(zip(matches.query_indices, matches.retrievals, matches.measurements,
+                                                 filtered)):
+        result = StepResult(queries.query(int(q)), retrieval, m, f, no_time)
         records.append(step_record(k, result, db, query_frame=int(queries.frames[q]),
                                    truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
                                    latency_ms=float(matches.latency_ms[k]), keep_counts=True))
@@ -162,7 +136,7 @@ def drive_summary(records: Sequence[StepRecord]) -> dict:
         "mean_estimate_error_m": mean("estimate_error_m"),
         "final_estimate_error_m": records[-1].estimate_error_m if records else None,
         "steps_without_measurement": sum(1 for r in records if r.measurement_source is None),
-        "geometry_fraction": (sum(1 for r in records if r.measurement_source == "geometry") / len(records)
+        "geometry_fraction": (sum(1 for r in records if r.measurement_source == GEOMETRY) / len(records)
                               if records else None),
         "gated_steps": sum(1 for r in records if r.gated),
     }

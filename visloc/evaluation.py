@@ -12,18 +12,23 @@ Both modes report the same keys; mode-specific ones are None where they do not a
 from __future__ import annotations
 
 import re
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.database import GeoDatabase, QuerySet, camera_model
-from visloc.geo import geodesic_distance_m, haversine_distance_m
-from visloc.localizer import Localizer, PairCountCache, Query, StepResult
+from visloc.database import GeoDatabase, QuerySet
 from visloc.errors import ParameterError
-from visloc.params import REFINED, FilterParams, MatchParams, RefinedParams, RetrievalParams, check_mode
-from visloc.refined import GEOMETRY, GEOTAG, StructureCache
-from visloc.tracking import SmoothedStep, rts_smooth
+from visloc.geo import LocalFrame
+from visloc.matching import PairCountCache
+from visloc.measurement import GEOMETRY, GEOTAG
+from visloc.methods import PAPER_METHOD, Method, build_localizer
+from visloc.params import FilterParams, MatchParams, RetrievalParams
+from visloc.pose import StructureCache
+from visloc.records import StepRecord, step_record
+from visloc.runs import run_queries
+from visloc.tracking import rts_smooth
+from visloc.vlad import GlobalIndex
 
 
 SAMPLINGS = ("stride", "time")
@@ -65,117 +70,6 @@ def series_schedule(timestamps_s: np.ndarray, dt_s: float, n_steps: int, samplin
     return out
 
 
-@dataclass
-class StepRecord:
-    """One query of one series, everything a report or a dashboard shows."""
-
-    step: int
-    query_frame: int
-    query_timestamp_s: float
-    truth_lat_deg: float
-    truth_lon_deg: float
-    n_candidates: int
-    best_db_frame: int | None
-    best_count: int
-    best_offset_s: float | None  # best match's timestamp minus the query's
-    measurement_lat_deg: float | None
-    measurement_lon_deg: float | None
-    estimate_lat_deg: float | None
-    estimate_lon_deg: float | None
-    estimate_sigma_m: float | None  # sqrt of the largest eigenvalue of the position covariance
-    measurement_error_m: float | None  # geodesic (WGS84)
-    estimate_error_m: float | None
-    measurement_error_haversine_m: float | None
-    estimate_error_haversine_m: float | None
-    latency_ms: float
-    nearest_candidate_error_m: float | None = None  # floor: the candidate geotag closest to the truth
-    estimate_cov_m2: list[list[float]] | None = None  # 2x2 east/north position covariance of the estimate
-    counts: list[int] = field(default_factory=list, repr=False)
-    candidate_frames: list[int] = field(default_factory=list, repr=False)
-    # what the measurement was and how the filter took it (both modes)
-    measurement_source: str | None = None  # "geometry", "geotag" or None (no measurement)
-    fallback_reason: str | None = None  # refined mode: why this step's measurement is a geotag
-    measurement_cov_m2: list[list[float]] | None = None  # the R the filter used, m^2 (east, north)
-    measurement_sigma_m: float | None = None  # sqrt of its largest eigenvalue
-    measurement_nees: float | None = None  # e' R^-1 e of the measurement error e (about 2 on average if R is honest)
-    mahalanobis: float | None = None  # innovation's Mahalanobis distance to the prediction
-    gated: bool = False  # rejected by the filter's gate: this step only predicted
-    view_db_frames: list[int] = field(default_factory=list)  # refined: database frames the pose was solved against
-    neighbour_db_frames: list[int] = field(default_factory=list)  # refined: frames triangulated with those views
-    n_pnp_inliers: int = 0
-    measurement_ms: float = 0.0  # time the measurement took on the query side (refined: matching, RANSAC, PnP)
-    measurement_heading_deg: float | None = None  # refined: compass heading of the pose
-    smoothed_lat_deg: float | None = None  # RTS smoother (evaluate --smooth)
-    smoothed_lon_deg: float | None = None
-    smoothed_error_m: float | None = None
-
-
-def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: int, truth_lat_deg: float,
-                truth_lon_deg: float, latency_ms: float, keep_counts: bool = False,
-                smoothed: SmoothedStep | None = None) -> StepRecord:
-    """Everything about one localized query, in geotags and metres, against its ground truth."""
-    truth = (float(truth_lat_deg), float(truth_lon_deg))
-    best = result.best_index
-    m = result.measurement
-    m_lat = m_lon = e_lat = e_lon = sigma = None
-    m_err = e_err = m_hav = e_hav = cov = None
-    source = m.source if m is not None else (GEOTAG if best is not None else None)
-    if source == GEOTAG:
-        index = m.db_index if m is not None else best
-        m_lat, m_lon = float(db.lat_deg[index]), float(db.lon_deg[index])
-    elif source == GEOMETRY:
-        lat, lon = db.frame.to_geo(m.east_north_m)
-        m_lat, m_lon = float(lat), float(lon)
-    if m_lat is not None:
-        m_err = float(geodesic_distance_m(m_lat, m_lon, *truth))
-        m_hav = float(haversine_distance_m(m_lat, m_lon, *truth))
-    R = result.filter.R
-    nees = m_sigma = None
-    if R is not None and result.measurement_m is not None:
-        m_sigma = float(np.sqrt(np.linalg.eigvalsh(R).max()))
-        e = np.asarray(result.measurement_m, float) - db.frame.to_local(*truth)
-        nees = float(e @ np.linalg.solve(R, e))
-    s_lat = s_lon = s_err = None
-    if smoothed is not None and np.all(np.isfinite(smoothed.x)):
-        lat, lon = db.frame.to_geo(smoothed.x[:2])
-        s_lat, s_lon = float(lat), float(lon)
-        s_err = float(geodesic_distance_m(s_lat, s_lon, *truth))
-    candidates = result.retrieval.candidates
-    floor = None
-    if candidates.size:
-        floor = float(geodesic_distance_m(db.lat_deg[candidates], db.lon_deg[candidates], *truth).min())
-    if np.all(np.isfinite(result.filter.x)):
-        lat, lon = db.frame.to_geo(result.filter.x[:2])
-        e_lat, e_lon = float(lat), float(lon)
-        e_err = float(geodesic_distance_m(e_lat, e_lon, *truth))
-        e_hav = float(haversine_distance_m(e_lat, e_lon, *truth))
-        sigma = float(np.sqrt(np.linalg.eigvalsh(result.filter.position_cov_m2).max()))
-        cov = result.filter.position_cov_m2.tolist()
-    return StepRecord(
-        step=step, query_frame=int(query_frame), query_timestamp_s=float(result.query_timestamp_s),
-        truth_lat_deg=truth[0], truth_lon_deg=truth[1], n_candidates=int(result.retrieval.candidates.size),
-        best_db_frame=None if best is None else int(db.images[best].frame), best_count=result.retrieval.best_count,
-        best_offset_s=None if best is None else float(db.timestamps_s[best] - result.query_timestamp_s),
-        measurement_lat_deg=m_lat, measurement_lon_deg=m_lon, estimate_lat_deg=e_lat, estimate_lon_deg=e_lon,
-        estimate_sigma_m=sigma, measurement_error_m=m_err, estimate_error_m=e_err,
-        measurement_error_haversine_m=m_hav, estimate_error_haversine_m=e_hav, latency_ms=latency_ms,
-        nearest_candidate_error_m=floor, estimate_cov_m2=cov,
-        counts=[int(c) for c in result.retrieval.counts] if keep_counts else [],
-        candidate_frames=[int(db.images[i].frame) for i in result.retrieval.candidates] if keep_counts else [],
-        measurement_source=source, fallback_reason=None if m is None else m.fallback_reason,
-        measurement_cov_m2=None if R is None else np.asarray(R, float).tolist(), measurement_sigma_m=m_sigma,
-        measurement_nees=nees,
-        mahalanobis=None if result.filter.innovation is None else float(result.filter.innovation.mahalanobis),
-        gated=bool(result.filter.gated),
-        view_db_frames=[] if m is None else [int(db.images[i].frame) for i in m.view_indices],
-        neighbour_db_frames=[] if m is None else [int(db.images[i].frame) for i in m.neighbour_indices],
-        n_pnp_inliers=0 if m is None else int(m.n_pnp_inliers),
-        measurement_ms=0.0 if m is None else float(m.compute_ms - m.structure_ms),
-        measurement_heading_deg=None if m is None else m.heading_deg,
-        smoothed_lat_deg=s_lat, smoothed_lon_deg=s_lon, smoothed_error_m=s_err,
-    )
-
-
 def _reason_kind(reason: str) -> str:
     """A fallback reason without its numbers, to count reasons of one kind together."""
     return re.split(r"[:(\[\d]", reason, maxsplit=1)[0].strip() or reason
@@ -183,9 +77,13 @@ def _reason_kind(reason: str) -> str:
 
 @dataclass
 class Evaluation:
+    """Every series of an evaluation; ``summary()`` gives its statistics, ``frame`` is the database's
+    local frame (records are in metres)."""
+
     series: list[list[StepRecord]]
     params: dict
-    mode: str = "paper"
+    method: Method
+    frame: LocalFrame
     smoothed: bool = False
     structure_build_ms: float = 0.0  # refined: database-side triangulation time, not part of any query's latency
 
@@ -215,7 +113,7 @@ class Evaluation:
         n_queries = sum(len(s) for s in self.series)
         records = [r for s in self.series for r in s]
         measured = [r for r in records if r.measurement_source is not None]
-        refined = self.mode == "refined"
+        refined = self.method.measures_pose
         fallbacks = [r for r in measured if r.fallback_reason is not None]
         reasons: dict[str, int] = {}
         for r in fallbacks:
@@ -253,7 +151,7 @@ class Evaluation:
                 "fraction_behind": float(np.mean(offsets < 0)) if offsets.size else None,
             },
             "steps_without_measurement": n_queries - int(offsets.size),
-            "mode": self.mode,
+            "mode": self.method.name,
             "measurement_source_fraction": {
                 src: (sum(1 for r in records if r.measurement_source == src) / n_queries if n_queries else None)
                 for src in (GEOMETRY, GEOTAG)
@@ -275,25 +173,6 @@ class Evaluation:
         }
 
 
-def localization_inputs(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, mode: str,
-                        cache: PairCountCache | None, fast=None):
-    """What a Localizer over ``queries`` and ``db`` needs besides parameters: a count cache for
-    these thresholds (a new one if None) and, in the refined mode, the database's geometry and
-    the query camera. Refuses a cache built for other thresholds."""
-    check_mode(mode)
-    if cache is None:  # the fast path may match capped descriptors: count what it matches
-        cache = PairCountCache(fast.descriptors_u8 if fast is not None else db.descriptors_u8, match_params)
-    elif cache.match_params != match_params:
-        raise ParameterError(f"cache holds counts for {cache.match_params}, not {match_params}")
-    geometry = query_camera = None
-    if mode == "refined":
-        geometry = db.geometry()
-        query_camera, _ = camera_model(queries.calibration, f"queries {queries.source}/{queries.camera}")
-        if not queries.keypoints_f32:
-            raise ParameterError("mode='refined': the query set has no keypoints")
-    return cache, geometry, query_camera
-
-
 def evaluate(
     queries: QuerySet,
     db: GeoDatabase,
@@ -301,79 +180,55 @@ def evaluate(
     retrieval_params: RetrievalParams,
     filter_params: FilterParams,
     *,
+    method: Method = PAPER_METHOD,
     n_steps: int = 6,
     sampling: str = "stride",
     start_indices: Sequence[int] | None = None,
     cache: PairCountCache | None = None,
-    progress=None,
-    mode: str = "paper",
-    refined_params: RefinedParams = REFINED,
+    progress: Callable[[int, int], None] | None = None,
     smooth: bool = False,
-    fast=None,
+    shortlist_index: GlobalIndex | None = None,
 ) -> Evaluation:
-    """Run every series (or those starting at ``start_indices``, indices into ``queries``).
+    """Run every series (or those starting at ``start_indices``, indices into ``queries``) with ``method``.
 
-    Latency of a query = its SIFT time (measured at ingest) + the time its
-    candidate comparisons took when first computed + the filter step. Pairs are
-    computed once and reused across series that share a query image; pass a
-    ``cache`` keyed by query and database image ids to reuse them across runs.
+    Latency of a query = its SIFT time (measured at ingest) + its retrieval, with each candidate
+    pair costing what it took when first computed + the query side of its measurement + the filter
+    step (``visloc.runs.latency_ms``). Pairs are computed once and reused across series that share
+    a query image; pass a ``cache`` keyed by store image ids to reuse them across runs.
 
-    ``mode="refined"`` measures metric poses (``visloc.refined``); the database and
-    query cameras' calibration and the database's attitudes come from ``db`` and
-    ``queries``; without them every step falls back to the geotag, with the reason.
-    A refined query's latency adds its measurement time (matching the top candidates
-    again, RANSAC, PnP) but not the triangulation of database structure, which is
-    database-side work done once per database pair (``structure_build_ms``).
-    ``smooth`` adds the RTS smoother's estimates of every step of each series.
-    ``fast`` (a ``visloc.fast.FastDatabase`` of ``db``) selects the opt-in fast retrieval: the
-    filter gates the candidates and global vectors shortlist them before the exact counts.
+    The refined method needs the database's and the queries' calibration and the database's
+    attitudes; the triangulation of database structure is database-side work, done once per
+    database pair and not part of any query's latency (``structure_build_ms``). ``smooth`` adds
+    the RTS smoother's estimates of every step of each series. ``progress(done, total)`` is told
+    of each series done.
     """
-    check_mode(mode)
     schedule = series_schedule(queries.timestamps_s, filter_params.dt_s, n_steps, sampling)
     if start_indices is not None:
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
-    if fast is not None and fast.params.max_keypoints and cache is not None:
-        raise ParameterError("fast.params.max_keypoints: counts of capped descriptors cannot come from a cache of "
-                             "full ones; pass cache=None")
-    cache, geometry, query_camera = localization_inputs(queries, db, match_params, mode, cache, fast)
+    cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
     structures = StructureCache()
-    localizer = Localizer(db.timestamps_s, db.east_north_m, db.descriptors_u8, match_params, retrieval_params,
-                          filter_params, counter=cache, mode=mode, refined_params=refined_params, geometry=geometry,
-                          query_camera=query_camera, structure_cache=structures, measurement_cache={},
-                          fast=fast)
+    localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
+                                query_camera=queries.camera_model, query_what=f"queries {queries.source}/{queries.camera}",
+                                counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True)
     series = []
-    for indices in schedule:
+    for done, indices in enumerate(schedule, 1):
         localizer.reset()
-        results, latencies = [], []
-        for k, q in enumerate(indices):
-            key = queries.key(q)
-            keypoints = queries.keypoints_f32[q] if queries.keypoints_f32 else None
-            result = localizer.step(Query(queries.descriptors_u8[q], float(queries.timestamps_s[q]), key=key,
-                                          keypoints_f32=keypoints))
-            match_ms = cache.cost_ms(key, result.retrieval.candidates)
-            sift_ms = float(queries.sift_ms[q]) if np.isfinite(queries.sift_ms[q]) else 0.0
-            # compute_ms covers retrieval + measurement + filter, including any pair or measurement
-            # computed afresh in this step; take that fresh work out and add the recorded cost of
-            # every candidate pair and of the measurement (without database-side structure) instead
-            m = result.measurement
-            measure_ms = (m.compute_ms - m.structure_ms) if m is not None else 0.0
-            overhead = max(result.compute_ms - cache.fresh_ms - localizer.last_measure_ms, 0.0)
-            latencies.append(sift_ms + match_ms + measure_ms + overhead)
-            results.append(result)
-        smoothed = rts_smooth([r.filter for r in results], filter_params.dt_s) if smooth else [None] * len(results)
-        records = [step_record(k, result, db, query_frame=int(queries.frames[q]), truth_lat_deg=queries.lat_deg[q],
-                               truth_lon_deg=queries.lon_deg[q], latency_ms=latency, smoothed=sm)
-                   for k, (q, result, latency, sm) in enumerate(zip(indices, results, latencies, smoothed))]
-        series.append(records)
+        steps = run_queries(localizer, [queries.query(q) for q in indices], cache=cache)
+        smoothed = (rts_smooth([s.result.filter for s in steps], filter_params.dt_s) if smooth
+                    else [None] * len(steps))
+        series.append([step_record(k, s.result, db, query_frame=int(queries.frames[q]),
+                                   truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
+                                   latency_ms=s.latency_ms, smoothed=sm)
+                       for k, (q, s, sm) in enumerate(zip(indices, steps, smoothed))])
         if progress:
-            progress(1)
+            progress(done, len(schedule))
     params = {
         "match": match_params.as_dict(), "retrieval": retrieval_params.as_dict(), "filter": filter_params.as_dict(),
         "n_steps": n_steps, "sampling": sampling, "database": f"{db.source}/{db.camera}",
-        "queries": f"{queries.source}/{queries.camera}", "mode": mode,
-        "refined": refined_params.as_dict() if mode == "refined" else None, "smooth": smooth,
-        "fast": fast.params.as_dict() if fast is not None else None,
+        "queries": f"{queries.source}/{queries.camera}", "mode": method.name,
+        "refined": method.pose.as_dict() if method.pose is not None else None, "smooth": smooth,
+        "fast": method.shortlist.as_dict() if method.shortlist is not None else None,
     }
-    return Evaluation(series=series, params=params, mode=mode, smoothed=smooth,
+    return Evaluation(series=series, params=params, method=method, frame=db.frame, smoothed=smooth,
                       structure_build_ms=structures.build_ms)

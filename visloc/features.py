@@ -1,7 +1,9 @@
-"""SIFT extraction (OpenCV), as pure functions over images held in numpy arrays."""
+"""SIFT extraction (OpenCV), as pure functions over images held in numpy arrays, and a query
+image's features as the localizer sees them (``Query``)."""
 
 from __future__ import annotations
 
+from collections.abc import Hashable
 from dataclasses import dataclass
 
 import cv2
@@ -31,6 +33,22 @@ class Features:
     @property
     def xy_px(self) -> np.ndarray:
         return self.keypoints_f32[:, :2]
+
+
+@dataclass(frozen=True)
+class Query:
+    """One query image as the localizer sees it: its features and time, never its geotag.
+
+    key:       identifies the image for caches (e.g. its store id); None when it has none.
+    keypoints_f32: (N, 6) or (N, 2), pixel x, y first; the refined measurement needs them.
+    sift_ms:   time its SIFT features took (measured now, or at ingest), ms; part of its latency.
+    """
+
+    descriptors_u8: np.ndarray  # (N, 128)
+    timestamp_s: float
+    key: Hashable = None
+    keypoints_f32: np.ndarray | None = None
+    sift_ms: float = 0.0
 
 
 def make_sift(params: SiftParams) -> "cv2.SIFT":
@@ -83,3 +101,4 @@ def to_gray_u8(image: np.ndarray, *, name: str = "image") -> np.ndarray:
     if image.ndim == 3 and image.shape[2] == 4:
         return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
     raise InputError(f"{name}: unsupported image shape {image.shape}")
+

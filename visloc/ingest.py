@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from db import CameraRecord, EmptyStoreError, FeatureStore, ImageRecord
+from visloc.db import CameraRecord, EmptyStoreError, FeatureStore, ImageRecord
 from visloc.features import extract_sift, make_sift
 from visloc.params import SiftParams
 from visloc.sources import Frame, Sequence, load_gray
@@ -96,10 +96,11 @@ def ingest(
     *,
     workers: int | None = None,
     batch_size: int = 8,
-    progress: Callable[[int], None] | None = None,
+    progress: Callable[[int, int], None] | None = None,
     limit: int | None = None,
 ) -> IngestReport:
-    """Add every frame of ``sequence`` missing from ``store``. ``progress(n)`` is told of each image done.
+    """Add every frame of ``sequence`` missing from ``store``. ``progress(done, total)`` is told of
+    the start (0 done) and of each image done.
 
     ``limit`` stops after that many new images (for sampling and tests).
     """
@@ -112,8 +113,11 @@ def ingest(
     pending: list[tuple[ImageRecord, np.ndarray, np.ndarray]] = []
     added = 0
     size_px = sequence.image_size_px
+    if progress:
+        progress(0, len(todo))
     try:
-        for frame, keypoints, descriptors, sift_ms, size_px in _extracted(todo, params, workers):
+        for done, (frame, keypoints, descriptors, sift_ms, size_px) in enumerate(
+                _extracted(todo, params, workers), 1):
             record = ImageRecord(
                 source=sequence.source, camera=sequence.camera, frame=frame.frame, path=str(frame.image_path),
                 timestamp_s=frame.timestamp_s, lat_deg=frame.lat_deg, lon_deg=frame.lon_deg, alt_m=frame.alt_m,
@@ -125,7 +129,7 @@ def ingest(
                 added += store.add_images(pending)
                 pending = []
             if progress:
-                progress(1)
+                progress(done, len(todo))
     finally:
         # Commit what finished, also on Ctrl-C or on a bad image further on.
         if pending:

@@ -11,14 +11,29 @@ The number of correspondences is the database image's score.
 Exactness: SIFT descriptors are whole numbers 0..255 with L2 norm about 512, so
 every dot product is an integer below 2^24 and float32 arithmetic is exact here:
 the same descriptors always give the same neighbours and distances.
+
+Three exact backends give the same neighbours and counts, side by side:
+
+* ``nearest_two``: one numpy float32 GEMM per database image (the paper's path);
+* ``nearest_two_faiss``: faiss's brute-force k-NN (BLAS inside);
+* ``count_many``: the candidates of one query stacked into one GEMM (the fast path).
+
+A *counter* scores candidates for one query: ``counter(query_u8, key)`` returns a
+``CountFn``, candidate database indices -> correspondence counts. ``brute_force_counter``
+and ``backend_counter`` compute every count; ``PairCountCache`` remembers them per
+(query key, database key) and how long each took when first computed.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable, Hashable, Sequence
 from dataclasses import dataclass
 
+import faiss
 import numpy as np
 
+from visloc.errors import ParameterError
 from visloc.params import MatchParams
 
 
@@ -89,3 +104,202 @@ def correspondences(query_u8: np.ndarray, database_u8: np.ndarray, params: Match
 def count_correspondences(query_u8: np.ndarray, database_u8: np.ndarray, params: MatchParams) -> int:
     """The paper's score of one database image for one query."""
     return int(correspondence_mask(nearest_two(query_u8, database_u8), params).sum())
+
+
+# -- faiss and batched backends -------------------------------------------------------------
+
+def nearest_two_faiss(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
+    """``nearest_two`` computed by faiss's exact brute-force k-NN; same neighbours and distances."""
+    q = np.ascontiguousarray(query_u8, dtype=np.float32)
+    d = np.ascontiguousarray(database_u8, dtype=np.float32)
+    n_query, n_db = q.shape[0], d.shape[0]
+    if n_query == 0 or n_db < 2:
+        return nearest_two(query_u8, database_u8)  # edge cases: the reference handles them
+    dist_sq, index = faiss.knn(q, d, 2)
+    # faiss computes |q|^2 + |d|^2 - 2 q.d in float32 too: exact for integer descriptors
+    q_sq = np.einsum("ij,ij->i", q, q)
+    d_sq = np.einsum("ij,ij->i", d, d)
+    index1 = index[:, 0].astype(np.int64)
+    dist1_sq = np.maximum(dist_sq[:, 0], 0.0).astype(np.float32)
+    dist2_sq = np.maximum(dist_sq[:, 1], 0.0).astype(np.float32)
+    dot1 = 0.5 * (q_sq + d_sq[index1] - dist1_sq)
+    norms = np.sqrt(q_sq) * np.sqrt(d_sq[index1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosine1 = np.where(norms > 0, dot1 / norms, np.nan).astype(np.float32)
+    return NearestTwo(index1, dist1_sq, dist2_sq, cosine1)
+
+
+def count_correspondences_with(backend: str, query_u8: np.ndarray, database_u8: np.ndarray,
+                               params: MatchParams) -> int:
+    """The paper's score of one database image, nearest two found by ``backend`` ("gemm" or "faiss")."""
+    if backend not in ("gemm", "faiss"):
+        raise ParameterError(f"nn_backend={backend!r}: must be gemm or faiss for one image")
+    nn = nearest_two_faiss(query_u8, database_u8) if backend == "faiss" else nearest_two(query_u8, database_u8)
+    return int(correspondence_mask(nn, params).sum())
+
+
+def count_many(query_u8: np.ndarray, db_descriptors: Sequence[np.ndarray], candidates: np.ndarray,
+               params: MatchParams, *, block_bytes: int = 64 << 20) -> np.ndarray:
+    """(M,) correspondence counts of the query against each candidate image, in one GEMM per block.
+
+    The candidates' descriptors are stacked (padded to the longest with columns whose score is
+    -inf) so that one large matrix product replaces M small ones; the nearest two are then
+    found per candidate. The arithmetic is ``nearest_two``'s, in the same float32 order, so
+    the counts are the same numbers.
+    """
+    candidates = np.asarray(candidates, np.int64)
+    out = np.zeros(candidates.size, np.int64)
+    q = np.asarray(query_u8, np.float32)
+    if candidates.size == 0 or q.shape[0] == 0:
+        return out
+    q_sq = np.einsum("ij,ij->i", q, q)
+    q_norm = np.sqrt(q_sq)
+    sizes = np.array([len(db_descriptors[int(i)]) for i in candidates])
+    width = max(int(sizes.max()), 1)
+    per_block = max(1, block_bytes // (4 * width * max(q.shape[0], 1)))
+    tau1_sq = params.tau1 ** 2
+    for start in range(0, candidates.size, per_block):
+        chunk = candidates[start : start + per_block]
+        c = chunk.size
+        d = np.zeros((c, width, q.shape[1]), np.float32)
+        d_sq = np.full((c, width), np.inf, np.float32)
+        for j, i in enumerate(chunk):
+            rows = np.asarray(db_descriptors[int(i)], np.float32)
+            d[j, : len(rows)] = rows
+            d_sq[j, : len(rows)] = np.einsum("ij,ij->i", rows, rows)
+        # score = g.f - |f|^2 / 2, maximal at the nearest f (see nearest_two)
+        score = (q @ d.reshape(c * width, -1).T).reshape(q.shape[0], c, width)
+        score -= 0.5 * d_sq[None, :, :]
+        index1 = score.argmax(axis=2)  # (Nq, c)
+        best = np.take_along_axis(score, index1[:, :, None], axis=2)[:, :, 0]
+        np.put_along_axis(score, index1[:, :, None], -np.inf, axis=2)
+        second = score.max(axis=2)
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            dist1_sq = np.maximum(q_sq[:, None] - 2.0 * best, 0.0).astype(np.float32)
+            dist2_sq = np.maximum(q_sq[:, None] - 2.0 * second, 0.0).astype(np.float32)
+            d_sq1 = d_sq[np.arange(c)[None, :], index1]
+            dot1 = best + 0.5 * d_sq1
+            norms = q_norm[:, None] * np.sqrt(d_sq1)
+            cosine1 = np.where(norms > 0, dot1 / norms, np.nan).astype(np.float32)
+            ok = (dist1_sq < tau1_sq * dist2_sq) & (cosine1 > params.tau2) & np.isfinite(best)
+        out[start : start + c] = ok.sum(axis=0)
+    return out
+
+
+# -- counters: how a retrieval scores its candidates -------------------------------------------
+
+CountFn = Callable[[np.ndarray], np.ndarray]  # candidate database indices (M,) -> counts (M,)
+Counter = Callable[[np.ndarray, Hashable], CountFn]  # (query descriptors, query key) -> CountFn
+
+
+def brute_force_counts(query_u8: np.ndarray, db_descriptors: Sequence[np.ndarray], params: MatchParams) -> CountFn:
+    """Matches the query against each candidate in turn, exactly as the paper does."""
+
+    def counts(candidates: np.ndarray) -> np.ndarray:
+        return np.array([count_correspondences(query_u8, db_descriptors[i], params) for i in candidates], np.int64)
+
+    return counts
+
+
+def backend_counts(backend: str, query_u8: np.ndarray, db_descriptors: Sequence[np.ndarray],
+                   params: MatchParams) -> CountFn:
+    """"batched" stacks the candidates into one GEMM (``count_many``); "gemm" and "faiss" match them
+    one at a time."""
+
+    def counts(candidates: np.ndarray) -> np.ndarray:
+        if backend == "batched":
+            return count_many(query_u8, db_descriptors, candidates, params)
+        return np.array([count_correspondences_with(backend, query_u8, db_descriptors[int(i)], params)
+                         for i in candidates], np.int64)
+
+    return counts
+
+
+def brute_force_counter(db_descriptors: Sequence[np.ndarray], params: MatchParams) -> Counter:
+    """A counter that computes every count, one image at a time (the paper's path)."""
+    return lambda query_u8, key=None: brute_force_counts(query_u8, db_descriptors, params)
+
+
+def backend_counter(backend: str, db_descriptors: Sequence[np.ndarray], params: MatchParams) -> Counter:
+    """A counter that computes every count with ``backend`` ("batched", "faiss" or "gemm")."""
+    return lambda query_u8, key=None: backend_counts(backend, query_u8, db_descriptors, params)
+
+
+class PairCountCache:
+    """A counter that remembers correspondence counts per (query key, database key), for
+    evaluations where the same query image appears in many series. Remembers how long each pair
+    took the first time, so latency can still be reported as if computed afresh.
+
+    ``db_keys`` names the database images (default: their indices); ``known`` seeds the cache,
+    e.g. with counts persisted by an earlier run; ``take_new_entries()`` hands over what was
+    computed since it was last called, to persist.
+    """
+
+    def __init__(self, db_descriptors: Sequence[np.ndarray], match_params: MatchParams, *,
+                 db_keys: Sequence[Hashable] | None = None,
+                 known: dict[tuple[Hashable, Hashable], tuple[int, float]] | None = None):
+        self.db_descriptors = db_descriptors
+        self.match_params = match_params
+        self.db_keys = list(range(len(db_descriptors))) if db_keys is None else list(db_keys)
+        self._entries: dict[tuple[Hashable, Hashable], tuple[int, float]] = dict(known or {})
+        self._new: dict[tuple[Hashable, Hashable], tuple[int, float]] = {}
+        self.fresh_ms = 0.0  # matching time spent in the latest query's counts
+
+    def check_thresholds(self, match_params: MatchParams) -> None:
+        """Refuse to count for other thresholds than the cache holds counts for."""
+        if self.match_params != match_params:
+            raise ParameterError(f"cache holds counts for {self.match_params}, not {match_params}")
+
+    def __call__(self, query_u8: np.ndarray, key: Hashable) -> CountFn:
+        if key is None:
+            raise ValueError("PairCountCache needs queries with a key")
+        self.fresh_ms = 0.0
+
+        def counts(candidates: np.ndarray) -> np.ndarray:
+            out = np.empty(len(candidates), np.int64)
+            for j, i in enumerate(candidates):
+                pair = (key, self.db_keys[int(i)])
+                if pair not in self._entries:
+                    t0 = time.perf_counter()
+                    n = count_correspondences(query_u8, self.db_descriptors[int(i)], self.match_params)
+                    ms = (time.perf_counter() - t0) * 1000.0
+                    self._entries[pair] = self._new[pair] = (n, ms)
+                    self.fresh_ms += ms
+                out[j] = self._entries[pair][0]
+            return out
+
+        return counts
+
+    def cost_ms(self, key: Hashable, candidates: np.ndarray) -> float:
+        """Time the first computation of these pairs took, ms."""
+        return float(sum(self._entries[(key, self.db_keys[int(i)])][1] for i in candidates))
+
+    def take_new_entries(self) -> dict[tuple[Hashable, Hashable], tuple[int, float]]:
+        new, self._new = self._new, {}
+        return new
+
+
+class MatchCancelled(Exception):
+    """Work stopped because its ``cancelled()`` callback said so."""
+
+
+def cancellable(counter: Counter, cancelled: Callable[[], bool] | None, chunk: int = 4) -> Counter:
+    """``counter``, but polling ``cancelled()`` before every ``chunk`` candidates and raising
+    ``MatchCancelled`` when it is true."""
+    if cancelled is None:
+        return counter
+
+    def for_query(query_u8: np.ndarray, key: Hashable = None) -> CountFn:
+        counts = counter(query_u8, key)
+
+        def checked(candidates: np.ndarray) -> np.ndarray:
+            parts = []
+            for lo in range(0, len(candidates), chunk):
+                if cancelled():
+                    raise MatchCancelled()
+                parts.append(counts(candidates[lo:lo + chunk]))
+            return np.concatenate(parts) if parts else np.zeros(0, np.int64)
+
+        return checked
+
+    return for_query

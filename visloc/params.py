@@ -149,17 +149,7 @@ PAPER_EVAL_RETRIEVAL = RetrievalParams(window_s=20.0, exclusion_s=1.0)
 PAPER_FILTER = FilterParams(dt_s=1.0, meas_var_m2=(1e-4 * METRES_PER_DEGREE) ** 2, accel_var_m2_s4=1.0, init_var=1000.0)
 
 
-# -- the refined mode (beyond the paper) ------------------------------------------------
-
-MODES = ("paper", "refined")
-
-
-def check_mode(mode: str) -> str:
-    """``mode`` itself if it names a mode; ``ParameterError`` naming the parameter otherwise."""
-    if mode not in MODES:
-        raise ParameterError(f"mode={mode!r}: must be one of {', '.join(MODES)}")
-    return mode
-
+# -- beyond the paper ------------------------------------------------------------------
 
 @dataclass(frozen=True)
 class RefinedParams(_Params):
@@ -235,3 +225,43 @@ class RefinedParams(_Params):
 
 
 REFINED = RefinedParams()
+
+NN_BACKENDS = ("gemm", "faiss", "batched")
+
+
+@dataclass(frozen=True)
+class FastParams(_Params):
+    """The fast retrieval: the filter's gate, a global-vector shortlist, exact counts on the shortlist.
+
+    gate_sigmas:        gate radius in standard deviations of the predicted position (largest axis)
+    gate_min_radius_m:  the gate is never narrower than this, metres
+    shortlist_size:     candidates matched exactly, the most similar by global vector (0 = all in the gate)
+    nn_backend:         exact nearest-two search: "batched" (every shortlisted image in one GEMM),
+                        "faiss" or "gemm" (numpy float32 GEMM per image, the paper path's)
+    n_words:            k-means words of the VLAD codebook
+    pca_dim:            dimension of the global vectors after PCA (0 = no PCA, n_words * 128)
+    train_descriptors:  descriptors sampled from the database to train the codebook
+    seed:               seed of sampling, k-means and PCA
+    """
+
+    gate_sigmas: float = 3.0
+    gate_min_radius_m: float = 20.0
+    shortlist_size: int = 8
+    nn_backend: str = "batched"
+    n_words: int = 32
+    pca_dim: int = 0
+    train_descriptors: int = 100_000
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _check("gate_sigmas", self.gate_sigmas, self.gate_sigmas > 0, "> 0")
+        _check("gate_min_radius_m", self.gate_min_radius_m, self.gate_min_radius_m >= 0, ">= 0")
+        for name, low in (("shortlist_size", 0), ("n_words", 1), ("pca_dim", 0), ("train_descriptors", 1),
+                          ("seed", 0)):
+            v = getattr(self, name)
+            _check(name, v, isinstance(v, int) and not isinstance(v, bool) and v >= low, f"an integer >= {low}")
+        if self.nn_backend not in NN_BACKENDS:
+            raise ParameterError(f"nn_backend={self.nn_backend!r}: must be one of {', '.join(NN_BACKENDS)}")
+
+
+FAST = FastParams()

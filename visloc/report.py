@@ -1,4 +1,5 @@
-"""Text tables and plots of results: the paper's Tables 2 and 3 and Figure 4."""
+"""The edge where results leave the engine: the paper's Tables 2 and 3 as text, Figure 4 as a
+PNG, and JSON. Positions turn from the local frame into latitude and longitude here."""
 
 from __future__ import annotations
 
@@ -7,7 +8,9 @@ import json
 import math
 from pathlib import Path
 
-from visloc.evaluation import StepRecord, step_labels
+from visloc.evaluation import Evaluation, step_labels
+from visloc.geo import LocalFrame
+from visloc.records import StepRecord, record_geotags
 
 PAPER_FINAL_ERROR_M = 1.85  # section 4, Figure 4
 PAPER_TABLE3_MEASUREMENT_ERROR_M = [18.99, 18.99, 17.57, 16.52, 17.57, 16.19]
@@ -17,9 +20,15 @@ def _cell(value: float | None, fmt: str) -> str:
     return "-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt)
 
 
-def series_tables(records: list[StepRecord]) -> str:
-    """Tables 2 and 3 of the paper for one series (inaccuracies by the Haversine formula, as there)."""
+def series_tables(records: list[StepRecord], frame: LocalFrame) -> str:
+    """Tables 2 and 3 of the paper for one series (inaccuracies by the Haversine formula, as there);
+    ``frame`` is the database's local frame."""
     labels = step_labels(len(records))
+    geotags = [record_geotags(r, frame) for r in records]
+
+    def coordinate(which: str, axis: int) -> list[float | None]:
+        return [None if getattr(g, which) is None else getattr(g, which)[axis] for g in geotags]
+
     head = f"{'':34}" + "".join(f"{lab:>11}" for lab in labels)
 
     def row(name: str, values: list, fmt: str) -> str:
@@ -28,18 +37,18 @@ def series_tables(records: list[StepRecord]) -> str:
     lines = [
         "Table 2: output of the image retrieval step",
         head,
-        row("Geotag of the best match  lon", [r.measurement_lon_deg for r in records], ".5f"),
-        row("                          lat", [r.measurement_lat_deg for r in records], ".5f"),
-        row("Actual GPS coordinates    lon", [r.truth_lon_deg for r in records], ".5f"),
-        row("                          lat", [r.truth_lat_deg for r in records], ".5f"),
+        row("Geotag of the best match  lon", coordinate("measurement", 1), ".5f"),
+        row("                          lat", coordinate("measurement", 0), ".5f"),
+        row("Actual GPS coordinates    lon", coordinate("truth", 1), ".5f"),
+        row("                          lat", coordinate("truth", 0), ".5f"),
         row("Best match: database frame", [r.best_db_frame for r in records], "d"),
         row("            correspondences", [r.best_count for r in records], "d"),
         row("            time offset (s)", [r.best_offset_s for r in records], "+.2f"),
         "",
         "Table 3: Kalman filter estimation of the vehicle location",
         head,
-        row("Kalman filter estimates   lon", [r.estimate_lon_deg for r in records], ".5f"),
-        row("                          lat", [r.estimate_lat_deg for r in records], ".5f"),
+        row("Kalman filter estimates   lon", coordinate("estimate", 1), ".5f"),
+        row("                          lat", coordinate("estimate", 0), ".5f"),
         row("Measurement inaccuracy (m)", [r.measurement_error_haversine_m for r in records], ".2f"),
         row("Estimation inaccuracy (m)", [r.estimate_error_haversine_m for r in records], ".2f"),
         row("Estimate 1-sigma, largest axis (m)", [r.estimate_sigma_m for r in records], ".2f"),
@@ -101,6 +110,29 @@ def summary_text(summary: dict) -> str:
     return "\n".join(lines)
 
 
+def record_json(record: StepRecord, frame: LocalFrame) -> dict:
+    """A record as JSON: positions as latitude and longitude (``*_lat_deg``, ``*_lon_deg``) in place of
+    local metres."""
+    geotags = record_geotags(record, frame)
+    as_geotag = {"truth_geotag_deg": "truth", "measurement_m": "measurement", "estimate_m": "estimate",
+                 "smoothed_m": "smoothed"}
+    out: dict = {}
+    for f in dataclasses.fields(record):
+        if f.name in as_geotag:
+            name = as_geotag[f.name]
+            value = getattr(geotags, name)
+            out[f"{name}_lat_deg"], out[f"{name}_lon_deg"] = (None, None) if value is None else value
+        elif f.name not in ("truth_m", "measurement_geotag_deg", "best_db_index"):
+            out[f.name] = getattr(record, f.name)
+    return out
+
+
+def evaluation_json(evaluation: Evaluation, summary: dict | None = None) -> dict:
+    """An evaluation's summary and every step of every series."""
+    return {**(summary or evaluation.summary()),
+            "series": [[record_json(r, evaluation.frame) for r in s] for s in evaluation.series]}
+
+
 def write_json(path: Path, payload: dict) -> None:
     def default(obj):
         if dataclasses.is_dataclass(obj):
@@ -114,7 +146,7 @@ def write_json(path: Path, payload: dict) -> None:
 
 def save_error_plot(summary: dict, path: Path, title: str) -> None:
     """Figure 4: mean measurement and estimate error per step."""
-    import matplotlib
+    import matplotlib  # on demand: it takes a second to import, and only this function draws
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

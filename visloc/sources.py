@@ -27,6 +27,7 @@ from __future__ import annotations
 import csv
 import datetime as _dt
 import math
+import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
@@ -37,6 +38,7 @@ import numpy as np
 from visloc.errors import InputError
 from visloc.features import to_gray_u8
 from visloc.geo import yaw_enu_to_heading_deg
+from visloc.geometry import CameraModel
 
 KITTI_CAMERAS = ("image_00", "image_01", "image_02", "image_03")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
@@ -72,6 +74,26 @@ class Sequence:
     @property
     def timestamps_s(self) -> np.ndarray:
         return np.array([f.timestamp_s for f in self.frames])
+
+    @property
+    def name(self) -> str:
+        return f"{self.source}/{self.camera}"
+
+    @property
+    def camera_model(self) -> CameraModel | None:
+        """The camera's calibration (intrinsics and extrinsics), None when either is unknown."""
+        if self.P_rect is None or self.T_camera_imu is None:
+            return None
+        return CameraModel.from_projection(self.P_rect, self.T_camera_imu)
+
+
+def default_data_root() -> Path:
+    """$VISLOC_DATA, else ../shared/data/kitti beside the checkout, else relative to the working folder."""
+    env = os.environ.get("VISLOC_DATA")
+    if env:
+        return Path(env)
+    beside_checkout = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "kitti"
+    return beside_checkout if beside_checkout.is_dir() else Path("../shared/data/kitti")
 
 
 def load_gray(path: Path) -> np.ndarray:
@@ -291,9 +313,10 @@ def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera
     return Sequence(source=source or csv_path.parent.name, camera=camera, frames=frames)
 
 
-def open_source(path: Path, *, drive: str | None = None, camera: str = "image_01") -> Sequence:
-    """A CSV file gives a generic sequence; a folder is read as a KITTI raw root."""
-    path = Path(path)
+def open_source(path: Path | None, *, drive: str | None = None, camera: str = "image_01") -> Sequence:
+    """A CSV file gives a generic sequence; a folder is read as a KITTI raw root (None: the default
+    data root, ``default_data_root()``)."""
+    path = default_data_root() if path is None else Path(path)
     if path.suffix.lower() == ".csv":
         return open_csv(path)
     return open_kitti(path, drive, camera)

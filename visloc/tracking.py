@@ -127,6 +127,14 @@ class ConstantVelocityKalman:
     def initialised(self) -> bool:
         return self.x is not None
 
+    def prediction(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The next step's predicted position (east_m, north_m) and its 2x2 covariance (m^2);
+        None before the first measurement."""
+        if self.x is None:
+            return None
+        x, P = predict(self.x, self.P, self.F, self.Q)
+        return x[:2], P[:2, :2]
+
     def step(self, z: np.ndarray | None, R: np.ndarray | None = None) -> FilterStep:
         """One query: predict, then update with ``z`` (east_m, north_m) using ``R`` (2x2, m^2) or the filter's R."""
         R = self.R if R is None else np.asarray(R, float)

@@ -1,25 +1,30 @@
-"""A store file as the engine's callers see it: what it holds, loading it, keeping counts.
+"""The one door to a store file: what it holds, building it, loading it, keeping counts.
 
-``Workspace`` is the way in for programs that are not the CLI (the dashboard,
-scripts): it never hands out the store itself. Every call opens its own
-short-lived connection, so one ``Workspace`` can be used from several threads.
-Store errors come out as ``InputError`` naming the file.
+Every caller (the command line, the dashboard, the benchmark, scripts) goes through
+``Workspace``; it never hands out the store itself. Every call opens its own short-lived
+connection, so one ``Workspace`` can be used from several threads. Store and SQLite
+errors come out as ``InputError`` naming the file.
 """
 
 from __future__ import annotations
 
 import sqlite3
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
-from db import FeatureStore, StoreError
-from visloc.database import GeoDatabase, QuerySet, load_database, load_query_set
+import numpy as np
+
+from visloc.database import GeoDatabase, QuerySet
+from visloc.db import EmptyStoreError, FeatureStore, ImageRecord, StoredImage, StoreError
 from visloc.errors import InputError
-from visloc.ingest import stored_sift_params
-from visloc.localizer import PairCountCache
+from visloc.geo import LocalFrame
+from visloc.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
+from visloc.matching import PairCountCache
 from visloc.params import MatchParams, SiftParams
+from visloc.sources import Sequence
+from visloc.vlad import GlobalEncoder, GlobalIndex
 
 
 @dataclass(frozen=True)
@@ -31,7 +36,9 @@ class Dataset:
     n_images: int
     duration_s: float
     mean_keypoints: float
-    has_calibration: bool
+    has_calibration: bool  # intrinsics (P_rect) known
+    has_extrinsics: bool = False  # the camera's pose relative to the geotag's reference point known
+    n_without_attitude: int = 0  # images whose attitude is unknown
 
     @property
     def name(self) -> str:
@@ -39,15 +46,17 @@ class Dataset:
 
 
 class Workspace:
-    def __init__(self, path: str | Path):
+    """A store file. ``create=True`` makes a new store when the file does not exist yet."""
+
+    def __init__(self, path: str | Path, *, create: bool = False):
         self.path = Path(path)
-        with self._store() as store:  # fail now, with the file's name, if it is no store
+        with self._store(create=create) as store:  # fail now, with the file's name, if it is no store
             self._sift = stored_sift_params(store)
 
     @contextmanager
-    def _store(self) -> Iterator[FeatureStore]:
+    def _store(self, *, create: bool = False) -> Iterator[FeatureStore]:
         try:
-            store = FeatureStore(self.path)
+            store = FeatureStore(self.path, create=create)
         except StoreError as exc:
             raise InputError(str(exc)) from None
         except sqlite3.Error as exc:
@@ -61,33 +70,122 @@ class Workspace:
         finally:
             store.close()
 
+    # -- what it holds -------------------------------------------------------------------------
+
     @property
     def sift_params(self) -> SiftParams | None:
         """The SIFT settings the store's features were extracted with (None: no features yet)."""
         return self._sift
 
+    def image_count(self) -> int:
+        with self._store() as store:
+            return store.image_count()
+
     def datasets(self) -> list[Dataset]:
         with self._store() as store:
             rows = store.sources()
-            calibrated = {(c.source, c.camera) for c in store.cameras() if c.P_rect is not None}
-        return [Dataset(r["source"], r["camera"], int(r["n_images"]),
-                        float(r["last_timestamp_s"] - r["first_timestamp_s"]), float(r["mean_keypoints"] or 0.0),
-                        (r["source"], r["camera"]) in calibrated) for r in rows]
+            cameras = {(c.source, c.camera): c for c in store.cameras()}
+            lacking = {(r["source"], r["camera"]): len(store.frames_without_attitude(r["source"], r["camera"]))
+                       for r in rows}
+        out = []
+        for r in rows:
+            key = (r["source"], r["camera"])
+            cam = cameras.get(key)
+            out.append(Dataset(r["source"], r["camera"], int(r["n_images"]),
+                               float(r["last_timestamp_s"] - r["first_timestamp_s"]), float(r["mean_keypoints"] or 0.0),
+                               has_calibration=cam is not None and cam.P_rect is not None,
+                               has_extrinsics=cam is not None and cam.T_camera_imu is not None,
+                               n_without_attitude=lacking[key]))
+        return out
 
-    def _require_features(self) -> SiftParams:
+    def database_source(self, query_source: str, db_camera: str, db_source: str | None = None) -> str:
+        """The source to use as the database for queries of ``query_source``: ``db_source`` if given,
+        else the query's own source if it holds ``db_camera``, else the only source that does."""
+        if db_source:
+            return db_source
+        datasets = self.datasets()
+        if any(d.source == query_source and d.camera == db_camera for d in datasets):
+            return query_source
+        with_camera = sorted({d.source for d in datasets if d.camera == db_camera})
+        if len(with_camera) == 1:
+            return with_camera[0]
+        have = ", ".join(d.name for d in datasets) or "nothing"
+        raise InputError(f"{self.path}: choose the database with --db-source (it holds {have})")
+
+    # -- building it ---------------------------------------------------------------------------
+
+    def stored_frame_count(self, source: str, camera: str) -> int:
+        with self._store() as store:
+            return len(store.stored_frames(source, camera))
+
+    def ingest(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None, limit: int | None = None,
+               progress: Callable[[int, int], None] | None = None) -> IngestReport:
+        """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``); resumable."""
+        with self._store(create=True) as store:
+            report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit)
+            self._sift = stored_sift_params(store)
+        return report
+
+    # -- loading it ----------------------------------------------------------------------------
+
+    def _require_features(self, sift: SiftParams | None) -> SiftParams:
         if self._sift is None:
             raise InputError(f"{self.path}: no features yet (build it with 'visloc ingest')")
-        return self._sift
+        return sift or self._sift
 
-    def load_database(self, source: str, camera: str) -> GeoDatabase:
-        sift = self._require_features()
-        with self._store() as store:
-            return load_database(store, source, camera, sift)
+    def _images(self, store: FeatureStore, source: str, camera: str, sift: SiftParams
+                ) -> tuple[tuple[StoredImage, ...], tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """Stored images of (source, camera) in time order with their keypoints and descriptors;
+        refuses features extracted with other SIFT settings than ``sift``."""
+        check_sift_settings(store, sift)
+        images = tuple(store.images(source, camera))
+        if not images:
+            have = ", ".join(f"{s['source']}/{s['camera']}" for s in store.sources()) or "nothing"
+            raise EmptyStoreError(f"{store.label}: no images of {source}/{camera} (it holds {have})")
+        features = store.features(im.image_id for im in images)
+        keypoints = tuple(features[im.image_id][0] for im in images)
+        descriptors = tuple(features[im.image_id][1] for im in images)
+        return images, keypoints, descriptors
 
-    def load_queries(self, source: str, camera: str) -> QuerySet:
-        sift = self._require_features()
+    def load_database(self, source: str, camera: str, sift: SiftParams | None = None,
+                      frame: LocalFrame | None = None) -> GeoDatabase:
+        """(source, camera) as a geotagged database; its local frame is centred on its first image
+        unless ``frame`` is given. ``sift`` (default: the store's) must equal the store's settings."""
+        sift = self._require_features(sift)
         with self._store() as store:
-            return load_query_set(store, source, camera, sift)
+            images, keypoints, descriptors = self._images(store, source, camera, sift)
+            calibration = store.get_camera(source, camera)
+        lat = np.array([im.lat_deg for im in images])
+        lon = np.array([im.lon_deg for im in images])
+        frame = frame or LocalFrame(float(lat[0]), float(lon[0]))
+        alt = np.array([np.nan if im.alt_m is None else im.alt_m for im in images], float)
+        rpy = np.array([[np.nan if v is None else v for v in (im.roll_rad, im.pitch_rad, im.yaw_rad)]
+                        for im in images], float).reshape(-1, 3)
+        return GeoDatabase(
+            source=source, camera=camera, images=images,
+            timestamps_s=np.array([im.timestamp_s for im in images]),
+            lat_deg=lat, lon_deg=lon, east_north_m=frame.to_local(lat, lon),
+            keypoints_f32=keypoints, descriptors_u8=descriptors,
+            calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy,
+        )
+
+    def load_queries(self, source: str, camera: str, sift: SiftParams | None = None) -> QuerySet:
+        """(source, camera) as queries, with their geotags as ground truth."""
+        sift = self._require_features(sift)
+        with self._store() as store:
+            images, keypoints, descriptors = self._images(store, source, camera, sift)
+            calibration = store.get_camera(source, camera)
+        return QuerySet(
+            source=source, camera=camera, frames=np.array([im.frame for im in images]),
+            timestamps_s=np.array([im.timestamp_s for im in images]), lat_deg=np.array([im.lat_deg for im in images]),
+            lon_deg=np.array([im.lon_deg for im in images]), descriptors_u8=descriptors,
+            sift_ms=np.array([np.nan if im.sift_ms is None else im.sift_ms for im in images]),
+            image_ids=tuple(im.image_id for im in images), paths=tuple(im.path for im in images),
+            keypoints_f32=keypoints, calibration=calibration,
+            heading_deg=np.array([np.nan if im.heading_deg is None else im.heading_deg for im in images]),
+        )
+
+    # -- cached correspondence counts -----------------------------------------------------------
 
     def pair_cache(self, db: GeoDatabase, queries: QuerySet, match_params: MatchParams) -> PairCountCache:
         """A count cache keyed by store image ids, seeded with the counts the store keeps for these thresholds."""
@@ -102,3 +200,58 @@ class Workspace:
             with self._store() as store:
                 store.add_pair_counts(new, cache.match_params.tau1, cache.match_params.tau2)
         return len(new)
+
+    # -- large databases: images from elsewhere, streamed descriptors, stored global vectors --------
+
+    def setting(self, key: str) -> object | None:
+        with self._store() as store:
+            return store.get_setting(key)
+
+    def record_setting(self, key: str, value: object) -> None:
+        """Record ``value`` under ``key``; refuse a store that holds another value there."""
+        with self._store() as store:
+            store.require_setting(key, value)
+
+    def add_images(self, batch: list[tuple[ImageRecord, np.ndarray, np.ndarray]]) -> int:
+        """Store (record, keypoints_f32 (N, 6), descriptors_u8 (N, 128)) triples made elsewhere (e.g. a
+        synthetic database), in one transaction; returns how many were new."""
+        with self._store(create=True) as store:
+            return store.add_images(batch)
+
+    def image_ids(self, source: str, camera: str) -> np.ndarray:
+        """(N,) store ids of (source, camera)'s images in time order, without loading anything else."""
+        with self._store() as store:
+            return store.image_ids(source, camera)
+
+    def iter_descriptors(self, image_ids, chunk_size: int = 256) -> Iterator[tuple[int, np.ndarray]]:
+        """(image id, descriptors_u8) for ``image_ids`` in order, read ``chunk_size`` images at a time:
+        memory stays bounded however large the store."""
+        with self._store() as store:
+            yield from store.iter_descriptors(image_ids, chunk_size)
+
+    def save_global_encoder(self, name: str, encoder: GlobalEncoder) -> None:
+        """Keep the encoder of the global vectors called ``name`` (its codebook and PCA)."""
+        with self._store() as store:
+            store.put_array(f"{name}_codebook", encoder.codebook_f32)
+            if encoder.pca_basis_f32 is not None:
+                store.put_array(f"{name}_pca_mean", encoder.pca_mean_f32)
+                store.put_array(f"{name}_pca_basis", encoder.pca_basis_f32)
+
+    def add_global_vectors(self, name: str, image_ids, vectors_f32: np.ndarray) -> None:
+        """Keep one global vector per image under ``name`` (replacing what was there)."""
+        with self._store() as store:
+            store.add_global_vectors(name, list(image_ids), vectors_f32)
+
+    def has_global_index(self, name: str) -> bool:
+        with self._store() as store:
+            return store.get_array(f"{name}_codebook") is not None
+
+    def load_global_index(self, name: str) -> tuple[np.ndarray, GlobalIndex]:
+        """(image ids (N,), the index) of the global vectors called ``name``, in image id order."""
+        with self._store() as store:
+            codebook = store.get_array(f"{name}_codebook")
+            if codebook is None:
+                raise InputError(f"{self.path}: no global vectors named {name!r}")
+            encoder = GlobalEncoder(codebook, store.get_array(f"{name}_pca_mean"), store.get_array(f"{name}_pca_basis"))
+            ids, vectors = store.global_vectors(name)
+        return ids, GlobalIndex(encoder, vectors)

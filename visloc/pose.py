@@ -1,7 +1,6 @@
-"""One query's measurement: the paper's geotag, or (refined mode) a metric position from the database alone.
+"""The refined method's measurement: a metric position of the query from the database alone.
 
-Refined mode, for a query whose retrieval has ranked the database candidates by
-correspondence count:
+For a query whose retrieval has ranked the database candidates by correspondence count:
 
 1. **Verification.** The ``top_k`` candidates are matched to the query again (Lowe's
    ratio alone) and re-ranked by their inliers under an essential matrix (RANSAC,
@@ -20,73 +19,29 @@ correspondence count:
    quadrature on each axis for what residuals cannot show (database poses,
    calibration, triangulated points).
 
-Whenever a stage fails (no calibration or attitude, too few inliers, no neighbour
-with a baseline because the car stood still, PnP failure, an implausible pose) the
-measurement falls back to the paper's: the geotag of the best match by count, with
-the filter's own R, and ``fallback_reason`` says why.
+Whenever a stage fails for one query (too few inliers, no neighbour with a baseline
+because the car stood still, an image without attitude, PnP failure, an implausible
+pose) the measurement falls back to the paper's: the geotag of the best match by count,
+with the filter's own R, and ``fallback_reason`` says why. Without calibrated cameras
+there is nothing to pose: ``PoseMeasurer`` refuses to be built.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from visloc.errors import InputError
+from visloc.features import Query
 from visloc.geometry import (CameraModel, essential_inliers, heading_deg_of, imu_east_north_covariance,
                              imu_pose_from_camera, solve_pnp, triangulate)
 from visloc.matching import correspondences
-from visloc.params import MatchParams, RefinedParams, check_mode
+from visloc.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
+from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval import Retrieval
-
-GEOMETRY = "geometry"
-GEOTAG = "geotag"
-
-
-@dataclass(frozen=True)
-class Measurement:
-    """What one query tells the filter.
-
-    east_north_m:        (2,) measured position of the vehicle's geotag reference point, metres in
-                         the local frame; None when the query gave no measurement at all.
-    cov_m2:              (2, 2) its covariance, m^2; None means "use the filter's R" (geotags).
-    source:              "geometry" (refined pose), "geotag" (the paper's) or None (no measurement).
-    fallback_reason:     why a refined-mode measurement is a geotag; None otherwise.
-    db_index:            database image the measurement rests on (the verified best view for
-                         geometry, the best match by count for a geotag).
-    view_indices:        database images the query was posed against; neighbour_indices: those
-                         triangulated with them.
-    n_verified_inliers:  essential-matrix inliers of the best verified candidate.
-    n_correspondences_3d, n_pnp_inliers, reprojection_rms_px: the pose's support.
-    up_m, heading_deg:   the pose's altitude in the local frame and compass heading (geometry only).
-    compute_ms:          wall time this measurement took (query side: matching, RANSAC, PnP).
-    structure_ms:        of which building database structure that was not cached yet.
-    """
-
-    east_north_m: np.ndarray | None
-    cov_m2: np.ndarray | None
-    source: str | None
-    fallback_reason: str | None = None
-    db_index: int | None = None
-    view_indices: tuple[int, ...] = ()
-    neighbour_indices: tuple[int, ...] = ()
-    n_verified_inliers: int = 0
-    n_correspondences_3d: int = 0
-    n_pnp_inliers: int = 0
-    reprojection_rms_px: float | None = None
-    up_m: float | None = None
-    heading_deg: float | None = None
-    compute_ms: float = 0.0
-    structure_ms: float = 0.0
-    candidate_inliers: dict[int, int] = field(default_factory=dict, repr=False)
-
-    @property
-    def sigma_m(self) -> float | None:
-        """1-sigma along the covariance's longest axis, metres (None: the filter's R applies)."""
-        if self.cov_m2 is None:
-            return None
-        return float(np.sqrt(max(np.linalg.eigvalsh(self.cov_m2).max(), 0.0)))
 
 
 @dataclass(frozen=True)
@@ -130,14 +85,6 @@ class StructureCache:
 
     def __len__(self) -> int:
         return len(self._pairs)
-
-
-def paper_measurement(retrieval: Retrieval, db_east_north_m: np.ndarray, reason: str | None = None) -> Measurement:
-    """The paper's measurement: the geotag of the best match by count (None without a match)."""
-    best = retrieval.best_index
-    if best is None:
-        return Measurement(None, None, None, fallback_reason=reason, db_index=None)
-    return Measurement(np.asarray(db_east_north_m[best], float), None, GEOTAG, fallback_reason=reason, db_index=best)
 
 
 def pair_structure(geometry: DatabaseGeometry, view: int, neighbour: int, params: RefinedParams) -> Structure:
@@ -189,44 +136,33 @@ def neighbours_of(view: int, allowed: np.ndarray, T_world_camera: np.ndarray, pa
     return out
 
 
-def measurement_from_retrieval(
+def pose_measurement(
     query_keypoints_f32: np.ndarray | None,
     query_descriptors_u8: np.ndarray,
     retrieval: Retrieval,
     db_east_north_m: np.ndarray,
-    *,
-    mode: str = "paper",
-    geometry: DatabaseGeometry | None = None,
-    query_camera: CameraModel | None = None,
+    geometry: DatabaseGeometry,
+    query_camera: CameraModel,
     params: RefinedParams = RefinedParams(),
     cache: StructureCache | None = None,
 ) -> Measurement:
-    """Turn one query and its retrieval into the filter's measurement (see the module docstring).
+    """The refined measurement of one query and its retrieval (see the module docstring), or the
+    geotag of the best match with the reason geometry failed.
 
-    ``mode="paper"`` gives the paper's geotag measurement (``cov_m2`` None). ``mode="refined"``
-    tries the metric pose and falls back to the geotag with a reason. ``query_keypoints_f32``
-    is (N, 6) or (N, 2) with pixel x, y first. Pass a ``StructureCache`` to reuse database
-    structure across queries.
+    ``geometry`` must have its camera (see ``PoseMeasurer``). ``query_keypoints_f32`` is (N, 6) or
+    (N, 2) with pixel x, y first. Pass a ``StructureCache`` to reuse database structure across queries.
     """
     start = time.perf_counter()
-    check_mode(mode)
-    if mode == "paper" or retrieval.best_index is None:
-        reason = None if mode == "paper" else "no database image has a correspondence"
-        return paper_measurement(retrieval, db_east_north_m, reason)
+    if retrieval.best_index is None:
+        return geotag_measurement(retrieval, db_east_north_m, "no database image has a correspondence")
 
     structure_ms = 0.0
 
     def fallback(reason: str, **extra) -> Measurement:
-        m = paper_measurement(retrieval, db_east_north_m, reason)
+        m = geotag_measurement(retrieval, db_east_north_m, reason)
         return Measurement(m.east_north_m, None, GEOTAG, fallback_reason=reason, db_index=m.db_index,
                            compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=structure_ms, **extra)
 
-    if geometry is None:
-        return fallback("no database geometry given")
-    if geometry.camera is None:
-        return fallback(geometry.unavailable_reason or "database camera has no calibration")
-    if query_camera is None:
-        return fallback("query camera has no calibration (intrinsics and extrinsics)")
     if query_keypoints_f32 is None or len(query_keypoints_f32) != len(query_descriptors_u8):
         return fallback("query keypoints not given")
     query_xy = np.asarray(query_keypoints_f32, float)[:, :2]
@@ -304,15 +240,24 @@ def measurement_from_retrieval(
     )
 
 
-def filter_measurements(measurements: Sequence[Measurement], filter_params, *, gate_chi2: float = 0.0):
-    """Re-run only the filter over measurements already made (cheap: no image work).
+class PoseMeasurer:
+    """The refined method's measurer. Refuses to be built without what a pose needs: the database
+    camera's calibration and attitudes (``geometry``) and the query camera's calibration."""
 
-    Each measurement's own covariance is used where it has one, the filter's R
-    (``filter_params.meas_var_m2``) otherwise; change R, Q or P0 through
-    ``filter_params`` and the gate through ``gate_chi2`` (0 = off). Returns one
-    ``FilterStep`` per measurement.
-    """
-    from visloc.tracking import run_filter
+    def __init__(self, db_east_north_m: np.ndarray, geometry: DatabaseGeometry, query_camera: CameraModel | None,
+                 params: RefinedParams, *, structures: StructureCache | None = None, query_what: str = "queries"):
+        if geometry.camera is None:
+            raise InputError(f"the refined method needs a calibrated database: {geometry.unavailable_reason}")
+        if query_camera is None:
+            raise InputError(f"the refined method needs a calibrated query camera: {query_what} have no intrinsics "
+                             "and extrinsics")
+        self.db_east_north_m = np.asarray(db_east_north_m, float)
+        self.geometry = geometry
+        self.query_camera = query_camera
+        self.params = params
+        self.structures = structures if structures is not None else StructureCache()
 
-    return run_filter([m.east_north_m for m in measurements], filter_params,
-                      covariances_m2=[m.cov_m2 for m in measurements], gate_chi2=gate_chi2)
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
+        return pose_measurement(query.keypoints_f32, query.descriptors_u8, retrieval, self.db_east_north_m,
+                                self.geometry, self.query_camera, self.params, self.structures)
+

@@ -1,0 +1,184 @@
+"""What the control panel shows, as pure functions: status lines, the step table, the run summary,
+the store's description, the two plots' data, and the step's pictures.
+
+Text that comes from a store or a file (names, paths, reasons) is escaped here, so it reaches
+the page as text.
+"""
+
+from __future__ import annotations
+
+import html
+
+import cv2
+import numpy as np
+
+import visloc
+from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, TRUTH_RGB, css
+
+FIGURE_WIDTH_PX = 620
+FRUSTUM_IMAGE_WIDTH_PX = 320
+
+LEGEND = (
+    (TRUTH_RGB, "ground truth"), (MEASUREMENT_RGB, "measurement"), (ESTIMATE_RGB, "Kalman estimate"),
+    (ELLIPSE_RGB, "2σ ellipse"), ((150, 150, 150), "database images"), (CURRENT_RGB, "current step"),
+)
+
+
+def _swatch(rgb: tuple[int, int, int], text: str) -> str:
+    return (f'<span style="display:inline-block;width:11px;height:11px;border-radius:2px;margin:0 5px 0 2px;'
+            f'background:{css(rgb)};vertical-align:-1px"></span>{html.escape(text)}')
+
+
+def legend_html() -> str:
+    items = "".join(f"<div>{_swatch(rgb, text)}</div>" for rgb, text in LEGEND)
+    return f'<div style="font-size:12px;line-height:1.7;display:grid;grid-template-columns:1fr 1fr">{items}</div>'
+
+
+def status_html(text: str, *, error: bool = False) -> str:
+    color, weight = ("#b00020", "600") if error else ("#333", "400")
+    return (f'<div style="font-size:13px;color:{color};font-weight:{weight};padding:2px 0;overflow-wrap:anywhere">'
+            f'{html.escape(("⚠ " if error else "") + text)}</div>')
+
+
+def _fmt(value: float | None, fmt: str = ".2f", unit: str = " m") -> str:
+    return "–" if value is None else f"{value:{fmt}}{unit}"
+
+
+def _geotag(value: tuple[float, float] | None) -> str:
+    return "–" if value is None else f"{value[0]:.7f}°, {value[1]:.7f}°"
+
+
+def source_text(rec: visloc.StepRecord) -> str:
+    """What measured the step, in words."""
+    if rec.measurement_source == visloc.GEOMETRY:
+        return (f"geometry: PnP against frames {', '.join(map(str, rec.view_db_frames))} "
+                f"(triangulated with {', '.join(map(str, rec.neighbour_db_frames))}), "
+                f"{rec.n_pnp_inliers} inliers")
+    if rec.measurement_source == visloc.GEOTAG:
+        return "geotag of the best match" + (f" (fallback: {rec.fallback_reason})" if rec.fallback_reason else "")
+    return "nothing" + (f" ({rec.fallback_reason})" if rec.fallback_reason else "")
+
+
+def step_markdown(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotags, query_camera: str,
+                  db_camera: str, t0_s: float) -> str:
+    """The current step's table: query, best match, measurement and estimate with their errors."""
+    best = ("none" if rec.best_db_frame is None else
+            f"{db_camera} frame {rec.best_db_frame} ({rec.best_offset_s:+.2f} s), {rec.best_count} correspondences, "
+            f"{rec.n_candidates} candidates")
+    rows = [
+        ("query", f"{query_camera} frame {rec.query_frame}, t = {rec.query_timestamp_s - t0_s:.2f} s"),
+        ("best match", best),
+        ("measurement", _geotag(geotags.measurement)),
+        ("measured by", source_text(rec)),
+        ("measurement error", _fmt(rec.measurement_error_m)),
+        ("measurement σ", _fmt(rec.measurement_sigma_m) + ("" if rec.measurement_source != visloc.GEOTAG
+                                                          else " (the filter's R)")),
+        ("estimate", _geotag(geotags.estimate)),
+        ("estimate error", _fmt(rec.estimate_error_m) + ("  (measurement gated: prediction only)"
+                                                          if rec.gated else "")),
+        ("estimate 2σ", _fmt(None if rec.estimate_sigma_m is None else 2.0 * rec.estimate_sigma_m)),
+        ("nearest allowed image", _fmt(rec.nearest_candidate_error_m)),
+        ("truth", _geotag(geotags.truth)),
+    ]
+    body = "\n".join(f"| {a} | {html.escape(b)} |" for a, b in rows)
+    return f"**Step {rec.step + 1} of {n_steps}**\n\n| | |\n|---|---|\n{body}"
+
+
+def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.DriveMatches) -> str:
+    summary = visloc.drive_summary(records)
+    refined = (f"geometry on {100 * summary['geometry_fraction']:.0f}% of steps, {summary['gated_steps']} gated; "
+               if matches.method.measures_pose else "")
+    return (f"**This run** ({html.escape(matches.method.name)} mode, {summary['n_steps']} queries, "
+            f"{matches.retrieval_params.exclusion_s:g} s exclusion): {refined}"
+            f"mean measurement error {_fmt(summary['mean_measurement_error_m'])}, "
+            f"mean estimate error {_fmt(summary['mean_estimate_error_m'])}, "
+            f"final estimate error {_fmt(summary['final_estimate_error_m'])}; "
+            f"query latency median {np.median(matches.latency_ms) / 1000.0:.2f} s (SIFT + matching, when first "
+            "computed).")
+
+
+def store_markdown(path: str, datasets: list[visloc.Dataset], sift: visloc.SiftParams | None) -> str:
+    lines = [f"**{html.escape(path)}**", ""]
+    lines += [f"- {html.escape(d.name)}: {d.n_images} images over {d.duration_s:.1f} s, "
+              f"{d.mean_keypoints:.0f} keypoints/image" + ("" if d.has_calibration else ", no calibration")
+              for d in datasets]
+    lines += ["", "SIFT settings: " + (", ".join(f"{k}={v}" for k, v in sift.as_dict().items()) if sift else "none yet")]
+    return "\n".join(lines)
+
+
+def counts_plot(retrieval: visloc.Retrieval, db_timestamps_s: np.ndarray, query_timestamp_s: float,
+                t0_s: float) -> tuple[tuple, dict, str]:
+    """(data, scales, title) of the correspondences against database time: every database image, gaps
+    where an image was no candidate (outside the search window, or inside the exclusion window)."""
+    times = db_timestamps_s - t0_s
+    counts = np.full(len(db_timestamps_s), np.nan)
+    counts[retrieval.candidates] = retrieval.counts
+    best = np.full(len(db_timestamps_s), np.nan)
+    if retrieval.best_index is not None:
+        best[retrieval.best_index] = counts[retrieval.best_index]
+    top = float(np.nanmax(counts)) if np.isfinite(counts).any() else 1.0
+    # uPlot joins a line across NaN, so the images before and after the query are two series; the
+    # exclusion window between them stays a gap
+    earlier = np.where(db_timestamps_s < query_timestamp_s, counts, np.nan)
+    later = np.where(db_timestamps_s >= query_timestamp_s, counts, np.nan)
+    # an explicit y range: uPlot's automatic range breaks on NaN
+    scales = {"x": {"time": False}, "y": {"auto": False, "range": (0.0, 1.1 * top + 1.0)}}
+    title = f"Correspondences per database image (query at {query_timestamp_s - t0_s:.1f} s)"
+    return (times, earlier, later, best), scales, title
+
+
+def error_plot(records: list[visloc.StepRecord], k: int, t0_s: float) -> tuple[tuple, dict]:
+    """(data, scales) of the error per step (the paper's Figure 4 over the run), step ``k`` marked."""
+    def values(attr: str, factor: float = 1.0) -> np.ndarray:
+        return np.array([np.nan if getattr(r, attr) is None else factor * getattr(r, attr) for r in records])
+
+    times = np.array([r.query_timestamp_s - t0_s for r in records])
+    m_err, e_err, two_sigma = values("measurement_error_m"), values("estimate_error_m"), values("estimate_sigma_m", 2.0)
+    current = np.full(len(times), np.nan)
+    current[k] = e_err[k] if np.isfinite(e_err[k]) else m_err[k]
+    both = np.concatenate([m_err, e_err, two_sigma])
+    top = float(np.nanmax(both)) if np.isfinite(both).any() else 1.0
+    return (times, m_err, e_err, two_sigma, current), {"x": {"time": False},
+                                                       "y": {"auto": False, "range": (0.0, 1.1 * top + 0.1)}}
+
+
+def placeholder(text: str, width_px: int = FIGURE_WIDTH_PX, height_px: int = 120) -> np.ndarray:
+    """A gray picture with a message, where an image cannot be shown."""
+    img = np.full((height_px, width_px, 3), 235, np.uint8)
+    for row, line in enumerate(text.split("\n")):
+        cv2.putText(img, line[:90], (10, 30 + 24 * row), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (90, 90, 90), 1, cv2.LINE_AA)
+    return img
+
+
+def frustum_image(gray: np.ndarray | None) -> np.ndarray | None:
+    """A small RGB copy of an image, for a camera frustum in the scene."""
+    if gray is None:
+        return None
+    h, w = gray.shape
+    small = cv2.resize(gray, (FRUSTUM_IMAGE_WIDTH_PX, max(1, round(h * FRUSTUM_IMAGE_WIDTH_PX / w))),
+                       interpolation=cv2.INTER_AREA)
+    return np.repeat(small[:, :, None], 3, axis=2)
+
+
+def read_gray(path: str | None) -> np.ndarray | None:
+    """The image at ``path``, or None when it is not reachable (the store keeps features, not images)."""
+    try:
+        return visloc.load_gray(path) if path else None
+    except visloc.VislocError:
+        return None
+
+
+def step_figure(queries: visloc.QuerySet, db: visloc.GeoDatabase, q_index: int, best: int | None,
+                match: visloc.MatchParams, q_gray: np.ndarray | None, d_gray: np.ndarray | None) -> np.ndarray:
+    """The paper's Figure 3 for one step: the query above its best match, correspondences joined."""
+    if best is None:
+        return placeholder(f"Query frame {queries.frames[q_index]}: no database image has a correspondence")
+    if q_gray is None or d_gray is None:
+        missing = queries.paths[q_index] if q_gray is None else db.images[best].path
+        return placeholder(f"Image file not reachable:\n{missing}\n(the store keeps features, not images)")
+    pairs = visloc.correspondences(queries.descriptors_u8[q_index], db.descriptors_u8[best], match)
+    return visloc.correspondence_figure(
+        q_gray, d_gray, queries.keypoints_f32[q_index][pairs[:, 0], :2], db.keypoints_f32[best][pairs[:, 1], :2],
+        width_px=FIGURE_WIDTH_PX,
+        labels=(f"query {queries.camera} frame {queries.frames[q_index]}",
+                f"best match {db.camera} frame {db.images[best].frame}: {len(pairs)} correspondences"))

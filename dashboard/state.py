@@ -1,0 +1,95 @@
+"""The dashboard's state: what the controls ask for, and what the page shows now.
+
+``Controls`` is written by the GUI callbacks and nothing else. ``Shown`` is written by the
+apply path (and the background jobs it starts): which store, data, run and step the page
+shows, with the keys that say which controls they were made for. Applying compares the
+two; see ``visloc.dashboard.app``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+import visloc
+
+STORE_SUFFIXES = (".sqlite", ".sqlite3", ".db")
+
+
+@dataclass
+class Controls:
+    """What the user asked for."""
+
+    store_request: tuple[int, str]  # (how many times a store was asked for, its path)
+    db_name: str | None = None
+    query_name: str | None = None
+    method: str = visloc.PAPER_METHOD.name
+    tau1: float = visloc.PAPER_MATCH.tau1
+    tau2: float = visloc.PAPER_MATCH.tau2
+    rate_hz: float = 1.0
+    start_s: float = 0.0
+    exclusion_s: float = visloc.PAPER_EVAL_RETRIEVAL.exclusion_s
+    window_s: float = visloc.PAPER_RETRIEVAL.window_s
+    r_sigma_m: float = float(np.sqrt(visloc.PAPER_FILTER.meas_var_m2))
+    q_sigma_m_s2: float = float(np.sqrt(visloc.PAPER_FILTER.accel_var_m2_s4))
+    p0_sigma: float = float(np.sqrt(visloc.PAPER_FILTER.init_var))
+    gate_chi2: float = visloc.REFINED.gate_chi2
+    step: int = 0
+    play: bool = False
+    speed: float = 1.0
+    follow: bool = False
+    rerun: int = 0  # "Paper's parameters" asks for a fresh run even when nothing else changed
+
+    def match_key(self, data_key: tuple) -> tuple:
+        """What a drive run's retrievals and measurements depend on."""
+        return (data_key, self.method, self.tau1, self.tau2, self.rate_hz, self.start_s, self.exclusion_s,
+                self.window_s, self.rerun)
+
+    def filter_params(self) -> visloc.FilterParams:
+        return visloc.FilterParams(dt_s=1.0 / self.rate_hz, meas_var_m2=self.r_sigma_m ** 2,
+                                   accel_var_m2_s4=self.q_sigma_m_s2 ** 2, init_var=self.p0_sigma ** 2)
+
+
+@dataclass
+class Run:
+    """A drive run as drawn: its retrievals and measurements, and the filter over them."""
+
+    matches: visloc.DriveMatches
+    match_key: tuple
+    number: int  # completed runs so far, shown in the status line
+    records: list[visloc.StepRecord] = field(default_factory=list)
+    track_key: tuple | None = None
+
+
+@dataclass
+class Shown:
+    """What the page shows, and the requests in flight."""
+
+    store_request: tuple[int, str] | None = None  # the last store request acted on
+    store_path: str | None = None
+    workspace: visloc.Workspace | None = None
+    datasets: list[visloc.Dataset] = field(default_factory=list)
+    data_key: tuple | None = None  # (store path, database name, queries name) of the loaded data
+    loading_key: tuple | None = None
+    db: visloc.GeoDatabase | None = None
+    queries: visloc.QuerySet | None = None
+    caches: dict[tuple[float, float], visloc.PairCountCache] = field(default_factory=dict)
+    structures: visloc.StructureCache = field(default_factory=visloc.StructureCache)
+    run: Run | None = None
+    matching_key: tuple | None = None  # a match running in the background for these controls
+    failed_key: tuple | None = None  # controls whose match failed: not tried again until they change
+    step_key: tuple | None = None
+    runs_done: int = 0
+
+
+def discover_stores(*paths: Path) -> list[str]:
+    """Store files to offer: the given ones plus SQLite files beside them."""
+    found: list[str] = []
+    for p in paths:
+        candidates = [p] + (sorted(p.parent.glob("*")) if p.parent.is_dir() else [])
+        for c in candidates:
+            if (c == p or c.suffix in STORE_SUFFIXES) and str(c) not in found and not c.is_dir():
+                found.append(str(c))
+    return found

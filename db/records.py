@@ -1,0 +1,68 @@
+"""What the store holds, as plain records, and the errors it raises (no SQL here)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+KEYPOINT_COLUMNS = 6  # x_px, y_px, size_px, angle_deg, response, octave
+DESCRIPTOR_DIM = 128
+
+
+class StoreError(Exception):
+    """Base class for every error the store raises; its message is one line."""
+
+
+class NotAStoreError(StoreError):
+    """The file is not SQLite, or is SQLite but not a visloc store."""
+
+
+class EmptyStoreError(StoreError):
+    """The store exists but holds no images (or no images of the requested camera)."""
+
+
+class SettingsMismatchError(StoreError):
+    """Features were requested or added with SIFT settings other than the store's."""
+
+
+@dataclass(frozen=True)
+class ImageRecord:
+    """Metadata of one image, as it goes into the store."""
+
+    source: str  # drive or dataset name, e.g. "2011_09_26_drive_0001_sync"
+    camera: str  # e.g. "image_01"
+    frame: int  # index of the image within (source, camera)
+    path: str  # original image file, for display only; the store never reads it
+    timestamp_s: float  # seconds since the Unix epoch
+    lat_deg: float
+    lon_deg: float
+    alt_m: float | None = None
+    heading_deg: float | None = None  # compass: 0 = north, clockwise
+    width_px: int = 0
+    height_px: int = 0
+    sift_ms: float | None = None  # time SIFT took on this image when it was ingested
+    # attitude of the geotag's reference frame (KITTI: the OXTS/IMU unit, x forward, y left,
+    # z up), radians, as OXTS records give it: roll about x, pitch about y, yaw about z with
+    # 0 = east and counter-clockwise positive. None when the source has none (CSV).
+    roll_rad: float | None = None
+    pitch_rad: float | None = None
+    yaw_rad: float | None = None
+
+
+@dataclass(frozen=True)
+class StoredImage(ImageRecord):
+    """An image row read back from the store (metadata only, no arrays)."""
+
+    image_id: int = 0
+    n_keypoints: int = 0
+
+
+@dataclass(frozen=True)
+class CameraRecord:
+    source: str
+    camera: str
+    P_rect: np.ndarray | None  # (3, 4) float64, pixels
+    width_px: int
+    height_px: int
+    T_camera_imu: np.ndarray | None = None  # (4, 4) float64, metres: X_camera = T_camera_imu @ X_imu

@@ -1,0 +1,91 @@
+"""The store's tables: creating them, and migrating a store of an older schema version in place.
+
+Schema versions: 1 had no attitudes and no camera extrinsics. Version 2 adds them as NULL
+columns (``ALTER TABLE ... ADD COLUMN``), every existing row and cached count kept.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+
+import sqlite_utils
+
+SCHEMA_VERSION = 2
+# columns added by each version after the first: table -> (column, SQL type)
+MIGRATIONS = {
+    2: [("images", "roll_rad", "REAL"), ("images", "pitch_rad", "REAL"), ("images", "yaw_rad", "REAL"),
+        ("cameras", "t_camera_imu_json", "TEXT")],
+}
+REQUIRED_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # pair_counts, a cache, is added when missing
+
+
+def now_iso() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def migrate(db: sqlite_utils.Database, version: int) -> None:
+    """Bring a store of an older schema version to ``SCHEMA_VERSION`` in one transaction."""
+    with db.atomic():
+        for target in range(version + 1, SCHEMA_VERSION + 1):
+            for table, column, sql_type in MIGRATIONS[target]:
+                if column not in db[table].columns_dict:
+                    db.execute(f"ALTER TABLE [{table}] ADD COLUMN [{column}] {sql_type}")
+        db.execute("UPDATE visloc_schema SET version = ?", [SCHEMA_VERSION])
+
+
+def create_schema(db: sqlite_utils.Database) -> None:
+    """Every table of a new store, in one transaction."""
+    with db.atomic():
+        db["visloc_schema"].create({"version": int, "created_at": str})
+        db["visloc_schema"].insert({"version": SCHEMA_VERSION, "created_at": now_iso()})
+        db["settings"].create({"key": str, "value_json": str}, pk="key")
+        db["cameras"].create(
+            {"source": str, "camera": str, "p_rect_json": str, "width_px": int, "height_px": int,
+             "t_camera_imu_json": str},
+            pk=("source", "camera"),
+        )
+        db["images"].create(
+            {
+                "id": int,
+                "source": str,
+                "camera": str,
+                "frame": int,
+                "path": str,
+                "timestamp_s": float,
+                "lat_deg": float,
+                "lon_deg": float,
+                "alt_m": float,
+                "heading_deg": float,
+                "width_px": int,
+                "height_px": int,
+                "sift_ms": float,
+                "roll_rad": float,
+                "pitch_rad": float,
+                "yaw_rad": float,
+                "n_keypoints": int,
+                "keypoints_f32": bytes,
+                "descriptors_u8": bytes,
+                "created_at": str,
+            },
+            pk="id",
+            not_null={"source", "camera", "frame", "timestamp_s", "lat_deg", "lon_deg", "n_keypoints"},
+        )
+        create_pair_counts(db)
+        db["images"].create_index(["source", "camera", "frame"], unique=True)
+        db["images"].create_index(["source", "camera", "timestamp_s"])
+
+
+def create_pair_counts(db: sqlite_utils.Database) -> None:
+    db["pair_counts"].create(
+        {"query_image_id": int, "db_image_id": int, "tau1": float, "tau2": float,
+         "n_correspondences": int, "match_ms": float},
+        pk=("query_image_id", "db_image_id", "tau1", "tau2"),
+    )
+
+
+def ensure_vector_tables(db: sqlite_utils.Database) -> None:
+    """The optional tables of global vectors and named arrays (large databases)."""
+    if "global_vectors" not in db.table_names():
+        with db.atomic():
+            db["global_vectors"].create({"name": str, "image_id": int, "vector_f32": bytes}, pk=("name", "image_id"))
+            db["arrays"].create({"key": str, "dtype": str, "shape_json": str, "data": bytes}, pk="key")

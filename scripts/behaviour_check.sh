@@ -1,0 +1,37 @@
+#!/usr/bin/env bash
+# Check that this checkout evaluates exactly as an earlier commit did: `visloc evaluate --json` on the
+# shared drives, in both modes, by the earlier code and by this one, then every number compared
+# (scripts/compare_runs.py; wall-clock timings left out).
+#
+#   bash scripts/behaviour_check.sh [COMMIT]     (default f6c001b, the last commit before the pipeline
+#                                                 was rebuilt from parts)
+#
+# The earlier code runs from a temporary git worktree in out/behaviour/, on this checkout's .venv;
+# both read one store (out/behaviour/visloc.sqlite), so they see the same features.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+ref="${1:-f6c001b}"
+DATA="$(realpath "${VISLOC_DATA:-../shared/data/kitti}")"
+out="$(pwd)/out/behaviour"
+mkdir -p "$out"
+bash scripts/setup.sh
+before_src="$out/source_$ref"
+[ -d "$before_src" ] || git worktree add --detach "$before_src" "$ref" >/dev/null
+trap 'git worktree remove --force "$before_src"' EXIT
+status=0
+for run in "2011_09_26_drive_0001 image_00 image_01" "2011_09_26_drive_0005 image_00 image_00"; do
+    set -- $run
+    drive=$1 query=$2 database=$3
+    [ -d "$DATA/2011_09_26/${drive}_sync" ] || { echo "behaviour_check: $drive not in $DATA, skipped"; continue; }
+    for mode in paper refined; do
+        args=(evaluate "$DATA" --drive "$drive" --query-camera "$query" --db-camera "$database"
+              --db "$out/visloc.sqlite" --mode "$mode" --smooth)
+        # the earlier code, imported from its worktree (run from there, so this checkout's modules are not seen)
+        (cd "$before_src" && PYTHONPATH="$before_src" "$OLDPWD/.venv/bin/python" -m visloc "${args[@]}" \
+            --json "$out/${drive}_${mode}_before.json" >"$out/${drive}_${mode}_before.log" 2>&1)
+        .venv/bin/visloc "${args[@]}" --json "$out/${drive}_${mode}_after.json" >"$out/${drive}_${mode}_after.log" 2>&1
+        .venv/bin/python scripts/compare_runs.py "$out/${drive}_${mode}_before.json" \
+            "$out/${drive}_${mode}_after.json" || status=1
+    done
+done
+exit $status

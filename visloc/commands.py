@@ -1,0 +1,235 @@
+"""What each ``visloc`` command does, given its parsed arguments (``visloc.cli`` parses them).
+
+Errors in input or parameters raise ``VislocError`` naming the file or parameter; the command
+line prints them on one line and exits with status 2. Nothing already stored is lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+from tqdm import tqdm
+
+from visloc.bench.run import BenchParams, run_bench
+from visloc.errors import InputError, ParameterError
+from visloc.evaluation import evaluate, series_schedule
+from visloc.methods import Method, build_localizer, method_named
+from visloc.params import FAST, REFINED, FilterParams, MatchParams, RetrievalParams, SiftParams
+from visloc.queries import extract_queries
+from visloc.records import step_record
+from visloc.report import evaluation_json, record_json, save_error_plot, series_tables, summary_text, write_json
+from visloc.runs import run_queries
+from visloc.sources import Sequence, open_source
+from visloc.workspace import Workspace
+
+
+# -- arguments -> parameters ------------------------------------------------------------------
+
+def sift_params(a: argparse.Namespace) -> SiftParams:
+    return SiftParams(n_features=a.sift_features, n_octave_layers=a.sift_octave_layers,
+                      contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma,
+                      image_scale=a.sift_scale)
+
+
+def method_params(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, FilterParams]:
+    return (MatchParams(tau1=a.tau1, tau2=a.tau2),
+            RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s),
+            FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var))
+
+
+def method_of(a: argparse.Namespace) -> Method:
+    """The method ``--mode`` names, with the refined flags applied (and the fast retrieval if ``--fast``)."""
+    try:
+        method = method_named(a.mode)
+    except ParameterError:
+        raise InputError(f"--mode {a.mode!r}: must be paper or refined") from None
+    if method.pose is not None:
+        method = method.replace(pose=REFINED.replace(top_k=a.top_k, sigma_floor_m=a.sigma_floor_m,
+                                                     gate_chi2=a.gate_chi2, seed=a.seed))
+    else:  # the refined flags are still checked, so a bad value is refused in either mode
+        REFINED.replace(top_k=a.top_k, sigma_floor_m=a.sigma_floor_m, gate_chi2=a.gate_chi2, seed=a.seed)
+    return method.replace(shortlist=FAST) if getattr(a, "fast", False) else method
+
+
+def progress_bar(desc: str, unit: str) -> Callable[[int, int], None]:
+    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (silent when stderr is no terminal)."""
+    bar: dict[str, tqdm] = {}
+
+    def progress(done: int, total: int) -> None:
+        if "bar" not in bar:
+            bar["bar"] = tqdm(total=total, desc=desc, unit=unit, disable=None, file=sys.stderr, leave=False)
+        b = bar["bar"]
+        b.update(done - b.n)
+        if done >= total:
+            b.close()
+
+    return progress
+
+
+def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, workers: int | None, limit: int | None = None):
+    return ws.ingest(seq, sift, workers=workers, limit=limit, progress=progress_bar(f"SIFT {seq.name}", "img"))
+
+
+def _check_output_folder(path: Path | None, flag: str) -> None:
+    if path is not None and not Path(path).resolve().parent.is_dir():
+        raise InputError(f"{flag} {path}: folder does not exist")
+
+
+# -- commands -----------------------------------------------------------------------------------
+
+def cmd_ingest(a: argparse.Namespace) -> int:
+    sift = sift_params(a)
+    ws = Workspace(a.db, create=True)
+    for camera in a.camera or ["image_01"]:
+        seq = open_source(a.source, drive=a.drive, camera=camera)
+        try:
+            report = _ingest(ws, seq, sift, a.workers, a.limit)
+        except KeyboardInterrupt:
+            n = ws.stored_frame_count(seq.source, seq.camera)
+            print(f"visloc: interrupted; {a.db} keeps {n} images of {seq.name}", file=sys.stderr)
+            return 130
+        filled = f", attitude filled in for {report.n_attitudes_filled}" if report.n_attitudes_filled else ""
+        print(f"{a.db}: {seq.name}: {report.n_added} added, {report.n_skipped} already stored, "
+              f"{len(seq)} frames ({report.images_per_s:.1f} images/s){filled}")
+    return 0
+
+
+def cmd_localize(a: argparse.Namespace) -> int:
+    sift = sift_params(a)
+    match, retrieval, filt = method_params(a)
+    method = method_of(a)
+    _check_output_folder(a.json, "--json")
+    seq = open_source(a.source, drive=a.drive, camera=a.camera)
+    ws = Workspace(a.db)
+    db = ws.load_database(ws.database_source(seq.source, a.db_camera, a.db_source), a.db_camera, sift)
+    times = seq.timestamps_s
+    start = next((i for i, f in enumerate(seq.frames) if f.frame == a.start_frame), None)
+    if start is None:
+        frames = sorted(f.frame for f in seq.frames)
+        raise InputError(f"--start-frame {a.start_frame}: {seq.name} has frames {frames[0]}..{frames[-1]}")
+    schedule = [s for s in series_schedule(times[start:], filt.dt_s, a.steps, a.sampling) if s[0] == 0]
+    if not schedule:
+        raise InputError(f"--start-frame {a.start_frame}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
+                         f"{times[-1] - times[start]:.1f} s left of {seq.name}")
+    indices = [start + i for i in schedule[0]]
+    localizer = build_localizer(method, db, match, retrieval, filt, query_camera=seq.camera_model, query_what=seq.name)
+    steps = run_queries(localizer, extract_queries(seq, indices, sift))
+    records = [step_record(k, s.result, db, query_frame=seq.frames[i].frame, truth_lat_deg=seq.frames[i].lat_deg,
+                           truth_lon_deg=seq.frames[i].lon_deg, latency_ms=s.latency_ms, keep_counts=True)
+               for k, (i, s) in enumerate(zip(indices, steps))]
+    print(f"queries: {seq.name} frames {[seq.frames[i].frame for i in indices]}   "
+          f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s   "
+          f"mode {method.name}\n")
+    print(series_tables(records, db.frame))
+    if a.json:
+        write_json(a.json, {"queries": seq.name, "database": f"{db.source}/{db.camera}", "mode": method.name,
+                            "steps": [record_json(r, db.frame) for r in records],
+                            "params": {"match": match.as_dict(), "retrieval": retrieval.as_dict(),
+                                       "filter": filt.as_dict(), "sift": sift.as_dict(), "mode": method.name,
+                                       "refined": None if method.pose is None else method.pose.as_dict()}})
+        print(f"\nwrote {a.json}")
+    return 0
+
+
+def _start_indices(a: argparse.Namespace, query_seq: Sequence, schedule: list[list[int]]) -> set[int] | None:
+    """The start frames ``--start-frames`` asks for, checked against the series that fit."""
+    if not a.start_frames:
+        return None
+    try:
+        wanted = {int(v) for v in a.start_frames.split(",")}
+    except ValueError:
+        raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
+    allowed = {query_seq.frames[s[0]].frame for s in schedule}
+    if wanted - allowed:
+        raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at "
+                         f"{sorted(wanted - allowed)[:5]} (allowed start frames: {min(allowed)}..{max(allowed)})")
+    return wanted
+
+
+def cmd_evaluate(a: argparse.Namespace) -> int:
+    sift = sift_params(a)
+    match, retrieval, filt = method_params(a)
+    method = method_of(a)
+    for path, flag in ((a.json, "--json"), (a.plot, "--plot")):
+        _check_output_folder(path, flag)
+    db_seq = open_source(a.root, drive=a.drive, camera=a.db_camera)
+    query_seq = open_source(a.root, drive=a.drive, camera=a.query_camera)
+    # check the series before any slow work
+    schedule = series_schedule(query_seq.timestamps_s, filt.dt_s, a.steps, a.sampling)
+    if not schedule:
+        raise InputError(f"{query_seq.name}: too short for {a.steps} queries {filt.dt_s} s apart")
+    wanted = _start_indices(a, query_seq, schedule)
+    ws = Workspace(a.db, create=True)
+    for seq in {s.name: s for s in (db_seq, query_seq)}.values():
+        _ingest(ws, seq, sift, a.workers)
+    db = ws.load_database(db_seq.source, db_seq.camera, sift)
+    queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
+    starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
+    cache = ws.pair_cache(db, queries, match)  # counts earlier runs computed with the same tau1, tau2
+    bar = progress_bar("series", "series")
+
+    def progress(done: int, total: int) -> None:  # counts are saved after every series: a stop loses one at most
+        bar(done, total)
+        ws.save_pair_counts(cache)
+
+    try:
+        result = evaluate(queries, db, match, retrieval, filt, method=method, n_steps=a.steps, sampling=a.sampling,
+                          start_indices=starts, cache=cache, progress=progress, smooth=a.smooth)
+    finally:
+        ws.save_pair_counts(cache)
+    summary = result.summary()
+    summary["params"]["sift"] = sift.as_dict()
+    print(summary_text(summary))
+    if a.json:
+        write_json(a.json, evaluation_json(result, summary))
+        print(f"wrote {a.json}")
+    plot = a.plot or (Path(a.json).with_suffix(".png") if a.json else None)
+    if plot:
+        title = (f"{db.source}: queries {queries.camera}, database {db.camera}, exclusion "
+                 f"{retrieval.exclusion_s:g} s, {summary['n_series']} series, mode {method.name}")
+        save_error_plot(summary, plot, title)
+        print(f"wrote {plot}")
+    return 0
+
+
+def cmd_dashboard(a: argparse.Namespace) -> int:
+    if not 1 <= a.port <= 65535:
+        raise InputError(f"--port {a.port}: must be in 1..65535")
+    from visloc.dashboard import serve  # on demand: the browser app (viser) is only needed here
+
+    serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera, query_camera=a.query_camera,
+          announce=lambda text: print(text, flush=True))
+    return 0
+
+
+def cmd_bench(a: argparse.Namespace) -> int:
+    params = BenchParams(series=a.series, shortlist_size=a.shortlist, fast_scale=a.fast_scale,
+                         ingest_images=a.ingest_images, workers=a.workers, synthetic_images=a.synthetic_images,
+                         synthetic_descriptors=a.synthetic_descriptors, synthetic_queries=a.synthetic_queries,
+                         skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy)
+    _check_output_folder(a.json, "--json")
+    for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
+        _check_output_folder(Path(path), flag)
+    open_source(a.root, drive=a.drive, camera="image_00")  # a missing drive fails here, before any slow work
+    result = run_bench(a.root, a.drive, Path(a.db), Path(a.fast_db), params, say=lambda t: print(t, flush=True))
+    if a.json:
+        write_json(a.json, result)
+        print(f"wrote {a.json}")
+    return 0
+
+
+def cmd_info(a: argparse.Namespace) -> int:
+    ws = Workspace(a.db)
+    sift = ws.sift_params
+    print(f"{a.db}: {ws.image_count()} images")
+    print(f"SIFT settings: {sift.as_dict() if sift else 'none yet'}")
+    for d in ws.datasets():
+        calib = "P_rect known" if d.has_calibration else "no calibration"
+        calib += ", extrinsics known" if d.has_extrinsics else ", no extrinsics"
+        calib += f", {d.n_without_attitude} without attitude" if d.n_without_attitude else ", attitudes known"
+        print(f"  {d.name}: {d.n_images} images over {d.duration_s:.1f} s, "
+              f"{d.mean_keypoints:.0f} keypoints per image, {calib}")
+    return 0

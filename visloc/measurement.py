@@ -1,0 +1,115 @@
+"""What one retrieved query tells the filter: a ``Measurement``, and the measurers that make it.
+
+* ``GeotagMeasurer`` is the paper's: the geotag of the best match, with the filter's own R.
+* ``visloc.pose.PoseMeasurer`` (the refined method) measures a metric position from the
+  database's own geometry with its own covariance, and falls back to the geotag with a reason.
+* ``MemoisedMeasurer`` wraps either: the same query with the same retrieval measures the same.
+
+Every measurer has ``measure(query, retrieval) -> Measurement``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from visloc.features import Query
+from visloc.retrieval import Retrieval
+
+GEOMETRY = "geometry"
+GEOTAG = "geotag"
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What one query tells the filter.
+
+    east_north_m:        (2,) measured position of the vehicle's geotag reference point, metres in
+                         the local frame; None when the query gave no measurement at all.
+    cov_m2:              (2, 2) its covariance, m^2; None means "use the filter's R" (geotags).
+    source:              "geometry" (refined pose), "geotag" (the paper's) or None (no measurement).
+    fallback_reason:     why a refined measurement is a geotag; None otherwise.
+    db_index:            database image the measurement rests on (the verified best view for
+                         geometry, the best match by count for a geotag).
+    view_indices:        database images the query was posed against; neighbour_indices: those
+                         triangulated with them.
+    n_verified_inliers:  essential-matrix inliers of the best verified candidate.
+    n_correspondences_3d, n_pnp_inliers, reprojection_rms_px: the pose's support.
+    up_m, heading_deg:   the pose's altitude in the local frame and compass heading (geometry only).
+    compute_ms:          wall time this measurement took when it was made (query side: matching,
+                         RANSAC, PnP, and any database structure built on the way).
+    structure_ms:        of which building database structure that was not cached yet.
+    """
+
+    east_north_m: np.ndarray | None
+    cov_m2: np.ndarray | None
+    source: str | None
+    fallback_reason: str | None = None
+    db_index: int | None = None
+    view_indices: tuple[int, ...] = ()
+    neighbour_indices: tuple[int, ...] = ()
+    n_verified_inliers: int = 0
+    n_correspondences_3d: int = 0
+    n_pnp_inliers: int = 0
+    reprojection_rms_px: float | None = None
+    up_m: float | None = None
+    heading_deg: float | None = None
+    compute_ms: float = 0.0
+    structure_ms: float = 0.0
+    candidate_inliers: dict[int, int] = field(default_factory=dict, repr=False)
+
+    @property
+    def sigma_m(self) -> float | None:
+        """1-sigma along the covariance's longest axis, metres (None: the filter's R applies)."""
+        if self.cov_m2 is None:
+            return None
+        return float(np.sqrt(max(np.linalg.eigvalsh(self.cov_m2).max(), 0.0)))
+
+    @property
+    def query_side_ms(self) -> float:
+        """What making this measurement costs a live query: its time without database-side structure."""
+        return self.compute_ms - self.structure_ms
+
+
+def geotag_measurement(retrieval: Retrieval, db_east_north_m: np.ndarray, reason: str | None = None) -> Measurement:
+    """The paper's measurement: the geotag of the best match by count (None without a match)."""
+    best = retrieval.best_index
+    if best is None:
+        return Measurement(None, None, None, fallback_reason=reason, db_index=None)
+    return Measurement(np.asarray(db_east_north_m[best], float), None, GEOTAG, fallback_reason=reason, db_index=best)
+
+
+class Measurer(Protocol):
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement: ...
+
+
+class GeotagMeasurer:
+    """The paper's measurer: the best match's geotag; the filter applies its own R."""
+
+    def __init__(self, db_east_north_m: np.ndarray):
+        self.db_east_north_m = np.asarray(db_east_north_m, float)
+
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
+        return geotag_measurement(retrieval, self.db_east_north_m)
+
+
+class MemoisedMeasurer:
+    """``measurer``, remembering each measurement by (query key, retrieval): an evaluation where the
+    same query image recurs with the same candidates measures it once. Queries without a key are
+    measured every time."""
+
+    def __init__(self, measurer: Measurer):
+        self.measurer = measurer
+        self._memo: dict[tuple[Hashable, bytes, bytes, bytes | None], Measurement] = {}
+
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
+        if query.key is None:
+            return self.measurer.measure(query, retrieval)
+        allowed = None if retrieval.allowed is None else retrieval.allowed.tobytes()
+        key = (query.key, retrieval.candidates.tobytes(), retrieval.counts.tobytes(), allowed)
+        if key not in self._memo:
+            self._memo[key] = self.measurer.measure(query, retrieval)
+        return self._memo[key]

@@ -1,0 +1,119 @@
+"""The named methods: compositions of the localizer's parts.
+
+A ``Method`` says which retriever and which measurer a localizer is made of; it holds
+parameters only. ``build_localizer`` makes the parts from a database and composes them,
+and refuses a composition that lacks what it needs (the refined method without calibrated
+cameras) with a message that says what is missing.
+
+===========  ======================================  ============================================
+method       retriever                               measurer
+===========  ======================================  ============================================
+``paper``    +-window_s around the previous match    the best match's geotag, the filter's R
+``refined``  the same                                a metric pose from the database's geometry,
+                                                     its own covariance; the filter gates outliers
+===========  ======================================  ============================================
+
+Either can take the fast retrieval (``method.replace(shortlist=FAST)``): the filter's gate,
+a global-vector shortlist, exact counts on the shortlist only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+from visloc.database import GeoDatabase
+from visloc.errors import ParameterError
+from visloc.geometry import CameraModel
+from visloc.localizer import Localizer
+from visloc.matching import Counter, PairCountCache, backend_counter, brute_force_counter
+from visloc.measurement import GeotagMeasurer, MemoisedMeasurer
+from visloc.params import REFINED, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
+from visloc.pose import PoseMeasurer, StructureCache
+from visloc.retrieval import ShortlistRetriever, WindowRetriever, build_global_index
+from visloc.vlad import GlobalIndex
+
+
+@dataclass(frozen=True)
+class Method:
+    """A named composition of retriever, measurer and filter gate.
+
+    name:       what reports and the command line call it
+    pose:       None: the paper's measurement, the best match's geotag. ``RefinedParams``: a metric
+                pose from the database's own geometry (falling back to the geotag with a reason),
+                and the filter skips measurements beyond ``pose.gate_chi2``.
+    shortlist:  None: the paper's retrieval. ``FastParams``: the fast retrieval (filter gate,
+                global-vector shortlist, exact counts on the shortlist).
+    """
+
+    name: str
+    pose: RefinedParams | None = None
+    shortlist: FastParams | None = None
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.name, str) and self.name):
+            raise ParameterError(f"name={self.name!r}: a method needs a name")
+
+    @property
+    def measures_pose(self) -> bool:
+        return self.pose is not None
+
+    @property
+    def gate_chi2(self) -> float:
+        """The filter's Mahalanobis gate (2 dof); 0: every measurement is applied."""
+        return self.pose.gate_chi2 if self.pose is not None else 0.0
+
+    def replace(self, **changes) -> "Method":
+        unknown = set(changes) - {f.name for f in fields(self)}
+        if unknown:
+            raise ParameterError(f"unknown parameter {sorted(unknown)[0]!r} for Method")
+        return replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "pose": None if self.pose is None else self.pose.as_dict(),
+                "shortlist": None if self.shortlist is None else self.shortlist.as_dict()}
+
+
+PAPER_METHOD = Method("paper")
+REFINED_METHOD = Method("refined", pose=REFINED)
+METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD)}
+
+
+def method_named(name: str) -> Method:
+    """The method called ``name``; ``ParameterError`` naming the choices otherwise."""
+    if name not in METHODS:
+        raise ParameterError(f"mode={name!r}: must be one of {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retrieval: RetrievalParams,
+                    filter_params: FilterParams, *, query_camera: CameraModel | None = None,
+                    query_what: str = "the queries", counter: Counter | None = None,
+                    shortlist_index: GlobalIndex | None = None, structures: StructureCache | None = None,
+                    memoise: bool = False) -> Localizer:
+    """The localizer ``method`` describes, over ``db``.
+
+    query_camera:     the query camera's calibration (the refined method needs it); ``query_what``
+                      names the queries in the message when it is missing
+    counter:          how retrieval counts correspondences (e.g. a ``PairCountCache`` of earlier
+                      runs); default: computed afresh for every candidate
+    shortlist_index:  the fast retrieval's global vectors of ``db``, if built already
+    structures:       database structure triangulated by earlier refined measurements, to reuse
+    memoise:          measure a query (by its key) with the same retrieval only once
+    """
+    if isinstance(counter, PairCountCache):
+        counter.check_thresholds(match)
+    if method.shortlist is None:
+        retriever = WindowRetriever(db.timestamps_s, counter or brute_force_counter(db.descriptors_u8, match),
+                                    retrieval)
+    else:
+        index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
+        counter = counter or backend_counter(method.shortlist.nn_backend, db.descriptors_u8, match)
+        retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, counter, retrieval)
+    if method.pose is None:
+        measurer = GeotagMeasurer(db.east_north_m)
+    else:
+        measurer = PoseMeasurer(db.east_north_m, db.geometry(), query_camera, method.pose, structures=structures,
+                                query_what=query_what)
+    if memoise:
+        measurer = MemoisedMeasurer(measurer)
+    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2)
