@@ -67,6 +67,11 @@ def series_tables(records: list[StepRecord], frame: LocalFrame) -> str:
     return "\n".join(lines)
 
 
+def _measures_pose(summary: dict) -> bool:
+    """Whether the evaluation's method measured poses: only then does its summary hold pose statistics."""
+    return summary.get("measurement_nees") is not None
+
+
 def summary_text(summary: dict) -> str:
     labels = summary["steps"]
     lines = [
@@ -89,11 +94,11 @@ def summary_text(summary: dict) -> str:
             for k, v in summary["final_error_m_by_steps_ahead"].items()),
         f"paper (drive 0001): measurement about 18 m, final {PAPER_FINAL_ERROR_M} m",
     ]
-    if summary.get("mode") == "refined":
+    if _measures_pose(summary):
         src = summary["measurement_source_fraction"]
         nees = summary["measurement_nees"] or {}
         lines += [
-            f"mode refined: geometry {_cell(src['geometry'], '.0%')} of steps, geotag fallback "
+            f"mode {summary['mode']}: geometry {_cell(src['geometry'], '.0%')} of steps, geotag fallback "
             f"{_cell(summary['geometry_fallback_fraction'], '.1%')} of measurements, gated "
             f"{_cell(summary['gated_fraction'], '.1%')}",
             f"{'mean measurement 1-sigma (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["measurement_sigma_m"]),
@@ -157,7 +162,7 @@ def save_error_plot(summary: dict, path: Path, title: str) -> None:
     meas = [nan if v is None else v for v in summary["measurement_error_m"]]
     est = [nan if v is None else v for v in summary["estimate_error_m"]]
     fig, ax = plt.subplots(figsize=(7, 4), dpi=120)
-    source = "metric pose" if summary.get("mode") == "refined" else "best-match geotag"
+    source = "metric pose" if _measures_pose(summary) else "best-match geotag"
     ax.plot(x, meas, "o-", color="tab:orange", label=f"measurement ({source})")
     ax.plot(x, est, "s-", color="tab:blue", label="Kalman estimate")
     ax.plot([x[-1]], [PAPER_FINAL_ERROR_M], "k*", markersize=11, label=f"paper's final estimate ({PAPER_FINAL_ERROR_M} m)")

@@ -1,0 +1,396 @@
+"""Measure what the results page reports, and write the page from what was measured.
+
+    python scripts/results.py run [--data ROOT]   # every command below, on every drive of ROOT (out/results/)
+    python scripts/results.py page                 # docs/results/digest.json and docs/results.md from out/results/
+    python scripts/results.py render               # docs/results.md again from docs/results/digest.json alone
+
+``run`` calls the ``visloc`` command as a user would: ``visloc evaluate`` for every drive of the
+data root (default ../shared/data/kitti), for each camera setup the drive allows (left queries
+against the right camera's database; each camera against itself, with the 1 s exclusion), in
+both modes with the RTS smoother; the paper's mode again with other query sampling and process
+noise; ``visloc bench`` per drive; and scripts/paper_haversine_check.py. Every run writes its JSON
+to out/results/ and out/results/manifest.json records the commands. ``page`` reduces those JSON
+files to docs/results/digest.json (the numbers the page shows, with their commands) and renders
+docs/results.md from it; ``render`` re-renders the page from the committed digest, so the page
+and its numbers cannot drift apart (the test suite checks it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+OUT = REPO / "out" / "results"
+DIGEST = REPO / "docs" / "results" / "digest.json"
+PAGE = REPO / "docs" / "results.md"
+PAPER_FINAL_ERROR_M = 1.85  # the paper's section 4, Figure 4: drive 2011_09_26_drive_0001
+PAPER_DRIVE = "2011_09_26_drive_0001"
+VARIANTS = {  # the paper's mode, one change each: (label, extra flags)
+    "sampling_time": ("`--sampling time` (the frame nearest each whole second, not every 10th frame)",
+                      ["--sampling", "time"]),
+    "q_0.1": ("`--accel-var-m2-s4 0.1` (Q ten times smaller)", ["--accel-var-m2-s4", "0.1"]),
+    "q_10": ("`--accel-var-m2-s4 10` (Q ten times larger)", ["--accel-var-m2-s4", "10"]),
+}
+
+
+# -- run: the commands --------------------------------------------------------------------------
+
+def setups(drive_folder: Path) -> list[tuple[str, str, str, str]]:
+    """(key, label, query camera, database camera) of the camera setups a drive allows."""
+    gray = [c for c in ("image_00", "image_01") if (drive_folder / c / "data").is_dir()]
+    out = []
+    if gray == ["image_00", "image_01"]:
+        out.append(("stereo", "left queries, right database (the paper's)", "image_00", "image_01"))
+    for camera in reversed(gray) if len(gray) == 2 else gray:
+        side = "right" if camera == "image_01" else "left"
+        out.append((f"same_{camera}", f"{side} queries, {side} database (1 s exclusion)", camera, camera))
+    return out
+
+
+def run(data: Path) -> int:
+    OUT.mkdir(parents=True, exist_ok=True)
+    drives = sorted(p for p in data.glob("*/*_drive_*_sync") if p.is_dir())
+    if not drives:
+        print(f"results: {data}: no KITTI drives", file=sys.stderr)
+        return 2
+    # paths as the commands are shown: relative to the checkout, where they run
+    root = os.path.relpath(data, REPO)
+    out = OUT.relative_to(REPO)
+    store, fast_store = out / "visloc.sqlite", out / "visloc_s05.sqlite"
+    visloc = [sys.executable, "-m", "visloc"]
+    manifest = {"commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                                         text=True).stdout.strip(),
+                "started": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                "cores": os.cpu_count(), "load_before": os.getloadavg()[0], "runs": []}
+
+    def command(name: str, args: list[str], **meta) -> None:
+        print(f"results: {name}: {' '.join(args)}", flush=True)
+        subprocess.run([*visloc, *args], cwd=REPO, check=True)
+        manifest["runs"].append({"file": f"{name}.json", "command": "visloc " + " ".join(args), **meta})
+
+    for folder in drives:
+        drive = folder.name.removesuffix("_sync")
+        for key, label, query, database in setups(folder):
+            for mode in ("paper", "refined"):
+                name = f"{drive}_{key}_{mode}"
+                command(name, ["evaluate", root, "--drive", drive, "--query-camera", query, "--db-camera",
+                               database, "--db", str(store), "--mode", mode, "--smooth", "--json",
+                               str(out / f"{name}.json")],
+                        kind="evaluate", drive=drive, setup=key, setup_label=label, mode=mode)
+        key, label, query, database = setups(folder)[0]
+        for variant, (_, flags) in VARIANTS.items():
+            name = f"{drive}_{key}_paper_{variant}"
+            command(name, ["evaluate", root, "--drive", drive, "--query-camera", query, "--db-camera", database,
+                           "--db", str(store), *flags, "--json", str(out / f"{name}.json")],
+                    kind="variant", drive=drive, setup=key, setup_label=label, variant=variant)
+    for n, folder in enumerate(drives):
+        drive = folder.name.removesuffix("_sync")
+        command(f"bench_{drive}", ["bench", root, "--drive", drive, "--db", str(store), "--fast-db",
+                                   str(fast_store), *([] if n == 0 else ["--skip-synthetic"]), "--json",
+                                   str(out / f"bench_{drive}.json")], kind="bench", drive=drive)
+    subprocess.run([sys.executable, "scripts/paper_haversine_check.py", "--json", str(out / "haversine.json")],
+                   cwd=REPO, check=True)
+    manifest["runs"].append({"file": "haversine.json", "command": "python scripts/paper_haversine_check.py",
+                             "kind": "haversine"})
+    manifest["finished"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    manifest["load_after"] = os.getloadavg()[0]
+    (OUT / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    print(f"results: wrote {OUT / 'manifest.json'}; now: python scripts/results.py page")
+    return 0
+
+
+# -- page: JSON -> digest -------------------------------------------------------------------------
+
+def _stats(values, names=("median", "mean", "p90", "max")) -> dict:
+    v = np.asarray([x for x in values if x is not None], float)
+    if v.size == 0:
+        return {n: None for n in names}
+    fn = {"median": np.median, "mean": np.mean, "p90": lambda a: np.percentile(a, 90), "max": np.max,
+          "min": np.min}
+    return {n: float(fn[n](v)) for n in names}
+
+
+def digest_evaluation(report: dict) -> dict:
+    steps = [s for series in report["series"] for s in series]
+    finals = [series[-1]["estimate_error_m"] for series in report["series"]]
+    gaps = [b["query_timestamp_s"] - a["query_timestamp_s"] for series in report["series"]
+            for a, b in zip(series, series[1:])]
+    keep = ("n_series", "steps", "measurement_error_m", "estimate_error_m", "nearest_candidate_error_m",
+            "smoothed_error_m", "final_error_m", "final_error_m_by_steps_ahead", "latency_ms", "measurement_latency_ms",
+            "best_match_offset_s", "steps_without_measurement", "mode", "measurement_source_fraction",
+            "geometry_fallback_fraction", "fallback_reasons", "gated_fraction", "measurement_sigma_m",
+            "measurement_nees", "structure_build_ms")
+    return {**{k: report.get(k) for k in keep},
+            "exclusion_s": report["params"]["retrieval"]["exclusion_s"],
+            "measurement_error_all_steps_m": _stats(s["measurement_error_m"] for s in steps),
+            "series_final_below_2m": sum(1 for f in finals if f is not None and f < 2.0),
+            "query_interval_s": float(np.median(gaps)) if gaps else None}
+
+
+def digest_bench(report: dict) -> dict:
+    lat = report["latency"]
+    out = {k: report.get(k) for k in ("drive", "query_camera", "db_camera", "load_before", "load_after", "targets",
+                                      "fast_params", "global_index_build_s", "accuracy")}
+    out["latency"] = {"start_frames": lat["start_frames"],
+                      "speed_ratio_paper_over_fast": lat["speed_ratio_paper_over_fast"],
+                      "levers": {k: {"stages_ms": v["stages_ms"], "mean_counted": v["mean_counted"],
+                                     "median_keypoints": v["median_keypoints"],
+                                     "best_match_agrees_with_paper": v["best_match_agrees_with_paper"]}
+                                 for k, v in lat["levers"].items()}}
+    ing = report["ingest"]
+    out["ingest"] = {k: ing[k] for k in ("n_images", "workers", "bare_sift_images_per_s", "ingest_images_per_s",
+                                        "ingest_over_bare", "ingest_over_bare_per_run")}
+    if "scale" in report:
+        sc = report["scale"]
+        out["scale"] = {k: sc[k] for k in ("n_images", "descriptors_per_image", "vector_dim", "shortlist_size",
+                                           "n_queries", "store_mb", "global_vectors_mb", "index_load_s",
+                                           "candidates_ms", "recall_shortlist", "best_within_1m", "peak_rss_mb")}
+    return out
+
+
+def page() -> int:
+    manifest_path = OUT / "manifest.json"
+    if not manifest_path.is_file():
+        print(f"results: {manifest_path}: not found (run: python scripts/results.py run)", file=sys.stderr)
+        return 2
+    manifest = json.loads(manifest_path.read_text())
+    digest = {"commit": manifest["commit"], "started": manifest["started"], "finished": manifest["finished"],
+              "cores": manifest["cores"], "load_before": manifest["load_before"], "load_after": manifest["load_after"],
+              "drives": {}, "bench": {}, "haversine": None}
+    for entry in manifest["runs"]:
+        report = json.loads((OUT / entry["file"]).read_text())
+        if entry["kind"] == "haversine":
+            digest["haversine"] = report
+            continue
+        if entry["kind"] == "bench":
+            digest["bench"][entry["drive"]] = {"command": entry["command"], **digest_bench(report)}
+            continue
+        drive = digest["drives"].setdefault(entry["drive"], {"setups": {}, "variants": {}, "primary": entry["setup"]})
+        setup = drive["setups"].setdefault(entry["setup"], {"label": entry["setup_label"], "modes": {}})
+        result = {"command": entry["command"], **digest_evaluation(report)}
+        if entry["kind"] == "evaluate":
+            setup["modes"][entry["mode"]] = result
+        else:
+            drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
+    DIGEST.parent.mkdir(parents=True, exist_ok=True)
+    DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
+    PAGE.write_text(render_page(digest))
+    print(f"results: wrote {DIGEST} and {PAGE}")
+    return 0
+
+
+# -- render: digest -> Markdown ---------------------------------------------------------------------
+
+def c(value, fmt: str = ".2f") -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+def _steps(values, fmt: str = ".2f") -> str:
+    return " / ".join(c(v, fmt) for v in values)
+
+
+def _setups(drive: dict) -> list[tuple[str, dict]]:
+    """A drive's setups, the one its paper-mode sensitivity runs use first (JSON keeps no order)."""
+    return sorted(drive["setups"].items(), key=lambda kv: (kv[0] != drive["primary"], kv[0] != "stereo", kv[0]))
+
+
+def render_page(d: dict) -> str:
+    L: list[str] = []
+    add = L.append
+    add("# Results")
+    add("")
+    add("<!-- generated by `python scripts/results.py page` from the JSON its `run` wrote; do not edit -->")
+    add("")
+    add(f"Measured with commit `{d['commit']}` from {d['started']} to {d['finished']} on a machine with "
+        f"{d['cores']} cores (1-minute load average {d['load_before']:.2f} before, {d['load_after']:.2f} after). "
+        "Every number below comes from the JSON of the command named beside it; `python scripts/results.py run` "
+        "runs them all on every drive of the data root and `python scripts/results.py page` writes this page "
+        "(its numbers are also in `docs/results/digest.json`). Distances are geodesic on WGS84; the paper's "
+        "Haversine distances appear only in the check of its Table 3. What the numbers mean: "
+        "[method notes](method.md).")
+    add("")
+    add("## Every drive, both modes")
+    add("")
+    add("`visloc evaluate` with the paper's protocol: series of six queries one second apart, every start frame "
+        "the drive allows, database images closer than 1 s to a query excluded, the paper's Table 1 parameters, "
+        "`--smooth` for the RTS smoother. No parameter differs between drives.")
+    add("")
+    add("| drive | setup | mode | series | mean measurement error t-5 / ... / t (m) | final error mean / median / "
+        "p90 (m) | RTS-smoothed t-5 / t (m) | geotag fallback | gated | NEES (2 if honest), inside 95 % | "
+        "latency p50 / p95 (ms) |")
+    add("|---|---|---|---|---|---|---|---|---|---|---|")
+    for drive, dd in d["drives"].items():
+        for key, setup in _setups(dd):
+            for mode, r in setup["modes"].items():
+                f = r["final_error_m"]
+                sm = r["smoothed_error_m"] or [None]
+                nees = r["measurement_nees"] or {}
+                nees_text = "-" if not nees.get("n") else (f"{c(nees['mean'])}, "
+                                                           f"{c(100 * nees['fraction_within_95'], '.0f')} %")
+                fallback = r["geometry_fallback_fraction"]
+                add(f"| {drive} | {setup['label']} | {mode} | {r['n_series']} | {_steps(r['measurement_error_m'])} | "
+                    f"{c(f['mean'])} / {c(f['median'])} / {c(f['p90'])} | {c(sm[0])} / {c(sm[-1])} | "
+                    f"{'-' if fallback is None else c(100 * fallback, '.1f') + ' %'} | "
+                    f"{c(100 * r['gated_fraction'], '.1f')} % | {nees_text} | "
+                    f"{c(r['latency_ms']['p50'], '.0f')} / {c(r['latency_ms']['p95'], '.0f')} |")
+    add("")
+    add("Measurement error over every step of every series (m), and what measured it:")
+    add("")
+    add("| drive | setup | mode | median | mean | p90 | max | geometry | geotag | no measurement | fallback reasons |")
+    add("|---|---|---|---|---|---|---|---|---|---|---|")
+    for drive, dd in d["drives"].items():
+        for key, setup in _setups(dd):
+            for mode, r in setup["modes"].items():
+                a = r["measurement_error_all_steps_m"]
+                src = r["measurement_source_fraction"]
+                n_steps = r["n_series"] * len(r["steps"])
+                reasons = "; ".join(f"{k}: {v}" for k, v in (r["fallback_reasons"] or {}).items()) or "-"
+                add(f"| {drive} | {setup['label']} | {mode} | {c(a['median'])} | {c(a['mean'])} | {c(a['p90'])} | "
+                    f"{c(a['max'])} | {c(100 * src['geometry'], '.0f')} % | {c(100 * src['geotag'], '.0f')} % | "
+                    f"{r['steps_without_measurement']} of {n_steps} | {reasons} |")
+    add("")
+    add("Commands (each with `--json out/results/NAME.json`):")
+    add("")
+    for drive, dd in d["drives"].items():
+        for _, setup in _setups(dd):
+            for r in setup["modes"].values():
+                add(f"- `{r['command'].split(' --json ')[0]}`")
+    add("")
+    for drive, dd in d["drives"].items():
+        key, setup = _setups(dd)[0]
+        r = setup["modes"]["paper"]
+        add(f"## The paper's method on {drive}: {setup['label']}")
+        add("")
+        add("| step | " + " | ".join(r["steps"]) + " |")
+        add("|---|" + "---|" * len(r["steps"]))
+        add("| mean measurement error (m) | " + " | ".join(c(v) for v in r["measurement_error_m"]) + " |")
+        add("| mean estimate error (m) | " + " | ".join(c(v) for v in r["estimate_error_m"]) + " |")
+        add("| floor: nearest allowed database image (m) | "
+            + " | ".join(c(v) for v in r["nearest_candidate_error_m"]) + " |")
+        add("")
+        f = r["final_error_m"]
+        off = r["best_match_offset_s"]
+        add(f"Final estimate error over the {r['n_series']} series: mean {c(f['mean'])} m, median {c(f['median'])} m, "
+            f"p90 {c(f['p90'])} m, from {c(f['min'])} m to {c(f['max'])} m; {r['series_final_below_2m']} series end "
+            f"below 2 m. Queries are {c(r['query_interval_s'], '.2f')} s apart (median). Best match against query "
+            f"time: median offset {c(off['median'], '+.2f')} s, {c(100 * off['fraction_ahead'], '.0f')} % of best "
+            f"matches ahead of the query, {c(100 * off['fraction_behind'], '.0f')} % behind. Final error by how many "
+            "of a series' six best matches lie ahead: "
+            + ", ".join(f"{k}/6 ahead {c(v['mean'])} m ({v['n_series']} series)"
+                        for k, v in r["final_error_m_by_steps_ahead"].items()) + ".")
+        add("")
+        if drive == PAPER_DRIVE and key == "stereo":
+            add(f"The paper reports, for this drive and setup, a measurement error of about 18 m (its Table 3: "
+                f"16.2 to 19.0 m, see the check below) and a final error of {PAPER_FINAL_ERROR_M} m (its Figure 4).")
+            add("")
+        add("Sensitivity, the paper's mode with one change (final error mean / median / p90, and mean measurement "
+            "error at t-5 and t, m):")
+        add("")
+        add("| run | final error | measurement error t-5 -> t |")
+        add("|---|---|---|")
+        rows = [("as above", r)] + [(label, dd["variants"][k]) for k, (label, _) in VARIANTS.items()
+                                    if k in dd["variants"]]
+        for label, v in rows:
+            f = v["final_error_m"]
+            add(f"| {label} | {c(f['mean'])} / {c(f['median'])} / {c(f['p90'])} | "
+                f"{c(v['measurement_error_m'][0])} -> {c(v['measurement_error_m'][-1])} |")
+        add("")
+    h = d["haversine"]
+    if h:
+        add("## The paper's Table 3, recomputed")
+        add("")
+        add("`python scripts/paper_haversine_check.py` recomputes the distances of the paper's Table 3 from the "
+            "coordinates its Tables 2 and 3 print (drive 2011_09_26_drive_0001), with the Haversine formula as "
+            "the paper says, once correctly and once with latitude and longitude swapped (m):")
+        add("")
+        add("| | t-5 | t-4 | t-3 | t-2 | t-1 | t |")
+        add("|---|---|---|---|---|---|---|")
+        for name in ("measurement", "estimate"):
+            add(f"| {name}: the paper | " + " | ".join(c(v) for v in h[name]["paper_m"]) + " |")
+            add(f"| {name}: swapped | " + " | ".join(c(v) for v in h[name]["swapped_m"]) + " |")
+            add(f"| {name}: correct | " + " | ".join(c(v) for v in h[name]["correct_m"]) + " |")
+        add("")
+    if d["bench"]:
+        add("## Speed")
+        add("")
+        add("`visloc bench`: the paper's path and the fast path on the same queries of each drive, in one run. "
+            "Accuracy covers every series of the protocol above (paper mode); latency covers the live queries of "
+            "the series listed (SIFT from the PNG, the read not timed, retrieval, measurement, filter), each lever "
+            "adding to the row above it. Timings are wall-clock on a shared machine; compare rows of one run.")
+        add("")
+        for drive, b in d["bench"].items():
+            lat = b["latency"]
+            acc = b.get("accuracy") or {}
+            add(f"### {drive}: queries {b['query_camera']}, database {b['db_camera']}")
+            add("")
+            add(f"`{b['command'].split(' --json ')[0]}`; live series start at frames "
+                f"{', '.join(map(str, lat['start_frames']))}; 1-minute load average {c(b['load_before']['load_1min'])} "
+                f"before, {c(b['load_after']['load_1min'])} after.")
+            add("")
+            add("| lever | images counted per query | latency p50 / p95 (ms) | SIFT p50 (ms) | retrieval p50 (ms) | "
+                "final error mean (m) | measurement error t-5 -> t (m) | best match = paper's |")
+            add("|---|---|---|---|---|---|---|---|")
+            names = {"paper": "paper: full-resolution SIFT, +-20 s window, a GEMM per image",
+                     "faiss_nn": "+ exact faiss k-NN per image", "gate": "+ filter gate instead of +-20 s",
+                     "gate_shortlist": "+ VLAD shortlist of the gate, batched GEMM",
+                     "paper_scaled": "(the paper's path at SIFT scale 0.5, for reference)",
+                     "fast": "+ SIFT at image scale 0.5: the fast path"}
+            for lever in ("paper", "faiss_nn", "gate", "gate_shortlist", "paper_scaled", "fast"):
+                lv, ac = lat["levers"].get(lever), acc.get(lever)
+                st = lv["stages_ms"] if lv else None
+                add(f"| {names[lever]} | {c(ac['mean_candidates_counted'] if ac else (lv or {}).get('mean_counted'), '.1f')} | "
+                    f"{c(st['total_ms']['p50'], '.0f') if st else '-'} / {c(st['total_ms']['p95'], '.0f') if st else '-'} | "
+                    f"{c(st['sift_ms']['p50'], '.0f') if st else '-'} | {c(st['retrieval_ms']['p50'], '.0f') if st else '-'} | "
+                    f"{c(ac['final_error_m']['mean']) if ac else '-'} | "
+                    f"{(c(ac['measurement_error_m'][0]) + ' -> ' + c(ac['measurement_error_m'][-1])) if ac else '-'} | "
+                    f"{c(100 * ac['best_match_agrees_with_paper'], '.0f') + ' %' if ac else '-'} |")
+            r = lat["speed_ratio_paper_over_fast"]
+            ing = b["ingest"]
+            add("")
+            add(f"Speed ratio paper / fast per query, same queries: median {c(r['p50'], '.0f')}x "
+                f"(from {c(r['min'], '.0f')}x to {c(r['max'], '.0f')}x). Ingest: {c(ing['ingest_images_per_s'])} "
+                f"images/s against bare OpenCV SIFT's {c(ing['bare_sift_images_per_s'])} on {ing['workers']} "
+                f"processes ({c(100 * ing['ingest_over_bare'], '.0f')} %, medians of 3 interleaved runs of "
+                f"{ing['n_images']} images).")
+            sc = b.get("scale")
+            if sc:
+                add("")
+                add(f"Scale (a synthetic database of {sc['n_images']} images, {sc['descriptors_per_image']} "
+                    f"descriptors each): a lost query finds its candidates in p50 {c(sc['candidates_ms']['p50'], '.0f')} "
+                    f"ms, max {c(sc['candidates_ms']['max'], '.0f')} ms over {sc['n_queries']} queries (shortlist "
+                    f"recall {c(sc['recall_shortlist'])}); the process peaks at {c(sc['peak_rss_mb'], '.0f')} MB "
+                    f"against a {c(sc['store_mb'], '.0f')} MB store, with {c(sc['global_vectors_mb'], '.0f')} MB of "
+                    "global vectors in memory.")
+            add("")
+    return "\n".join(L).rstrip() + "\n"
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(prog="python scripts/results.py",
+                                     description="Run the commands behind docs/results.md, or write the page.")
+    sub = parser.add_subparsers(dest="what", required=True)
+    p = sub.add_parser("run", help="run every command (out/results/)")
+    p.add_argument("--data", type=Path, default=Path(os.environ.get("VISLOC_DATA", REPO.parent / "shared" / "data"
+                                                                      / "kitti")).resolve(), help="KITTI data root")
+    sub.add_parser("page", help="digest and page from out/results/")
+    sub.add_parser("render", help="the page from the committed digest")
+    a = parser.parse_args(argv)
+    if a.what == "run":
+        return run(a.data)
+    if a.what == "page":
+        return page()
+    PAGE.write_text(render_page(json.loads(DIGEST.read_text())))
+    print(f"results: wrote {PAGE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))

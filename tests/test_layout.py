@@ -1,0 +1,138 @@
+"""The architecture's rules, checked on the source: layers, sizes, packaging, and docs that match
+what was measured."""
+
+from __future__ import annotations
+
+import ast
+import json
+import re
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from conftest import REPO
+
+# folder -> the package it installs as (pyproject.toml's package-dir)
+PACKAGES = {"visloc": "visloc", "db": "visloc.db", "dashboard": "visloc.dashboard", "bench": "visloc.bench"}
+MAX_MODULE_LINES = 450
+
+
+def modules() -> dict[str, Path]:
+    """Dotted module name -> file, for every module the wheel installs."""
+    out = {}
+    for folder, package in PACKAGES.items():
+        for path in sorted((REPO / folder).glob("*.py")):
+            out[package if path.stem == "__init__" else f"{package}.{path.stem}"] = path
+    return out
+
+
+def imports_of(path: Path, name: str) -> set[str]:
+    """The project modules ``path`` imports, anywhere in the file (functions included)."""
+    found = set()
+    package = name if path.stem == "__init__" else name.rsplit(".", 1)[0]
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            found.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")
+                base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
+            found.add(base)
+            found.update(f"{base}.{a.name}" for a in node.names)
+    return {m for m in found if m in modules()}
+
+
+def test_no_import_cycles_between_modules():
+    mods = modules()
+    graph = {name: imports_of(path, name) - {name} for name, path in mods.items()}
+    # a package's __init__ re-exports its modules; an edge into it stands for the modules it names
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(node: str, stack: list[str]) -> None:
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if nxt in PACKAGES.values() and node.startswith(nxt + "."):
+                continue  # a module importing names from its own package's __init__ is resolved at import time
+            if state.get(nxt) == 1:
+                cycles.append(stack[stack.index(nxt):] + [nxt] if nxt in stack else [node, nxt])
+            elif state.get(nxt) is None:
+                visit(nxt, stack + [nxt])
+        state[node] = 2
+
+    for name in sorted(graph):
+        if state.get(name) is None:
+            visit(name, [name])
+    assert cycles == [], cycles
+
+
+def test_no_module_is_over_450_lines():
+    long = {name: n for name, path in modules().items() if (n := len(path.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert long == {}
+
+
+def test_sql_lives_only_in_the_store():
+    sql = re.compile(r"\b(SELECT\s+\S+.*\bFROM|INSERT\s+INTO|CREATE\s+TABLE|ALTER\s+TABLE|UPDATE\s+\w+\s+SET)\b")
+    offenders = [name for name, path in modules().items()
+                 if not name.startswith("visloc.db") and sql.search(path.read_text())]
+    assert offenders == []
+    # one door: only the workspace, and ingest (which fills a store through it), open a store
+    users = sorted(name for name, path in modules().items()
+                   if not name.startswith("visloc.db") and re.search(r"\bFeatureStore\b", path.read_text()))
+    assert users == ["visloc.ingest", "visloc.workspace"]
+
+
+def test_the_dashboard_uses_only_the_public_api():
+    for name, path in modules().items():
+        if name.startswith("visloc.dashboard"):
+            engine = {m for m in imports_of(path, name) if not m.startswith("visloc.dashboard")}
+            assert engine <= {"visloc"}, (name, engine)
+
+
+def test_no_private_name_is_imported_from_another_module():
+    for name, path in modules().items():
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("visloc"):
+                private = [a.name for a in node.names if a.name.startswith("_")]
+                assert private == [], (name, node.module, private)
+
+
+def test_no_top_level_package_but_visloc(tmp_path):
+    """The wheel holds the visloc namespace only: installing it never shadows another db or dashboard."""
+    result = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q",
+                             "-w", str(tmp_path), str(REPO)], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    (wheel,) = tmp_path.glob("visloc-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    top = {n.split("/", 1)[0] for n in names if not n.split("/", 1)[0].endswith(".dist-info")}
+    assert top == {"visloc"}
+    for package in PACKAGES.values():
+        assert f"{package.replace('.', '/')}/__init__.py" in names
+
+
+def test_the_results_page_is_the_digest_rendered():
+    """docs/results.md is exactly what scripts/results.py renders from docs/results/digest.json."""
+    sys.path.insert(0, str(REPO / "scripts"))
+    try:
+        import results
+    finally:
+        sys.path.pop(0)
+    digest = json.loads((REPO / "docs" / "results" / "digest.json").read_text())
+    assert (REPO / "docs" / "results.md").read_text() == results.render_page(digest)
+
+
+@pytest.mark.parametrize("path", ["README.md", "docs/method.md", "docs/architecture.md", "docs/results.md"])
+def test_user_facing_text_names_no_issue(path):
+    text = (REPO / path).read_text()
+    assert not re.search(r"\bissue\s*#?\d", text, re.IGNORECASE), path
+
+
+def test_the_readme_is_a_users_document():
+    readme = (REPO / "README.md").read_text()
+    assert len(readme.splitlines()) <= 300
+    assert "bash scripts/test.sh" in readme.split("\n## ", 1)[0]  # the test command, first thing
+    assert "bash scripts/test.sh" in (REPO / ".ci" / "run").read_text()
