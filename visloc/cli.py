@@ -8,6 +8,7 @@ exit status 2; nothing already stored is lost.
 from __future__ import annotations
 
 import argparse
+import signal
 import sqlite3
 import sys
 from pathlib import Path
@@ -186,6 +187,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Ctrl-C and `kill -INT` stop a command cleanly (what it committed is kept) even when it was
+    # started in the background, where Python would otherwise inherit SIGINT as ignored
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
     for name in ("steps", "workers", "limit"):
