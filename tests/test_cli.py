@@ -174,6 +174,7 @@ def test_missing_data_root_is_named(tmp_path):
     one_line_error(run_cli("evaluate", tmp_path / "no_kitti", "--db", tmp_path / "s.sqlite"),
                    "no_kitti: KITTI data root not found")
     one_line_error(run_cli("ingest", tmp_path / "no_kitti", "--db", tmp_path / "s.sqlite"), "KITTI data root not found")
+    assert not (tmp_path / "s.sqlite").exists()  # a source that cannot be read leaves no empty store behind
 
 
 def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):

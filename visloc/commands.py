@@ -82,9 +82,9 @@ def _check_output_folder(path: Path | None, flag: str) -> None:
 
 def cmd_ingest(a: argparse.Namespace) -> int:
     sift = sift_params(a)
-    ws = Workspace(a.db, create=True)
-    for camera in a.camera or ["image_01"]:
-        seq = open_source(a.source, drive=a.drive, camera=camera)
+    sequences = [open_source(a.source, drive=a.drive, camera=camera) for camera in a.camera or ["image_01"]]
+    ws = Workspace(a.db, create=True)  # only once every source opened: a bad source creates no store file
+    for seq in sequences:
         try:
             report = _ingest(ws, seq, sift, a.workers, a.limit)
         except KeyboardInterrupt:
