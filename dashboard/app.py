@@ -258,7 +258,7 @@ class DashboardApp:
                 if cancelled() or s.matching_key != match_key:
                     return
                 s.runs_done += 1
-                s.run, s.matching_key, s.step_key = Run(matches, match_key, s.runs_done), None, None
+                s.run, s.matching_key, s.step_key = Run(matches, match_key, s.runs_done, c.rate_hz), None, None
                 self.gui.progress.visible = False
                 work = (f"{n_new} new image pairs matched in {time.perf_counter() - started:.1f} s" if n_new
                         else "all image pairs cached")
@@ -273,7 +273,7 @@ class DashboardApp:
         """Filter-only change: rerun the Kalman filter over the run's measurements and redraw it."""
         s = self.shown
         try:
-            filter_params = replace(c, rate_hz=run.match_key[4]).filter_params()  # the run's query interval
+            filter_params = replace(c, rate_hz=run.rate_hz).filter_params()
         except visloc.VislocError as exc:
             self._show_error(str(exc))
             return

@@ -59,6 +59,7 @@ class Run:
     matches: visloc.DriveMatches
     match_key: tuple
     number: int  # completed runs so far, shown in the status line
+    rate_hz: float  # the query rate it was matched at: the filter's time step
     records: list[visloc.StepRecord] = field(default_factory=list)
     track_key: tuple | None = None
 

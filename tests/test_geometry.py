@@ -227,8 +227,8 @@ def test_a_query_without_what_a_pose_needs_falls_back_with_the_reason(what, reas
 
 def test_the_pose_measurer_is_refused_without_calibrated_cameras():
     geometry, geotags, _, _, _ = synthetic_database([3.0, 6.0, 9.0])
-    with pytest.raises(InputError, match="calibrated query camera: queries q/camera have no intrinsics"):
-        PoseMeasurer(geotags, geometry, None, RefinedParams(), query_what="queries q/camera")
+    with pytest.raises(InputError, match="calibrated query camera: q/camera has no intrinsics"):
+        PoseMeasurer(geotags, geometry, None, RefinedParams(), query_what="q/camera")
     uncalibrated = DatabaseGeometry(geometry.T_world_camera, geometry.keypoints_xy_px, geometry.descriptors_u8, None,
                                     "database x: no intrinsics (P_rect) in the store")
     with pytest.raises(InputError, match="calibrated database: database x: no intrinsics"):

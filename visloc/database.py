@@ -96,6 +96,10 @@ class QuerySet:
     def __len__(self) -> int:
         return len(self.frames)
 
+    @property
+    def name(self) -> str:
+        return f"{self.source}/{self.camera}"
+
     def key(self, index: int) -> int:
         return self.image_ids[index] if self.image_ids else index
 
@@ -108,4 +112,4 @@ class QuerySet:
     @property
     def camera_model(self) -> CameraModel | None:
         """The query camera's calibration, None when the store has none."""
-        return camera_model(self.calibration, f"queries {self.source}/{self.camera}")[0]
+        return camera_model(self.calibration, f"queries {self.name}")[0]

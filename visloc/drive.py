@@ -85,7 +85,7 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
     cache.check_thresholds(match_params)
     localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
                                 query_camera=queries.camera_model,
-                                query_what=f"queries {queries.source}/{queries.camera}",
+                                query_what=queries.name,
                                 counter=cancellable(cache, cancelled), structures=structures)
     indices = np.asarray(query_indices, np.int64)
     steps = run_queries(localizer, (queries.query(int(q)) for q in indices), cache=cache, cancelled=cancelled,

@@ -209,7 +209,7 @@ def evaluate(
     cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
     structures = StructureCache()
     localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
-                                query_camera=queries.camera_model, query_what=f"queries {queries.source}/{queries.camera}",
+                                query_camera=queries.camera_model, query_what=queries.name,
                                 counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True)
     series = []
     for done, indices in enumerate(schedule, 1):

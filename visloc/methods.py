@@ -87,13 +87,13 @@ def method_named(name: str) -> Method:
 
 def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retrieval: RetrievalParams,
                     filter_params: FilterParams, *, query_camera: CameraModel | None = None,
-                    query_what: str = "the queries", counter: Counter | None = None,
+                    query_what: str = "the query camera", counter: Counter | None = None,
                     shortlist_index: GlobalIndex | None = None, structures: StructureCache | None = None,
                     memoise: bool = False) -> Localizer:
     """The localizer ``method`` describes, over ``db``.
 
     query_camera:     the query camera's calibration (the refined method needs it); ``query_what``
-                      names the queries in the message when it is missing
+                      names the queries (source/camera) in the message when it is missing
     counter:          how retrieval counts correspondences (e.g. a ``PairCountCache`` of earlier
                       runs); default: computed afresh for every candidate
     shortlist_index:  the fast retrieval's global vectors of ``db``, if built already

@@ -245,11 +245,11 @@ class PoseMeasurer:
     camera's calibration and attitudes (``geometry``) and the query camera's calibration."""
 
     def __init__(self, db_east_north_m: np.ndarray, geometry: DatabaseGeometry, query_camera: CameraModel | None,
-                 params: RefinedParams, *, structures: StructureCache | None = None, query_what: str = "queries"):
+                 params: RefinedParams, *, structures: StructureCache | None = None, query_what: str = "the query camera"):
         if geometry.camera is None:
             raise InputError(f"the refined method needs a calibrated database: {geometry.unavailable_reason}")
         if query_camera is None:
-            raise InputError(f"the refined method needs a calibrated query camera: {query_what} have no intrinsics "
+            raise InputError(f"the refined method needs a calibrated query camera: {query_what} has no intrinsics "
                              "and extrinsics")
         self.db_east_north_m = np.asarray(db_east_north_m, float)
         self.geometry = geometry
