@@ -48,6 +48,9 @@ class ImageRecord:
     roll_rad: float | None = None
     pitch_rad: float | None = None
     yaw_rad: float | None = None
+    # stated accuracy of the geotag: standard deviation per horizontal axis, metres (KITTI: the OXTS
+    # record's pos_accuracy; CSV: the accuracy_m column). None when the source states none.
+    position_accuracy_m: float | None = None
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,8 @@
 """The store's tables: creating them, and migrating a store of an older schema version in place.
 
 Schema versions: 1 had no attitudes and no camera extrinsics. Version 2 adds them as NULL
-columns (``ALTER TABLE ... ADD COLUMN``), every existing row and cached count kept.
+columns (``ALTER TABLE ... ADD COLUMN``), every existing row and cached count kept. Version 3
+adds each image's stated geotag accuracy (``position_accuracy_m``) the same way.
 """
 
 from __future__ import annotations
@@ -10,11 +11,12 @@ import datetime as _dt
 
 import sqlite_utils
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 # columns added by each version after the first: table -> (column, SQL type)
 MIGRATIONS = {
     2: [("images", "roll_rad", "REAL"), ("images", "pitch_rad", "REAL"), ("images", "yaw_rad", "REAL"),
         ("cameras", "t_camera_imu_json", "TEXT")],
+    3: [("images", "position_accuracy_m", "REAL")],
 }
 REQUIRED_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # pair_counts, a cache, is added when missing
 
@@ -62,6 +64,7 @@ def create_schema(db: sqlite_utils.Database) -> None:
                 "roll_rad": float,
                 "pitch_rad": float,
                 "yaw_rad": float,
+                "position_accuracy_m": float,
                 "n_keypoints": int,
                 "keypoints_f32": bytes,
                 "descriptors_u8": bytes,

@@ -13,8 +13,11 @@ Tables
 ``images``         per (source, camera, frame): geotag, timestamp, original path,
                    attitude of the geotag's reference frame (since version 2:
                    roll_rad, pitch_rad, yaw_rad as KITTI's OXTS gives them, NULL when
-                   unknown), SIFT keypoints (float32, N x 6: x_px, y_px, size_px,
-                   angle_deg, response, octave) and descriptors (uint8, N x 128) as BLOBs.
+                   unknown), the geotag's stated accuracy (since version 3:
+                   position_accuracy_m, standard deviation per horizontal axis in
+                   metres, NULL when unknown), SIFT keypoints (float32, N x 6: x_px,
+                   y_px, size_px, angle_deg, response, octave) and descriptors
+                   (uint8, N x 128) as BLOBs.
 ``pair_counts``    a cache: correspondences between a query image and a database
                    image for given (tau1, tau2), and how long computing it took.
 ``global_vectors`` optional (the fast path): one small float32 vector per image under
@@ -233,6 +236,22 @@ class FeatureStore:
                     "UPDATE images SET roll_rad = ?, pitch_rad = ?, yaw_rad = ? "
                     "WHERE source = ? AND camera = ? AND frame = ?",
                     [float(roll), float(pitch), float(yaw), source, camera, int(frame)])
+                changed += cur.rowcount
+        return changed
+
+    def frames_without_accuracy(self, source: str, camera: str) -> set[int]:
+        rows = self.db.query("SELECT frame FROM images WHERE source = ? AND camera = ? AND "
+                             "position_accuracy_m IS NULL", [source, camera])
+        return {r["frame"] for r in rows}
+
+    def set_position_accuracies(self, source: str, camera: str, accuracies_m: dict[int, float]) -> int:
+        """Fill the stated geotag accuracy (metres) of stored frames, in one transaction. Returns rows changed."""
+        changed = 0
+        with self.db.atomic():
+            for frame, sigma_m in accuracies_m.items():
+                cur = self.db.execute("UPDATE images SET position_accuracy_m = ? "
+                                      "WHERE source = ? AND camera = ? AND frame = ?",
+                                      [float(sigma_m), source, camera, int(frame)])
                 changed += cur.rowcount
         return changed
 

@@ -163,3 +163,26 @@ def test_reingest_fills_attitudes_and_extrinsics_a_version_1_store_lacks(tmp_pat
         assert store.images()[0].yaw_rad == -2.6
         np.testing.assert_allclose(store.get_camera(seq.source, "image_01").T_camera_imu, seq.T_camera_imu)
         assert ingest(store, seq, SiftParams(), workers=1).n_attitudes_filled == 0  # nothing left to fill
+
+
+def test_reingest_fills_the_geotag_accuracy_a_version_2_store_lacks(tmp_path):
+    from conftest import make_fake_kitti
+    from visloc.sources import open_kitti
+
+    drive = make_fake_kitti(tmp_path / "kitti", n_frames=3)
+    for i, record in enumerate(sorted((drive / "oxts" / "data").glob("*.txt"))):
+        values = record.read_text().split()
+        values[23] = f"{0.3 + 0.1 * i}"  # field 24, pos_accuracy (m)
+        record.write_text(" ".join(values) + "\n")
+    seq = open_kitti(tmp_path / "kitti", None, "image_01")
+    with FeatureStore(tmp_path / "s.sqlite", create=True) as store:
+        ingest(store, seq, SiftParams(), workers=1)
+        assert [im.position_accuracy_m for im in store.images()] == [0.3, 0.4, 0.5]
+        ids_before = [im.image_id for im in store.images()]
+        store.db.execute("UPDATE images SET position_accuracy_m = NULL")  # what a migrated version-2 store holds
+        store.db.conn.commit()
+        report = ingest(store, seq, SiftParams(), workers=1)
+        assert (report.n_added, report.n_skipped, report.n_accuracies_filled, report.n_attitudes_filled) == (0, 3, 3, 0)
+        assert [im.image_id for im in store.images()] == ids_before
+        assert [im.position_accuracy_m for im in store.images()] == [0.3, 0.4, 0.5]
+        assert ingest(store, seq, SiftParams(), workers=1).n_accuracies_filled == 0

@@ -133,6 +133,21 @@ def test_kitti_attitudes_and_camera_extrinsics_are_read(tmp_path):
     np.testing.assert_allclose(right.T_camera_imu[:3, 3] - left.T_camera_imu[:3, 3], [-387.5744 / 721.5377, 0, 0])
 
 
+@pytest.mark.parametrize("accuracy,expected", [("0.3", 0.3), ("0", None), ("-1", None), ("nan", None), (None, None)])
+def test_kitti_position_accuracy_is_field_24(tmp_path, accuracy, expected):
+    drive = make_fake_kitti(tmp_path, n_frames=2)
+    record = drive / "oxts" / "data" / "0000000001.txt"
+    values = record.read_text().split()
+    if accuracy is None:
+        values = values[:23]  # a short record: no pos_accuracy
+    else:
+        values[23] = accuracy  # field 24, pos_accuracy (m)
+    record.write_text(" ".join(values) + "\n")
+    seq = open_kitti(tmp_path, None, "image_00")
+    assert seq.frames[1].position_accuracy_m == expected
+    assert seq.frames[0].position_accuracy_m is None  # make_fake_kitti states 0: unknown
+
+
 def test_extrinsics_need_every_calibration_file(tmp_path):
     make_fake_kitti(tmp_path)
     (tmp_path / "2011_09_26" / "calib_imu_to_velo.txt").unlink()

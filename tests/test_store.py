@@ -180,7 +180,7 @@ def test_a_version_1_store_is_migrated_in_place_keeping_its_data(tmp_path):
     with FeatureStore(path) as store:
         (image,) = store.images()
         assert image.frame == 0 and image.lat_deg == 49.0 and image.sift_ms == 12.5
-        assert (image.roll_rad, image.pitch_rad, image.yaw_rad) == (None, None, None)
+        assert (image.roll_rad, image.pitch_rad, image.yaw_rad, image.position_accuracy_m) == (None, None, None, None)
         got_kp, got_desc = store.features([image.image_id])[image.image_id]
         np.testing.assert_array_equal(got_kp, kp)
         np.testing.assert_array_equal(got_desc, desc)
@@ -190,19 +190,44 @@ def test_a_version_1_store_is_migrated_in_place_keeping_its_data(tmp_path):
         assert store.frames_without_attitude("drive", "image_01") == {0}
         # the new columns can be filled without touching anything else
         assert store.set_attitudes("drive", "image_01", {0: (0.01, 0.02, -2.6)}) == 1
+        assert store.frames_without_accuracy("drive", "image_01") == {0}
+        assert store.set_position_accuracies("drive", "image_01", {0: 0.3, 7: 0.5}) == 1  # frame 7 is not stored
         store.set_camera(CameraRecord("drive", "image_01", cam.P_rect, 64, 32, T_camera_imu=np.eye(4)))
     with FeatureStore(path) as store:
-        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == SCHEMA_VERSION == 2
+        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == SCHEMA_VERSION == 3
         (image,) = store.images()
         assert (image.roll_rad, image.pitch_rad, image.yaw_rad) == (0.01, 0.02, -2.6)
+        assert image.position_accuracy_m == 0.3 and store.frames_without_accuracy("drive", "image_01") == set()
         assert store.frames_without_attitude("drive", "image_01") == set()
         np.testing.assert_array_equal(store.get_camera("drive", "image_01").T_camera_imu, np.eye(4))
 
 
-def test_attitudes_round_trip_in_a_new_store(memory_store):
+def test_attitudes_and_accuracies_round_trip_in_a_new_store(memory_store):
     kp, desc = features(5, 0)
-    memory_store.add_images([(record(0, roll_rad=0.1, pitch_rad=-0.2, yaw_rad=3.0), kp, desc),
+    memory_store.add_images([(record(0, roll_rad=0.1, pitch_rad=-0.2, yaw_rad=3.0, position_accuracy_m=0.45), kp, desc),
                              (record(1), kp, desc)])
     a, b = memory_store.images()
-    assert (a.roll_rad, a.pitch_rad, a.yaw_rad) == (0.1, -0.2, 3.0)
+    assert (a.roll_rad, a.pitch_rad, a.yaw_rad, a.position_accuracy_m) == (0.1, -0.2, 3.0, 0.45)
+    assert b.position_accuracy_m is None
     assert memory_store.frames_without_attitude("drive", "image_01") == {1}
+    assert memory_store.frames_without_accuracy("drive", "image_01") == {1}
+
+
+def test_a_version_2_store_gains_the_accuracy_column_keeping_its_rows(tmp_path):
+    path = tmp_path / "v2.sqlite"
+    kp, desc = features(9, 4)
+    with FeatureStore(path, create=True) as store:
+        store.add_images([(record(0, roll_rad=0.1, pitch_rad=0.2, yaw_rad=0.3), kp, desc)])
+    conn = sqlite3.connect(path)  # what version 2 wrote: no accuracy column
+    conn.execute("ALTER TABLE images DROP COLUMN position_accuracy_m")
+    conn.execute("UPDATE visloc_schema SET version = 2")
+    conn.commit()
+    conn.close()
+    with FeatureStore(path) as store:
+        (image,) = store.images()
+        assert (image.yaw_rad, image.position_accuracy_m) == (0.3, None)
+        np.testing.assert_array_equal(store.features([image.image_id])[image.image_id][1], desc)
+        assert store.set_position_accuracies("drive", "image_01", {0: 0.03}) == 1
+    with FeatureStore(path) as store:
+        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == 3
+        assert store.images()[0].position_accuracy_m == 0.03

@@ -20,7 +20,8 @@ class GeoDatabase:
     ``frame`` is the local metric frame: origin at the first image's geotag. ``up_m``
     is altitude minus the first image's (NaN when unknown); ``rpy_rad`` (N, 3) the
     attitude of each geotag's reference frame (NaN when unknown, e.g. a schema-1 store
-    or a CSV source).
+    or a CSV without attitude columns); ``geotag_sigma_m`` (N,) each geotag's stated accuracy,
+    the standard deviation per horizontal axis in metres (NaN when the source states none).
     """
 
     source: str
@@ -36,6 +37,7 @@ class GeoDatabase:
     frame: LocalFrame
     up_m: np.ndarray | None = None  # (N,)
     rpy_rad: np.ndarray | None = None  # (N, 3)
+    geotag_sigma_m: np.ndarray | None = None  # (N,) stated geotag accuracy, sigma per axis, m; NaN if unknown
 
     def __len__(self) -> int:
         return len(self.images)
@@ -57,20 +59,22 @@ class GeoDatabase:
         T_world_imu = self.T_world_imu()
         if camera is not None and not np.isfinite(T_world_imu).all(axis=(1, 2)).any():
             camera, reason = None, (f"database {self.source}/{self.camera} has no attitudes (a store from before "
-                                    "schema 2 or a CSV source): run 'visloc ingest' on the KITTI drive to fill them")
+                                    "schema 2, or a CSV without roll_deg, pitch_deg and heading): run 'visloc "
+                                    "ingest' on the drive to fill them")
         T_world_camera = T_world_imu @ invert(camera.T_camera_imu) if camera is not None else T_world_imu
         return DatabaseGeometry(T_world_camera=T_world_camera,
                                 keypoints_xy_px=tuple(np.ascontiguousarray(k[:, :2], dtype=np.float64)
                                                       for k in self.keypoints_f32),
-                                descriptors_u8=self.descriptors_u8, camera=camera, unavailable_reason=reason)
+                                descriptors_u8=self.descriptors_u8, camera=camera, unavailable_reason=reason,
+                                geotag_sigma_m=self.geotag_sigma_m)
 
 
 def camera_model(record: CameraRecord | None, what: str) -> tuple[CameraModel | None, str | None]:
     """A ``CameraModel`` from a stored camera, or None and the reason it cannot be built."""
     if record is None or record.P_rect is None:
-        return None, f"{what}: no intrinsics (P_rect) in the store"
+        return None, f"{what}: no intrinsics (P_rect) in the store (a CSV drive needs a calibration.json)"
     if record.T_camera_imu is None:
-        return None, (f"{what}: no extrinsics (T_camera_imu) in the store: run 'visloc ingest' on the KITTI drive "
+        return None, (f"{what}: no extrinsics (T_camera_imu) in the store: run 'visloc ingest' on the drive "
                       "to fill them")
     return CameraModel.from_projection(record.P_rect, record.T_camera_imu), None
 
@@ -92,9 +96,16 @@ class QuerySet:
     keypoints_f32: tuple[np.ndarray, ...] = ()  # (N, 6) per image: x_px, y_px, size, angle, response, octave
     heading_deg: np.ndarray | None = None  # (N,) ground-truth compass heading, NaN if unknown
     calibration: CameraRecord | None = None
+    truth_sigma_m: np.ndarray | None = None  # (N,) the ground truth's stated accuracy, sigma per axis, m; NaN if unknown
 
     def __len__(self) -> int:
         return len(self.frames)
+
+    def truth_sigma(self, index: int) -> float | None:
+        """Stated accuracy of query ``index``'s ground-truth geotag (sigma per axis, m), None if unknown."""
+        if self.truth_sigma_m is None or not np.isfinite(self.truth_sigma_m[index]):
+            return None
+        return float(self.truth_sigma_m[index])
 
     @property
     def name(self) -> str:

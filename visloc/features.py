@@ -88,6 +88,22 @@ def extract_sift(gray_u8: np.ndarray, params: SiftParams, *, sift: "cv2.SIFT | N
     return Features(keypoints_f32=kp, descriptors_u8=np.ascontiguousarray(descriptors, dtype=np.uint8))
 
 
+def undistort_keypoints(keypoints_f32: np.ndarray, K: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:
+    """Keypoints (N, 6) with x, y moved from the distorted image to the pinhole camera ``K`` (3x3, pixels)
+    by OpenCV's iterative undistortion (``distortion``: OpenCV's coefficients); the other columns are
+    kept. ``distortion`` None: returned unchanged."""
+    if distortion is None or len(keypoints_f32) == 0:
+        return keypoints_f32
+    K = np.asarray(K, np.float64)
+    xy = np.ascontiguousarray(keypoints_f32[:, :2], dtype=np.float64).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-10)
+    undistorted = cv2.undistortPoints(xy, cameraMatrix=K, distCoeffs=np.asarray(distortion, np.float64), P=K,
+                                      criteria=criteria)
+    out = np.array(keypoints_f32, dtype=np.float32, copy=True)
+    out[:, :2] = undistorted.reshape(-1, 2)
+    return out
+
+
 def to_gray_u8(image: np.ndarray, *, name: str = "image") -> np.ndarray:
     """Gray uint8 from a gray, BGR or BGRA image (8 or 16 bit)."""
     if image.dtype == np.uint16:

@@ -18,7 +18,8 @@ import cv2
 import numpy as np
 
 from visloc.db import CameraRecord, EmptyStoreError, FeatureStore, ImageRecord
-from visloc.features import extract_sift, make_sift
+from visloc.errors import InputError
+from visloc.features import extract_sift, make_sift, undistort_keypoints
 from visloc.params import SiftParams
 from visloc.sources import Frame, Sequence, load_gray
 
@@ -34,6 +35,7 @@ class IngestReport:
     n_added: int
     seconds: float
     n_attitudes_filled: int = 0  # stored images whose missing attitude this run filled in (schema-1 stores)
+    n_accuracies_filled: int = 0  # stored images whose missing geotag accuracy this run filled in (schema < 3)
 
     @property
     def images_per_s(self) -> float:
@@ -69,17 +71,33 @@ def _init_worker(params: SiftParams, single_thread: bool = True) -> None:
     _worker_sift = make_sift(params)
 
 
-def _extract_frame(item: tuple[Frame, SiftParams]) -> tuple[Frame, np.ndarray, np.ndarray, float, tuple[int, int]]:
-    frame, params = item
+# one work item: the frame, the SIFT settings, and the pinhole K (3x3) and distortion coefficients to
+# undistort its keypoints with (None, None: stored as detected)
+WorkItem = tuple[Frame, SiftParams, np.ndarray | None, np.ndarray | None]
+
+
+def _extract_frame(item: WorkItem) -> tuple[Frame, np.ndarray, np.ndarray, float, tuple[int, int]]:
+    frame, params, K, distortion = item
     gray = load_gray(frame.image_path)
     start = time.perf_counter()
     features = extract_sift(gray, params, sift=_worker_sift, name=str(frame.image_path))
     sift_ms = (time.perf_counter() - start) * 1000.0
-    return frame, features.keypoints_f32, features.descriptors_u8, sift_ms, (gray.shape[1], gray.shape[0])
+    keypoints = features.keypoints_f32 if distortion is None else undistort_keypoints(features.keypoints_f32, K,
+                                                                                       distortion)
+    return frame, keypoints, features.descriptors_u8, sift_ms, (gray.shape[1], gray.shape[0])
 
 
-def _extracted(todo: list[Frame], params: SiftParams, workers: int) -> Iterator[tuple]:
-    items = [(f, params) for f in todo]
+def _undistortion(sequence: Sequence) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if sequence.distortion is None:
+        return None, None
+    if sequence.P_rect is None:
+        raise InputError(f"{sequence.name}: distortion coefficients without intrinsics (P_rect)")
+    return np.asarray(sequence.P_rect, float)[:, :3], np.asarray(sequence.distortion, float)
+
+
+def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Sequence) -> Iterator[tuple]:
+    K, distortion = _undistortion(sequence)
+    items = [(f, params, K, distortion) for f in todo]
     if workers <= 1 or len(todo) <= 1:
         _init_worker(params, single_thread=False)  # in this process: leave OpenCV's threading alone
         yield from map(_extract_frame, items)
@@ -106,6 +124,7 @@ def ingest(
     """
     start = time.perf_counter()
     require_sift_settings(store, params)
+    _refuse_mixed_undistortion(store, sequence)
     stored = store.stored_frames(sequence.source, sequence.camera)
     missing = [f for f in sequence.frames if f.frame not in stored]
     todo = missing if limit is None else missing[:limit]
@@ -116,13 +135,18 @@ def ingest(
     if progress:
         progress(0, len(todo))
     try:
-        for done, (frame, keypoints, descriptors, sift_ms, size_px) in enumerate(
-                _extracted(todo, params, workers), 1):
+        for done, (frame, keypoints, descriptors, sift_ms, size) in enumerate(
+                _extracted(todo, params, workers, sequence), 1):
+            if sequence.image_size_px is not None and tuple(size) != tuple(sequence.image_size_px):
+                raise InputError(f"{frame.image_path}: image is {size[0]}x{size[1]} px but the calibration of "
+                                 f"{sequence.name} is for {sequence.image_size_px[0]}x{sequence.image_size_px[1]}")
+            size_px = size
             record = ImageRecord(
                 source=sequence.source, camera=sequence.camera, frame=frame.frame, path=str(frame.image_path),
                 timestamp_s=frame.timestamp_s, lat_deg=frame.lat_deg, lon_deg=frame.lon_deg, alt_m=frame.alt_m,
                 heading_deg=frame.heading_deg, width_px=size_px[0], height_px=size_px[1], sift_ms=sift_ms,
                 roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad, yaw_rad=frame.yaw_rad,
+                position_accuracy_m=frame.position_accuracy_m,
             )
             pending.append((record, keypoints, descriptors))
             if len(pending) >= batch_size:
@@ -139,11 +163,33 @@ def ingest(
                                           T_camera_imu=sequence.T_camera_imu))
     filled = backfill_poses(store, sequence)
     return IngestReport(sequence.source, sequence.camera, len(sequence), len(sequence) - len(missing), added,
-                        time.perf_counter() - start, n_attitudes_filled=filled)
+                        time.perf_counter() - start, n_attitudes_filled=filled,
+                        n_accuracies_filled=backfill_accuracies(store, sequence))
+
+
+def _refuse_mixed_undistortion(store: FeatureStore, sequence: Sequence) -> None:
+    """Keypoints stored without calibration were not undistorted: refuse to add undistorted ones beside
+    them (or to give them a pinhole calibration they do not fit)."""
+    if sequence.distortion is None:
+        return
+    camera = store.get_camera(sequence.source, sequence.camera)
+    if camera is not None and camera.P_rect is None and store.stored_frames(sequence.source, sequence.camera):
+        raise InputError(f"{store.label}: {sequence.name} was stored without calibration, so its keypoints are "
+                         "not undistorted; ingest it into a new store to use the calibration's distortion")
+
+
+def backfill_accuracies(store: FeatureStore, sequence: Sequence) -> int:
+    """Fill the stated geotag accuracy that a store built before schema version 3 lacks, from
+    ``sequence``; features are untouched. Returns the number of images filled."""
+    lacking = store.frames_without_accuracy(sequence.source, sequence.camera)
+    accuracies = {f.frame: f.position_accuracy_m for f in sequence.frames
+                  if f.frame in lacking and f.position_accuracy_m is not None}
+    return store.set_position_accuracies(sequence.source, sequence.camera, accuracies) if accuracies else 0
 
 
 def backfill_poses(store: FeatureStore, sequence: Sequence) -> int:
-    """Fill attitudes and camera extrinsics that a store built before schema version 2 lacks.
+    """Fill attitudes and camera extrinsics that a store built before schema version 2 lacks (or that a
+    CSV drive gained since it was stored).
 
     Reads them from ``sequence`` (the OXTS records and calibration files); features are
     untouched. Returns the number of images whose attitude was filled.

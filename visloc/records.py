@@ -54,7 +54,10 @@ class StepRecord:
     fallback_reason: str | None = None  # refined method: why this step's measurement is a geotag
     measurement_cov_m2: list[list[float]] | None = None  # the R the filter used, m^2 (east, north)
     measurement_sigma_m: float | None = None  # sqrt of its largest eigenvalue
-    measurement_nees: float | None = None  # e' R^-1 e of the measurement error e (about 2 on average if R is honest)
+    # e' (R + s^2 I)^-1 e of the measurement error e against a truth stated good to s per axis (about 2 on
+    # average if R is honest)
+    measurement_nees: float | None = None
+    truth_sigma_m: float | None = None  # s: the ground-truth geotag's stated accuracy, m per axis (None: unknown)
     mahalanobis: float | None = None  # innovation's Mahalanobis distance to the prediction
     gated: bool = False  # rejected by the filter's gate: this step only predicted
     view_db_frames: list[int] = field(default_factory=list)  # refined: database frames the pose was solved against
@@ -72,8 +75,12 @@ def _position(xy) -> Position:
 
 def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: int, truth_lat_deg: float,
                 truth_lon_deg: float, latency_ms: float, keep_counts: bool = False,
-                smoothed: SmoothedStep | None = None) -> StepRecord:
-    """Everything about one localized query, in metres, against its ground-truth geotag."""
+                smoothed: SmoothedStep | None = None, truth_sigma_m: float | None = None) -> StepRecord:
+    """Everything about one localized query, in metres, against its ground-truth geotag.
+
+    ``truth_sigma_m``: the ground truth's stated accuracy (standard deviation per axis, m; None or NaN:
+    taken as exact). The measurement's NEES compares its error with R + s^2 I, since the error is
+    measured against a truth that is itself uncertain."""
     truth = (float(truth_lat_deg), float(truth_lon_deg))
     truth_m = db.frame.to_local(*truth)
     best = result.best_index
@@ -90,11 +97,13 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         m_err = float(geodesic_distance_m(*m_lat_lon, *truth))
         m_hav = float(haversine_distance_m(*m_lat_lon, *truth))
     R = result.filter.R
+    s_truth = float(truth_sigma_m) if truth_sigma_m is not None and np.isfinite(truth_sigma_m) else 0.0
     nees = m_sigma = None
     if R is not None and m.east_north_m is not None:
         m_sigma = float(np.sqrt(np.linalg.eigvalsh(R).max()))
         e = np.asarray(m.east_north_m, float) - truth_m
-        nees = float(e @ np.linalg.solve(R, e))
+        # NEES = e' (R + s^2 I)^-1 e
+        nees = float(e @ np.linalg.solve(np.asarray(R, float) + s_truth**2 * np.eye(2), e))
     s_m = s_err = None
     if smoothed is not None and np.all(np.isfinite(smoothed.x)):
         s_m = _position(smoothed.x[:2])
@@ -125,7 +134,7 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         candidate_frames=[int(db.images[i].frame) for i in candidates] if keep_counts else [],
         measurement_source=m.source, fallback_reason=m.fallback_reason,
         measurement_cov_m2=None if R is None else np.asarray(R, float).tolist(), measurement_sigma_m=m_sigma,
-        measurement_nees=nees,
+        measurement_nees=nees, truth_sigma_m=s_truth if s_truth > 0 else None,
         mahalanobis=None if result.filter.innovation is None else float(result.filter.innovation.mahalanobis),
         gated=bool(result.filter.gated),
         view_db_frames=[int(db.images[i].frame) for i in m.view_indices],

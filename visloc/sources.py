@@ -17,9 +17,19 @@ sits at t_N = K^-1 P_rect_0N[:, 3] from the rectified camera 0 (for image_01 abo
 -0.54 m in x: 0.54 m to the right). So T_camera_imu = [I | t_N] R_rect_00 T_cam0_velo
 T_velo_imu, and the rectified intrinsics are K = P_rect_0N[:, :3].
 
-CSV: a header with ``file,timestamp,lat,lon`` and optionally ``alt``, ``heading``
-(compass degrees, 0 = north, clockwise); ``file`` is relative to the CSV's folder;
-``timestamp`` is seconds (any epoch) or ISO 8601.
+KITTI's OXTS record also states its position accuracy (field 24, ``pos_accuracy``, metres,
+north/east): read as ``Frame.position_accuracy_m``, the standard deviation per horizontal axis.
+
+CSV: a header with ``file,timestamp,lat,lon`` and optionally ``alt`` (metres), ``heading``
+(compass degrees, 0 = north, clockwise), ``roll_deg``, ``pitch_deg`` and ``accuracy_m``;
+``file`` is relative to the CSV's folder; ``timestamp`` is seconds (any epoch) or ISO 8601.
+``roll_deg``, ``pitch_deg`` and ``heading`` give the attitude of the geotag's reference frame
+(x forward, y left, z up) in KITTI's OXTS convention: roll about x, pitch about y (same signs
+as OXTS), yaw_rad = radians(90 - heading) wrapped to (-pi, pi]; a row has an attitude only
+when all three are present. ``accuracy_m`` is the geotag's stated accuracy, the standard
+deviation per horizontal axis in metres (> 0). Empty cells mean unknown. A
+``calibration.json`` beside the CSV gives the camera's intrinsics, distortion and pose on the
+vehicle (format: ``visloc.calibration``); the refined mode needs it and the attitudes.
 """
 
 from __future__ import annotations
@@ -35,6 +45,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from visloc.calibration import CALIBRATION_FILE, read_calibration
 from visloc.errors import InputError
 from visloc.features import to_gray_u8
 from visloc.geo import yaw_enu_to_heading_deg
@@ -57,6 +68,7 @@ class Frame:
     roll_rad: float | None = None
     pitch_rad: float | None = None
     yaw_rad: float | None = None
+    position_accuracy_m: float | None = None  # stated geotag accuracy, sigma per horizontal axis, m; None if unknown
 
 
 @dataclass(frozen=True)
@@ -67,6 +79,9 @@ class Sequence:
     P_rect: np.ndarray | None = None  # (3, 4) rectified projection matrix, pixels
     image_size_px: tuple[int, int] | None = None  # (width, height)
     T_camera_imu: np.ndarray | None = None  # (4, 4) X_camera = T_camera_imu @ X_imu, metres (KITTI calibration)
+    # OpenCV distortion coefficients of the images (CSV calibration.json); ingest undistorts keypoints
+    # to the pinhole K = P_rect[:, :3]. None: the images are already pinhole (KITTI's rectified ones).
+    distortion: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -153,8 +168,9 @@ def _read_timestamps(path: Path) -> list[float]:
     return out
 
 
-def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, float]:
-    """(lat_deg, lon_deg, alt_m, heading_deg, roll_rad, pitch_rad, yaw_rad) of one OXTS record."""
+def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, float, float | None]:
+    """(lat_deg, lon_deg, alt_m, heading_deg, roll_rad, pitch_rad, yaw_rad, position_accuracy_m) of one
+    OXTS record; the accuracy (field 24, ``pos_accuracy``) is None when absent, not finite or not > 0."""
     try:
         values = [float(v) for v in path.read_text().split()]
     except (OSError, ValueError) as exc:
@@ -164,7 +180,8 @@ def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, fl
     lat, lon, alt, roll, pitch, yaw = values[:6]
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):
         raise InputError(f"{path}: lat/lon out of range ({lat}, {lon})")
-    return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw
+    accuracy = values[23] if len(values) >= 24 and math.isfinite(values[23]) and values[23] > 0 else None
+    return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw, accuracy
 
 
 def read_kitti_calibration(calib_path: Path, camera: str) -> np.ndarray | None:
@@ -258,9 +275,10 @@ def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
     for i, (img, rec, t) in enumerate(zip(images, oxts, stamps, strict=True)):
         if img.stem != rec.stem:
             raise InputError(f"{rec}: OXTS record does not pair with image {img.name}")
-        lat, lon, alt, heading, roll, pitch, yaw = _read_oxts(rec)
+        lat, lon, alt, heading, roll, pitch, yaw, accuracy = _read_oxts(rec)
         frames.append(Frame(frame=i, image_path=img, timestamp_s=t, lat_deg=lat, lon_deg=lon, alt_m=alt,
-                            heading_deg=heading, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw))
+                            heading_deg=heading, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
+                            position_accuracy_m=accuracy))
     calib = read_kitti_calibration(folder.parent / "calib_cam_to_cam.txt", camera)
     extrinsics = read_kitti_extrinsics(folder.parent, camera) if calib is not None else None
     return Sequence(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib, T_camera_imu=extrinsics)
@@ -268,18 +286,69 @@ def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
 
 # -- folder of images + CSV ------------------------------------------------------
 
-def _parse_time(text: str) -> float:
+def _parse_time(text: str, where: str) -> float:
     try:
-        return float(text)
+        t = float(text)
     except ValueError:
-        stamp = _dt.datetime.fromisoformat(text.strip())
+        try:
+            stamp = _dt.datetime.fromisoformat(text.strip())
+        except ValueError:
+            raise InputError(f"{where}: column timestamp: neither seconds nor ISO 8601: {text[:40]!r}") from None
         if stamp.tzinfo is None:
             stamp = stamp.replace(tzinfo=_dt.timezone.utc)
-        return stamp.timestamp()
+        t = stamp.timestamp()
+    if not math.isfinite(t):
+        raise InputError(f"{where}: column timestamp: not a finite number: {text[:40]!r}")
+    return t
+
+
+def _number(row: dict[str, str], column: str, where: str) -> float | None:
+    """The finite number in ``column`` (None if the cell is empty or the column absent)."""
+    text = row.get(column, "")
+    if not text:
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise InputError(f"{where}: column {column}: not a finite number: {text[:40]!r}")
+    return value
+
+
+def heading_deg_to_yaw_rad(heading_deg: float) -> float:
+    """Compass heading (0 = north, clockwise, degrees) to OXTS yaw (0 = east, counter-clockwise),
+    radians in (-pi, pi]."""
+    yaw = math.radians(90.0 - heading_deg % 360.0)  # in (-3 pi / 2, pi / 2]
+    return yaw + 2.0 * math.pi if yaw <= -math.pi else yaw
+
+
+def _csv_frame(row: dict[str, str], frame: int, folder: Path, where: str) -> Frame:
+    if not row["file"]:
+        raise InputError(f"{where}: column file: empty file name")
+    t = _parse_time(row["timestamp"], where)
+    lat, lon = _number(row, "lat", where), _number(row, "lon", where)
+    if lat is None or lon is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
+        raise InputError(f"{where}: lat/lon out of range ({row['lat']!r}, {row['lon']!r})")
+    heading = _number(row, "heading", where)
+    heading = None if heading is None else heading % 360.0
+    roll, pitch = _number(row, "roll_deg", where), _number(row, "pitch_deg", where)
+    if pitch is not None and not -90.0 <= pitch <= 90.0:
+        raise InputError(f"{where}: column pitch_deg: must be within [-90, 90], got {pitch!r}")
+    accuracy = _number(row, "accuracy_m", where)
+    if accuracy is not None and accuracy <= 0:
+        raise InputError(f"{where}: column accuracy_m: must be > 0 (standard deviation, metres), got {accuracy!r}")
+    attitude = (None, None, None)
+    if None not in (roll, pitch, heading):
+        attitude = (math.radians(roll), math.radians(pitch), heading_deg_to_yaw_rad(heading))
+    return Frame(frame=frame, image_path=folder / row["file"], timestamp_s=t, lat_deg=lat, lon_deg=lon,
+                 alt_m=_number(row, "alt", where), heading_deg=heading, roll_rad=attitude[0],
+                 pitch_rad=attitude[1], yaw_rad=attitude[2], position_accuracy_m=accuracy)
 
 
 def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera") -> Sequence:
-    """A drive brought as images plus a CSV of geotags (see the module docstring)."""
+    """A drive brought as images plus a CSV of geotags, and ``calibration.json`` beside it when present
+    (see the module docstring)."""
     csv_path = Path(csv_path)
     if not csv_path.is_file():
         raise InputError(f"{csv_path}: CSV file not found")
@@ -289,28 +358,25 @@ def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera
         missing = {"file", "timestamp", "lat", "lon"} - set(header)
         if missing:
             raise InputError(f"{csv_path}: missing column(s) {', '.join(sorted(missing))} (need file,timestamp,lat,lon)")
+        attitude_columns = {"roll_deg", "pitch_deg", "heading"}
+        if {"roll_deg", "pitch_deg"} & set(header) and not attitude_columns <= set(header):
+            lacking = ", ".join(sorted(attitude_columns - set(header)))
+            raise InputError(f"{csv_path}: roll_deg, pitch_deg and heading give the attitude together; missing {lacking}")
         rows = list(reader)
     if not rows:
         raise InputError(f"{csv_path}: no rows")
-    parsed = []
-    for line_no, row in enumerate(rows, 2):
-        row = {k.strip(): (v or "").strip() for k, v in row.items() if k}
-        try:
-            t = _parse_time(row["timestamp"])
-            lat, lon = float(row["lat"]), float(row["lon"])
-            alt = float(row["alt"]) if row.get("alt") else None
-            heading = float(row["heading"]) % 360.0 if row.get("heading") else None
-        except ValueError as exc:
-            raise InputError(f"{csv_path}:{line_no}: {exc}") from None
-        if not (-90 <= lat <= 90 and -180 <= lon <= 180 and math.isfinite(t)):
-            raise InputError(f"{csv_path}:{line_no}: lat/lon out of range ({lat}, {lon})")
-        if not row["file"]:
-            raise InputError(f"{csv_path}:{line_no}: empty file name")
-        # frame = data row number, so appending rows to the CSV keeps earlier frames' identity
-        parsed.append(Frame(frame=line_no - 2, image_path=csv_path.parent / row["file"], timestamp_s=t,
-                            lat_deg=lat, lon_deg=lon, alt_m=alt, heading_deg=heading))
+    # frame = data row number, so appending rows to the CSV keeps earlier frames' identity
+    parsed = [_csv_frame({k.strip(): (v or "").strip() for k, v in row.items() if k}, line_no - 2, csv_path.parent,
+                         f"{csv_path}:{line_no}") for line_no, row in enumerate(rows, 2)]
     frames = tuple(sorted(parsed, key=lambda f: (f.timestamp_s, f.frame)))
-    return Sequence(source=source or csv_path.parent.name, camera=camera, frames=frames)
+    source = source or csv_path.parent.name
+    calibration_path = csv_path.parent / CALIBRATION_FILE
+    if not calibration_path.is_file():
+        return Sequence(source=source, camera=camera, frames=frames)
+    calib = read_calibration(calibration_path)
+    return Sequence(source=source, camera=camera, frames=frames, P_rect=calib.P_rect,
+                    image_size_px=(calib.width_px, calib.height_px), T_camera_imu=calib.T_camera_imu,
+                    distortion=calib.distortion)
 
 
 def open_source(path: Path | None, *, drive: str | None = None, camera: str = "image_01") -> Sequence:

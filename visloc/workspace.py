@@ -166,7 +166,7 @@ class Workspace:
             timestamps_s=np.array([im.timestamp_s for im in images]),
             lat_deg=lat, lon_deg=lon, east_north_m=frame.to_local(lat, lon),
             keypoints_f32=keypoints, descriptors_u8=descriptors,
-            calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy,
+            calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy, geotag_sigma_m=_sigmas(images),
         )
 
     def load_queries(self, source: str, camera: str, sift: SiftParams | None = None) -> QuerySet:
@@ -183,6 +183,7 @@ class Workspace:
             image_ids=tuple(im.image_id for im in images), paths=tuple(im.path for im in images),
             keypoints_f32=keypoints, calibration=calibration,
             heading_deg=np.array([np.nan if im.heading_deg is None else im.heading_deg for im in images]),
+            truth_sigma_m=_sigmas(images),
         )
 
     # -- cached correspondence counts -----------------------------------------------------------
@@ -255,3 +256,8 @@ class Workspace:
             encoder = GlobalEncoder(codebook, store.get_array(f"{name}_pca_mean"), store.get_array(f"{name}_pca_basis"))
             ids, vectors = store.global_vectors(name)
         return ids, GlobalIndex(encoder, vectors)
+
+
+def _sigmas(images: tuple[StoredImage, ...]) -> np.ndarray:
+    """(N,) stated geotag accuracy of each image, sigma per axis in metres, NaN where unknown."""
+    return np.array([np.nan if im.position_accuracy_m is None else im.position_accuracy_m for im in images], float)
