@@ -5,6 +5,8 @@ between them; pixels are projections with a KITTI-like K plus small noise. The
 triangulation, the PnP pose and the whole measurement must give back the known answer.
 """
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -148,8 +150,9 @@ def test_essential_inliers_reject_wrong_matches_and_need_five_points():
 
 # -- the whole measurement -------------------------------------------------------------
 
-def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3, seed=11):
-    """Database images at the given eastings (all heading east), a query, and descriptors per 3D point."""
+def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3, seed=11, geotag_sigma_m=0.01):
+    """Database images at the given eastings (all heading east), a query, and descriptors per 3D point;
+    the geotags state ``geotag_sigma_m`` as their accuracy."""
     rng = np.random.default_rng(seed)
     points = street(n_points=n_points, seed=seed)
     descriptors = rng.integers(0, 256, (n_points, 128)).astype(np.uint8)
@@ -163,7 +166,7 @@ def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3
     Tq, Tq_imu = camera_pose(query_east_m, north_m=0.3, yaw_rad=0.02)
     xq, vq = observe(points, Tq, noise_px, rng)
     geometry = DatabaseGeometry(T_world_camera=np.array(poses), keypoints_xy_px=tuple(kps), descriptors_u8=tuple(descs),
-                                camera=CAMERA)
+                                camera=CAMERA, geotag_sigma_m=np.full(len(poses), geotag_sigma_m))
     imu_positions = np.array([(T @ T_CAMERA_IMU)[:2, 3] for T in poses])
     return geometry, imu_positions, xq[vq], descriptors[vq], Tq_imu[:2, 3]
 
@@ -177,7 +180,7 @@ def retrieval_over(n):
 
 def test_measurement_gives_back_the_known_query_position_within_centimetres():
     geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0])
-    params = RefinedParams(neighbour_gaps=(1, 2), n_views=2)
+    params = RefinedParams(neighbour_baselines_m=(2.0, 5.0), max_neighbour_gap=2, n_views=2)
     cache = StructureCache()
     m = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, params, cache)
     assert m.source == GEOMETRY and m.fallback_reason is None, m.fallback_reason
@@ -194,9 +197,41 @@ def test_measurement_gives_back_the_known_query_position_within_centimetres():
     np.testing.assert_array_equal(again.cov_m2, m.cov_m2)
 
 
+def test_views_are_taken_on_both_sides_of_the_query_when_the_database_has_both():
+    geometry, geotags, xq, dq, truth = synthetic_database([-12.0, -9.0, -6.0, 6.0, 9.0, 12.0], query_east_m=0.0)
+    counts = np.array([60, 70, 80, 50, 45, 40])  # the best by count are all behind the query
+    retrieval = Retrieval(candidates=np.arange(6), counts=counts, best_index=2)
+    params = RefinedParams(neighbour_baselines_m=(3.0,), max_neighbour_gap=2, n_views=2)
+    m = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)
+    assert m.source == GEOMETRY, m.fallback_reason
+    east_of_views = geotags[list(m.view_indices), 0]
+    assert east_of_views.min() < truth[0] < east_of_views.max()
+    assert np.linalg.norm(m.east_north_m - truth) < 0.05
+    # with both_sides off, the same retrieval is posed from behind only
+    one_side = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(both_sides=False))
+    assert (geotags[list(one_side.view_indices), 0] < truth[0]).all()
+
+
+def test_the_covariance_carries_the_geotags_stated_accuracy_and_grows_with_distance_from_the_views():
+    params = RefinedParams(neighbour_baselines_m=(2.0, 5.0), max_neighbour_gap=2, n_views=2)
+    near = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], query_east_m=2.0, geotag_sigma_m=0.3)
+    far = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], query_east_m=-6.0, geotag_sigma_m=0.3)
+    m_near = pose_measurement(near[2], near[3], retrieval_over(5), near[1], near[0], CAMERA, params)
+    m_far = pose_measurement(far[2], far[3], retrieval_over(5), far[1], far[0], CAMERA, params)
+    assert m_near.source == m_far.source == GEOMETRY
+    # the views' geotags are good to 0.3 m per axis, so no pose tied to them can claim better
+    assert np.all(np.linalg.eigvalsh(m_near.cov_m2) >= 0.3**2 - 1e-9)
+    # the structure's scale comes from baselines of a few metres: the farther the query, the less certain
+    assert m_far.sigma_m > m_near.sigma_m
+    # a geotag without a stated accuracy takes geotag_sigma_m
+    unstated = replace(near[0], geotag_sigma_m=None)
+    m = pose_measurement(near[2], near[3], retrieval_over(5), near[1], unstated, CAMERA, params.replace(geotag_sigma_m=2.0))
+    assert np.all(np.linalg.eigvalsh(m.cov_m2) >= 4.0 - 1e-9)
+
+
 def test_a_stopped_car_has_no_baseline_and_falls_back_to_the_geotag():
     geometry, geotags, xq, dq, _ = synthetic_database([5.0, 5.0, 5.0, 5.0, 5.0])
-    m = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, RefinedParams(neighbour_gaps=(1, 2)))
+    m = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, RefinedParams(neighbour_baselines_m=(2.0, 5.0), max_neighbour_gap=2))
     assert m.source == GEOTAG and m.cov_m2 is None
     assert "car stopped" in m.fallback_reason
     np.testing.assert_array_equal(m.east_north_m, geotags[2])
@@ -205,7 +240,7 @@ def test_a_stopped_car_has_no_baseline_and_falls_back_to_the_geotag():
 def test_too_few_points_fall_back_with_the_reason():
     geometry, geotags, xq, dq, _ = synthetic_database([3.0, 6.0, 9.0], n_points=40)
     m = pose_measurement(xq, dq, retrieval_over(3), geotags, geometry, CAMERA,
-                         RefinedParams(neighbour_gaps=(1,), min_verified_inliers=60))
+                         RefinedParams(max_neighbour_gap=1, min_verified_inliers=60))
     assert m.source == GEOTAG and m.fallback_reason.startswith("verification: best candidate has")
 
 
@@ -220,7 +255,7 @@ def test_a_query_without_what_a_pose_needs_falls_back_with_the_reason(what, reas
         xq = None
     elif what == "excluded_neighbours":  # the retrieval allows only the view itself: no neighbour to triangulate with
         retrieval = Retrieval(candidates=np.array([1]), counts=np.array([80]), best_index=1)
-    m = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, RefinedParams(neighbour_gaps=(1,)))
+    m = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, RefinedParams(max_neighbour_gap=1))
     assert m.source == GEOTAG and reason in m.fallback_reason
     np.testing.assert_array_equal(m.east_north_m, geotags[retrieval.best_index])
 
@@ -244,7 +279,7 @@ def test_no_match_gives_no_measurement_in_either_method():
 
 def test_filter_measurements_uses_each_measurements_own_covariance():
     geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0])
-    params = RefinedParams(neighbour_gaps=(1, 2))
+    params = RefinedParams(neighbour_baselines_m=(2.0, 5.0), max_neighbour_gap=2)
     geo = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, params)
     paper = geotag_measurement(retrieval_over(5), geotags)
     fp = FilterParams()

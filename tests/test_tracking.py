@@ -160,3 +160,47 @@ def test_rts_smoother_by_hand_for_two_steps():
     np.testing.assert_allclose(s[0].x, steps[0].x + C @ (steps[1].x - steps[1].x_prior))
     # no process noise: the smoothed first position is the second estimate moved back by its velocity
     np.testing.assert_allclose(s[0].x[:2], steps[1].x[:2] - steps[1].x[2:], atol=1e-9)
+
+
+def _drive(n, speed_m_s=5.0, start_m=0.0):
+    return [np.array([start_m + speed_m_s * k, 0.0]) for k in range(n)]
+
+
+def test_measurements_that_persistently_disagree_with_the_track_restart_it():
+    """A jump the track cannot follow: the first jumped measurement is gated, the second restarts the
+    track there with the velocity the two agree on, and the track follows the measurements again."""
+    truth = _drive(4) + _drive(4, start_m=40.0)
+    R = 0.01 * np.eye(2)
+    steps = run_filter(truth, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=13.82, reinit_after_gated=2)
+    assert [s.gated for s in steps] == [False] * 4 + [True, False, False, False]
+    assert [s.restarted for s in steps] == [False] * 5 + [True, False, False]
+    assert np.linalg.norm(steps[-1].position_m - truth[-1]) < 0.1
+    np.testing.assert_allclose(steps[5].x[2:], [5.0, 0.0], atol=1e-6)
+    # without restarts the same track locks every later measurement out
+    locked = run_filter(truth, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=13.82)
+    assert all(s.gated for s in locked[4:]) and np.linalg.norm(locked[-1].position_m - truth[-1]) > 10
+
+
+def test_a_single_outlier_neither_enters_nor_restarts_the_track():
+    truth = _drive(8)
+    measured = [z.copy() for z in truth]
+    measured[4] = measured[4] + np.array([0.0, 15.0])
+    R = 0.01 * np.eye(2)
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=13.82,
+                       reinit_after_gated=2)
+    assert [s.gated for s in steps] == [False] * 4 + [True] + [False] * 3
+    assert not any(s.restarted for s in steps)
+    assert max(np.linalg.norm(s.position_m - t) for s, t in zip(steps, truth)) < 0.3
+
+
+def test_a_first_measurement_that_was_an_outlier_is_replaced_once_the_next_ones_agree():
+    truth = _drive(6)
+    measured = [z.copy() for z in truth]
+    measured[0] = measured[0] + np.array([12.0, -9.0])
+    R = 0.01 * np.eye(2)
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=13.82,
+                       reinit_after_gated=2)
+    # the second measurement still fits (the first one says nothing of the velocity); the two after
+    # it do not, and the second of those restarts the track
+    assert [s.restarted for s in steps] == [False, False, False, True, False, False]
+    assert np.linalg.norm(steps[-1].position_m - truth[-1]) < 0.1

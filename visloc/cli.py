@@ -57,8 +57,9 @@ def _add_mode(p: argparse.ArgumentParser) -> None:
     r = REFINED
     g.add_argument("--top-k", type=int, default=r.top_k,
                    help="refined: candidates re-ranked by essential-matrix inliers (default %(default)s)")
-    g.add_argument("--sigma-floor-m", type=float, default=r.sigma_floor_m,
-                   help="refined: added in quadrature to each pose's covariance, m (default %(default)s)")
+    g.add_argument("--geotag-sigma-m", type=float, default=r.geotag_sigma_m,
+                   help="refined: accuracy (standard deviation per axis, m) assumed for database geotags whose "
+                        "source states none (default %(default)s)")
     g.add_argument("--gate-chi2", type=float, default=r.gate_chi2,
                    help="refined: Mahalanobis gate on y' S^-1 y, 2 dof; 0 = off (default %(default)s = 99.9%%)")
     g.add_argument("--seed", type=int, default=r.seed, help="refined: RANSAC seed (default %(default)s)")
@@ -143,6 +144,26 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mode(p)
     _add_sift(p)
     p.set_defaults(func=commands.cmd_evaluate)
+
+    p = sub.add_parser("evaluate-drives", help="the evaluation on every drive of a data root, every protocol and mode",
+                       description="Every KITTI drive under ROOT (a drive dropped into the folder is picked up), "
+                                   "with each protocol it supports: a stereo drive's left queries against its right "
+                                   "camera's database, and every drive's queries against its own camera's database "
+                                   "with the --exclusion-s window; each in every --modes method. Prints one table per "
+                                   "drive and a pooled line per method; writes OUT_DIR/drives.json and one "
+                                   "evaluation JSON per drive, protocol and method.")
+    p.add_argument("root", nargs="?", type=Path, default=None, help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
+    _add_db(p)
+    p.add_argument("--out-dir", type=Path, default=Path("out/drives"), help="where the JSON goes (default %(default)s)")
+    p.add_argument("--modes", default="paper,refined", help="comma-separated methods (default %(default)s)")
+    p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
+    _add_sampling(p)
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--smooth", action="store_true", help="also run the RTS smoother over each series")
+    _add_method(p, PAPER_EVAL_RETRIEVAL)
+    _add_mode(p)
+    _add_sift(p)
+    p.set_defaults(func=commands.cmd_evaluate_drives)
 
     p = sub.add_parser("dashboard", help="browser dashboard: scrub through a drive, tune the method live",
                        description="Serve the viser dashboard for a store built by 'visloc ingest' or 'visloc "

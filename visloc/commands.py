@@ -22,7 +22,8 @@ from visloc.queries import extract_queries
 from visloc.records import step_record
 from visloc.report import evaluation_json, record_json, save_error_plot, series_tables, summary_text, write_json
 from visloc.runs import run_queries
-from visloc.sources import Sequence, open_source
+from visloc.sources import Sequence, default_data_root, open_source
+from visloc.suite import drive_protocols, drives_of, pooled_rows, protocol_row, table_text
 from visloc.workspace import Workspace
 
 
@@ -40,17 +41,19 @@ def method_params(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, 
             FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var))
 
 
-def method_of(a: argparse.Namespace) -> Method:
-    """The method ``--mode`` names, with the refined flags applied (and the fast retrieval if ``--fast``)."""
+def method_of(a: argparse.Namespace, mode: str | None = None) -> Method:
+    """The method ``--mode`` (or ``mode``) names, with the refined flags applied (and the fast retrieval
+    if ``--fast``)."""
+    name = a.mode if mode is None else mode
     try:
-        method = method_named(a.mode)
+        method = method_named(name)
     except ParameterError:
-        raise InputError(f"--mode {a.mode!r}: must be paper or refined") from None
+        raise InputError(f"--mode {name!r}: must be paper or refined") from None
     if method.pose is not None:
-        method = method.replace(pose=REFINED.replace(top_k=a.top_k, sigma_floor_m=a.sigma_floor_m,
+        method = method.replace(pose=REFINED.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m,
                                                      gate_chi2=a.gate_chi2, seed=a.seed))
     else:  # the refined flags are still checked, so a bad value is refused in either mode
-        REFINED.replace(top_k=a.top_k, sigma_floor_m=a.sigma_floor_m, gate_chi2=a.gate_chi2, seed=a.seed)
+        REFINED.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
     return method.replace(shortlist=FAST) if getattr(a, "fast", False) else method
 
 
@@ -118,7 +121,8 @@ def cmd_localize(a: argparse.Namespace) -> int:
     localizer = build_localizer(method, db, match, retrieval, filt, query_camera=seq.camera_model, query_what=seq.name)
     steps = run_queries(localizer, extract_queries(seq, indices, sift))
     records = [step_record(k, s.result, db, query_frame=seq.frames[i].frame, truth_lat_deg=seq.frames[i].lat_deg,
-                           truth_lon_deg=seq.frames[i].lon_deg, latency_ms=s.latency_ms, keep_counts=True)
+                           truth_lon_deg=seq.frames[i].lon_deg, latency_ms=s.latency_ms, keep_counts=True,
+                           truth_sigma_m=seq.frames[i].position_accuracy_m)
                for k, (i, s) in enumerate(zip(indices, steps))]
     print(f"queries: {seq.name} frames {[seq.frames[i].frame for i in indices]}   "
           f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s   "
@@ -192,6 +196,68 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                  f"{retrieval.exclusion_s:g} s, {summary['n_series']} series, mode {method.name}")
         save_error_plot(summary, plot, title)
         print(f"wrote {plot}")
+    return 0
+
+
+def cmd_evaluate_drives(a: argparse.Namespace) -> int:
+    sift = sift_params(a)
+    match, retrieval, filt = method_params(a)
+    modes = [m.strip() for m in a.modes.split(",") if m.strip()]
+    methods = [method_of(a, m) for m in modes]
+    if not methods:
+        raise InputError(f"--modes {a.modes!r}: name at least one of paper, refined")
+    out_dir = Path(a.out_dir)
+    _check_output_folder(out_dir, "--out-dir")
+    if out_dir.exists() and not out_dir.is_dir():
+        raise InputError(f"--out-dir {out_dir}: exists and is not a folder")
+    root = a.root if a.root is not None else default_data_root()
+    folders = drives_of(root)
+    if not folders:
+        raise InputError(f"{root}: no KITTI drives (folders named *_drive_*_sync under a date folder)")
+    out_dir.mkdir(exist_ok=True)
+    ws = Workspace(a.db, create=True)
+    tables, everything, report = [], [], {"root": str(root), "drives": {}, "params": {
+        "match": match.as_dict(), "retrieval": retrieval.as_dict(), "filter": filt.as_dict(), "sift": sift.as_dict(),
+        "methods": [m.as_dict() for m in methods], "steps": a.steps, "sampling": a.sampling}}
+    for folder in folders:
+        drive = folder.name.removesuffix("_sync")
+        rows = []
+        for protocol in drive_protocols(folder):
+            db_seq = open_source(root, drive=drive, camera=protocol.db_camera)
+            query_seq = open_source(root, drive=drive, camera=protocol.query_camera)
+            for seq in {s.name: s for s in (db_seq, query_seq)}.values():
+                _ingest(ws, seq, sift, a.workers)
+            db = ws.load_database(db_seq.source, db_seq.camera, sift)
+            queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
+            cache = ws.pair_cache(db, queries, match)
+            for method in methods:
+                bar = progress_bar(f"{drive} {protocol.key} {method.name}", "series")
+
+                def progress(done: int, total: int, bar=bar, cache=cache) -> None:
+                    bar(done, total)
+                    ws.save_pair_counts(cache)
+
+                try:
+                    result = evaluate(queries, db, match, retrieval, filt, method=method, n_steps=a.steps,
+                                      sampling=a.sampling, cache=cache, progress=progress, smooth=a.smooth)
+                finally:
+                    ws.save_pair_counts(cache)
+                summary = result.summary()
+                summary["params"]["sift"] = sift.as_dict()
+                name = f"{drive}_{protocol.key}_{method.name}"
+                write_json(out_dir / f"{name}.json", evaluation_json(result, summary))
+                row = {**protocol_row(result), "protocol": protocol.key, "protocol_label": protocol.label,
+                       "file": f"{name}.json"}
+                report["drives"].setdefault(drive, []).append(row)
+                rows.append((f"{protocol.key} ({protocol.label[:11]}), {method.name}", row))
+                everything.append(result)
+        tables.append(table_text(f"{drive}", rows))
+        print(tables[-1] + "\n", flush=True)
+    report["pooled"] = pooled_rows(everything)
+    print(table_text(f"pooled over {len(folders)} drive(s), every protocol",
+                     [(f"all, {r['mode']}", r) for r in report["pooled"]]))
+    write_json(out_dir / "drives.json", report)
+    print(f"wrote {out_dir / 'drives.json'} and one JSON per drive, protocol and method beside it")
     return 0
 
 

@@ -96,14 +96,16 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
 
 
 def filter_measurements(measurements: Sequence[Measurement], filter_params: FilterParams, *,
-                        gate_chi2: float = 0.0) -> list[FilterStep]:
+                        gate_chi2: float = 0.0, reinit_after_gated: int = 0) -> list[FilterStep]:
     """Re-run only the filter over measurements already made (no image work).
 
     Each measurement's own covariance is used where it has one, the filter's R
-    (``filter_params.meas_var_m2``) otherwise; ``gate_chi2`` 0 = no gate.
+    (``filter_params.meas_var_m2``) otherwise; ``gate_chi2`` 0 = no gate; ``reinit_after_gated``
+    gated measurements in a row restart the track (0 = never).
     """
     return run_filter([m.east_north_m for m in measurements], filter_params,
-                      covariances_m2=[m.cov_m2 for m in measurements], gate_chi2=gate_chi2)
+                      covariances_m2=[m.cov_m2 for m in measurements], gate_chi2=gate_chi2,
+                      reinit_after_gated=reinit_after_gated)
 
 
 def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filter_params: FilterParams, *,
@@ -112,7 +114,8 @@ def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filte
     ground truth. A refined measurement brings its own covariance; geotags use
     ``filter_params``' R. ``gate_chi2`` defaults to the method's gate (0 = off)."""
     gate_chi2 = matches.method.gate_chi2 if gate_chi2 is None else gate_chi2
-    filtered = filter_measurements(matches.measurements, filter_params, gate_chi2=gate_chi2)
+    filtered = filter_measurements(matches.measurements, filter_params, gate_chi2=gate_chi2,
+                                   reinit_after_gated=matches.method.reinit_after_gated if gate_chi2 > 0 else 0)
     records = []
     no_time = StepTimings(0.0, 0.0, 0.0)
     for k, (q, retrieval, m, f) in enumerate(zip(matches.query_indices, matches.retrievals, matches.measurements,
@@ -120,7 +123,8 @@ def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filte
         result = StepResult(queries.query(int(q)), retrieval, m, f, no_time)
         records.append(step_record(k, result, db, query_frame=int(queries.frames[q]),
                                    truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
-                                   latency_ms=float(matches.latency_ms[k]), keep_counts=True))
+                                   latency_ms=float(matches.latency_ms[k]), keep_counts=True,
+                                   truth_sigma_m=queries.truth_sigma(int(q))))
     return records
 
 

@@ -219,7 +219,7 @@ def evaluate(
                     else [None] * len(steps))
         series.append([step_record(k, s.result, db, query_frame=int(queries.frames[q]),
                                    truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
-                                   latency_ms=s.latency_ms, smoothed=sm)
+                                   latency_ms=s.latency_ms, smoothed=sm, truth_sigma_m=queries.truth_sigma(q))
                        for k, (q, s, sm) in enumerate(zip(indices, steps, smoothed))])
         if progress:
             progress(done, len(schedule))

@@ -69,17 +69,19 @@ class Localizer:
     """Retrieval against a geotagged database, a measurement, and the constant-velocity filter."""
 
     def __init__(self, retriever: Retriever, measurer: Measurer, filter_params: FilterParams, *,
-                 gate_chi2: float = 0.0):
+                 gate_chi2: float = 0.0, reinit_after_gated: int = 0):
         self.retriever = retriever
         self.measurer = measurer
         self.filter_params = filter_params
         self.gate_chi2 = float(gate_chi2)  # 0: every measurement is applied
+        self.reinit_after_gated = int(reinit_after_gated)  # 0: never restart the track
         self.reset()
 
     def reset(self) -> None:
         """Forget the track: the next query scans the whole database again."""
         self.retriever.reset()
-        self._kalman = ConstantVelocityKalman(self.filter_params, gate_chi2=self.gate_chi2)
+        self._kalman = ConstantVelocityKalman(self.filter_params, gate_chi2=self.gate_chi2,
+                                              reinit_after_gated=self.reinit_after_gated)
 
     def step(self, query: Query) -> StepResult:
         t0 = time.perf_counter()

@@ -62,6 +62,11 @@ class Method:
         """The filter's Mahalanobis gate (2 dof); 0: every measurement is applied."""
         return self.pose.gate_chi2 if self.pose is not None else 0.0
 
+    @property
+    def reinit_after_gated(self) -> int:
+        """Gated measurements in a row that restart the track; 0: never."""
+        return self.pose.reinit_after_gated if self.pose is not None else 0
+
     def replace(self, **changes) -> "Method":
         unknown = set(changes) - {f.name for f in fields(self)}
         if unknown:
@@ -116,4 +121,5 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
                                 query_what=query_what)
     if memoise:
         measurer = MemoisedMeasurer(measurer)
-    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2)
+    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
+                     reinit_after_gated=method.reinit_after_gated)

@@ -161,10 +161,12 @@ class RefinedParams(_Params):
                              cosine test, equation (2), rejects too many true matches for geometry)
       essential_px:          RANSAC threshold of the essential matrix, pixels
       min_verified_inliers:  a candidate needs this many essential-matrix inliers to count as verified
-      n_views:               verified candidates (best first, skipping those without an allowed
-                             neighbour) whose 3D structure the query is posed against
-      neighbour_gaps:        a view's structure comes from triangulating it with the database images
-                             this many frames before and after it (those the retrieval allows)
+      n_views:               verified candidates the query is posed against, chosen on both sides of
+                             the query where the database has both (best first otherwise)
+      neighbour_baselines_m: a view's structure comes from triangulating it with database images
+                             before and after it at about these distances from it, metres (those the
+                             retrieval allows, posed, at least ``min_baseline_m`` away)
+      max_neighbour_gap:     ... and at most this many frames from it
       min_baseline_m:        a neighbour must be at least this far from the view (else: stopped car)
       triangulation_px:      largest reprojection error of a triangulated point, pixels
       min_parallax_deg:      smallest angle between the two rays of a triangulated point
@@ -175,22 +177,31 @@ class RefinedParams(_Params):
       min_pnp_inliers:       fewer inliers than this: fall back to the geotag
       max_offset_m:          a pose farther than this from the geotag of the view it was solved
                              against is rejected (it cannot see the same scene)
+      max_view_spread_m:     the query is also posed against each view alone; a view whose pose lies
+                             farther than this from the others' is dropped, and a measurement whose
+                             remaining views still disagree by more is rejected
+      max_heading_diff_deg:  a pose facing more than this away from its views is rejected
     Uncertainty and filter
-      sigma_floor_m:         added in quadrature to the PnP covariance on each axis: the part of the
-                             error the PnP residuals cannot see (database poses, calibration,
-                             triangulated points), metres
+      geotag_sigma_m:        standard deviation per axis of a database geotag whose source states no
+                             accuracy (a CSV drive without an accuracy column), metres; stated
+                             accuracies (OXTS ``pos_accuracy``) are used as they are
       gate_chi2:             a measurement whose squared Mahalanobis distance to the prediction
                              exceeds this is not applied (2 degrees of freedom; 13.82 = 99.9 %);
                              0 disables gating
+      reinit_after_gated:    this many gated measurements in a row restart the track at the last of
+                             them (the measurements agree with each other, not with the track);
+                             0 never restarts
       seed:                  seed of every RANSAC
     """
 
-    top_k: int = 5
+    top_k: int = 8
     ratio: float = 0.8
     essential_px: float = 1.0
     min_verified_inliers: int = 20
     n_views: int = 2
-    neighbour_gaps: tuple[int, ...] = (3, 6)
+    both_sides: bool = True
+    neighbour_baselines_m: tuple[float, ...] = (2.0, 5.0, 10.0)
+    max_neighbour_gap: int = 50
     min_baseline_m: float = 1.0
     triangulation_px: float = 1.0
     min_parallax_deg: float = 0.5
@@ -199,8 +210,11 @@ class RefinedParams(_Params):
     pnp_iterations: int = 1000
     min_pnp_inliers: int = 15
     max_offset_m: float = 30.0
-    sigma_floor_m: float = 0.05
+    max_view_spread_m: float = 1.5
+    max_heading_diff_deg: float = 45.0
+    geotag_sigma_m: float = 1.0
     gate_chi2: float = 13.82
+    reinit_after_gated: int = 2
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -211,16 +225,20 @@ class RefinedParams(_Params):
         integer("top_k", 1)
         integer("min_verified_inliers", 5)
         integer("n_views", 1)
+        integer("max_neighbour_gap", 1)
+        baselines = self.neighbour_baselines_m
+        if not (isinstance(baselines, tuple) and baselines and all(
+                isinstance(b, (int, float)) and math.isfinite(b) and b > 0 for b in baselines)):
+            raise ParameterError(f"neighbour_baselines_m={baselines!r}: must be a non-empty tuple of distances > 0")
         integer("pnp_iterations", 1)
         integer("min_pnp_inliers", 6)
         integer("seed", 0)
-        gaps = self.neighbour_gaps
-        if not (isinstance(gaps, tuple) and gaps and all(isinstance(g, int) and g >= 1 for g in gaps)):
-            raise ParameterError(f"neighbour_gaps={gaps!r}: must be a non-empty tuple of integers >= 1")
+        integer("reinit_after_gated", 0)
         _check("ratio", self.ratio, 0 < self.ratio <= 1, "in (0, 1]")
-        for name in ("essential_px", "triangulation_px", "pnp_px", "max_depth_m", "max_offset_m"):
+        for name in ("essential_px", "triangulation_px", "pnp_px", "max_depth_m", "max_offset_m",
+                     "max_view_spread_m", "max_heading_diff_deg"):
             _check(name, getattr(self, name), getattr(self, name) > 0, "> 0")
-        for name in ("min_baseline_m", "min_parallax_deg", "sigma_floor_m", "gate_chi2"):
+        for name in ("min_baseline_m", "min_parallax_deg", "geotag_sigma_m", "gate_chi2"):
             _check(name, getattr(self, name), getattr(self, name) >= 0, ">= 0")
 
 

@@ -17,7 +17,11 @@ Beyond the paper (the refined mode): a step may bring its own measurement
 covariance ``R`` (``step(z, R)``; None = the filter's constant R), and with
 ``gate_chi2 > 0`` a measurement whose squared Mahalanobis distance to the prediction,
 y' S^-1 y, exceeds ``gate_chi2`` is not applied: the step only predicts and is marked
-``gated`` (its innovation is kept for diagnostics). ``rts_smooth`` is the
+``gated`` (its innovation is kept for diagnostics). With ``reinit_after_gated = n``, the
+n-th gated measurement in a row restarts the track at that measurement instead (its velocity
+from the previous gated one), marked ``restarted``: an outlier neither enters the track nor
+locks the measurements that follow out of it, and a first measurement that was an outlier is
+replaced as soon as the measurements after it agree with each other. ``rts_smooth`` is the
 Rauch-Tung-Striebel smoother over a finished run's steps.
 """
 
@@ -94,6 +98,7 @@ class FilterStep:
     innovation: Innovation | None
     gated: bool = False  # the measurement was rejected by the Mahalanobis gate (x, P are the prediction)
     R: np.ndarray | None = None  # the measurement covariance this step used, m^2 (None: no measurement)
+    restarted: bool = False  # the track was lost and started again at this measurement
 
     @property
     def position_m(self) -> np.ndarray:
@@ -111,9 +116,11 @@ class ConstantVelocityKalman:
     the filter has no state; a ``None`` then yields an empty step (``x`` all NaN).
     """
 
-    def __init__(self, params: FilterParams, *, gate_chi2: float = 0.0):
+    def __init__(self, params: FilterParams, *, gate_chi2: float = 0.0, reinit_after_gated: int = 0):
         self.params = params
         self.gate_chi2 = float(gate_chi2)  # 0: no gating
+        self.reinit_after_gated = int(reinit_after_gated)  # 0: never re-initialise
+        self._gated: list[tuple[np.ndarray, np.ndarray]] = []  # consecutive gated measurements (z, R)
         self.F = transition_matrix(params.dt_s)
         self.Q = process_noise(params.dt_s, params.accel_var_m2_s4)
         self.R = params.meas_var_m2 * np.eye(MEAS_DIM)
@@ -140,35 +147,58 @@ class ConstantVelocityKalman:
         R = self.R if R is None else np.asarray(R, float)
         if R.shape != (MEAS_DIM, MEAS_DIM) or not np.all(np.isfinite(R)):
             raise ValueError(f"R must be a finite {MEAS_DIM}x{MEAS_DIM} covariance, got {R!r}")
-        if self.x is None:
-            if z is None:
-                nan = np.full(STATE_DIM, np.nan)
-                nan_p = np.full((STATE_DIM, STATE_DIM), np.nan)
-                return FilterStep(nan, nan_p, nan, nan_p, None)
-            x_prior = np.concatenate([np.asarray(z, float).reshape(MEAS_DIM), np.zeros(2)])
-            P_prior = self.P0.copy()
-        else:
-            x_prior, P_prior = predict(self.x, self.P, self.F, self.Q)
+        if self.x is None or (z is not None and self._track_lost(z, R)):
+            return self._initialise(z, R)
+        x_prior, P_prior = predict(self.x, self.P, self.F, self.Q)
         if z is None:
             self.x, self.P = x_prior, P_prior
             return FilterStep(x_prior, P_prior, x_prior, P_prior, None)
-        initialising = self.x is None
         x, P, innovation = update(x_prior, P_prior, z, R)
-        # the first measurement defines the track, so it is never gated
-        if not initialising and self.gate_chi2 > 0 and innovation.mahalanobis**2 > self.gate_chi2:
+        if self.gate_chi2 > 0 and innovation.mahalanobis**2 > self.gate_chi2:
+            self._gated.append((np.asarray(z, float).reshape(MEAS_DIM), R))
             self.x, self.P = x_prior, P_prior
             return FilterStep(x_prior, P_prior, x_prior.copy(), P_prior.copy(), innovation, gated=True, R=R)
+        self._gated = []
         self.x, self.P = x, P
         return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation, R=R)
 
+    def _track_lost(self, z: np.ndarray, R: np.ndarray) -> bool:
+        """True when this measurement would be gated too and the last ``reinit_after_gated`` - 1 were:
+        the measurements agree with each other, not with the track."""
+        if self.reinit_after_gated <= 0 or self.gate_chi2 <= 0 or len(self._gated) < self.reinit_after_gated - 1:
+            return False
+        x_prior, P_prior = predict(self.x, self.P, self.F, self.Q)
+        _, _, innovation = update(x_prior, P_prior, z, R)
+        return innovation.mahalanobis**2 > self.gate_chi2
+
+    def _initialise(self, z: np.ndarray | None, R: np.ndarray) -> FilterStep:
+        """Start (or restart) the track at ``z``; a restart takes its velocity from the last gated
+        measurement and this one."""
+        if z is None:
+            nan = np.full(STATE_DIM, np.nan)
+            nan_p = np.full((STATE_DIM, STATE_DIM), np.nan)
+            return FilterStep(nan, nan_p, nan, nan_p, None)
+        z = np.asarray(z, float).reshape(MEAS_DIM)
+        velocity = np.zeros(2)
+        if self._gated and self.x is not None:
+            velocity = (z - self._gated[-1][0]) / self.params.dt_s
+        x_prior = np.concatenate([z, velocity])
+        P_prior = self.P0.copy()
+        x, P, innovation = update(x_prior, P_prior, z, R)
+        restarted = self.x is not None
+        self._gated = []
+        self.x, self.P = x, P
+        return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation, R=R, restarted=restarted)
+
 
 def run_filter(measurements_m: list[np.ndarray | None], params: FilterParams, *,
-               covariances_m2: list[np.ndarray | None] | None = None, gate_chi2: float = 0.0) -> list[FilterStep]:
+               covariances_m2: list[np.ndarray | None] | None = None, gate_chi2: float = 0.0,
+               reinit_after_gated: int = 0) -> list[FilterStep]:
     """Filter a whole sequence of measurements (east_m, north_m) or None.
 
     ``covariances_m2``: per step a 2x2 R or None (the filter's R); ``gate_chi2``: see the module docstring.
     """
-    kf = ConstantVelocityKalman(params, gate_chi2=gate_chi2)
+    kf = ConstantVelocityKalman(params, gate_chi2=gate_chi2, reinit_after_gated=reinit_after_gated)
     covs = covariances_m2 if covariances_m2 is not None else [None] * len(measurements_m)
     if len(covs) != len(measurements_m):
         raise ValueError("covariances_m2 must have one entry per measurement")
