@@ -25,7 +25,7 @@ def one_line_error(result, *fragments):
 def test_every_command_and_option_has_help_text():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    assert set(sub.choices) == {"ingest", "localize", "evaluate", "info", "dashboard", "bench"}
+    assert set(sub.choices) == {"ingest", "localize", "evaluate", "evaluate-drives", "info", "dashboard", "bench"}
     for name, cmd in sub.choices.items():
         assert cmd.description, name
         for action in cmd._actions:
@@ -291,3 +291,32 @@ def test_both_modes_report_the_same_keys(tmp_path):
 ])
 def test_bench_refuses_bad_parameters_in_one_line(args, named):
     one_line_error(run_cli("bench", *args), named)
+
+
+def test_evaluate_drives_runs_every_drive_with_the_protocols_it_supports(tmp_path):
+    import shutil
+
+    from conftest import make_fake_kitti
+
+    stereo = make_fake_kitti(tmp_path / "kitti", n_frames=24)
+    one_camera = stereo.parent / "2011_09_26_drive_0002_sync"  # a drive dropped into the folder is picked up
+    shutil.copytree(stereo, one_camera)
+    shutil.rmtree(one_camera / "image_01")
+    out = tmp_path / "out"
+    result = run_cli("evaluate-drives", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--out-dir", out,
+                     "--steps", "2", "--modes", "paper", "--workers", "1")
+    assert result.returncode == 0, result.stderr
+    report = json.loads((out / "drives.json").read_text())
+    protocols = {d: [r["protocol"] for r in rows] for d, rows in report["drives"].items()}
+    assert protocols == {"2011_09_26_drive_0001": ["stereo", "same_image_00"],
+                         "2011_09_26_drive_0002": ["same_image_00"]}
+    for rows in report["drives"].values():
+        for row in rows:
+            evaluation = json.loads((out / row["file"]).read_text())
+            assert evaluation["mode"] == "paper" and 0 < row["measurement_error_m"]["n"] <= 2 * evaluation["n_series"]
+    assert [r["mode"] for r in report["pooled"]] == ["paper"]
+    assert report["pooled"][0]["n_steps"] == sum(r["n_steps"] for rows in report["drives"].values() for r in rows)
+    for name in ("2011_09_26_drive_0001", "2011_09_26_drive_0002", "pooled over 2 drive(s)"):
+        assert name in result.stdout
+    one_line_error(run_cli("evaluate-drives", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--out-dir", out,
+                           "--modes", "best"), "--mode 'best': must be paper or refined")
