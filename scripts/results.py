@@ -4,12 +4,12 @@
     python scripts/results.py page                 # docs/results/digest.json and docs/results.md from out/results/
     python scripts/results.py render               # docs/results.md again from docs/results/digest.json alone
 
-``run`` calls the ``visloc`` command as a user would: ``visloc evaluate`` for every drive of the
-data root (default ../shared/data/kitti), for each camera setup the drive allows (left queries
-against the right camera's database; each camera against itself, with the 1 s exclusion), in
-both modes with the RTS smoother; the paper's mode again with other query sampling and process
-noise; ``visloc bench`` per drive; and scripts/paper_haversine_check.py. Every run writes its JSON
-to out/results/ and out/results/manifest.json records the commands. ``page`` reduces those JSON
+``run`` calls the ``visloc`` command as a user would: ``visloc evaluate-drives`` on the data root
+(default ../shared/data/kitti: every drive, each protocol it supports, both modes, the RTS
+smoother); ``visloc evaluate`` in the paper's mode again with other query sampling and process
+noise; ``visloc bench`` per drive; scripts/refined_diagnostics.py per drive; and
+scripts/paper_haversine_check.py. Every run writes its JSON to out/results/ and
+out/results/manifest.json records the commands. ``page`` reduces those JSON
 files to docs/results/digest.json (the numbers the page shows, with their commands) and renders
 docs/results.md from it; ``render`` re-renders the page from the committed digest, so the page
 and its numbers cannot drift apart (the test suite checks it).
@@ -96,6 +96,15 @@ def run(data: Path) -> int:
         command(f"bench_{drive}", ["bench", root, "--drive", drive, "--db", str(store), "--fast-db",
                                    str(fast_store), *([] if n == 0 else ["--skip-synthetic"]), "--json",
                                    str(out / f"bench_{drive}.json")], kind="bench", drive=drive)
+    for folder in drives:
+        drive = folder.name.removesuffix("_sync")
+        name = f"diagnostics_{drive}"
+        args = ["scripts/refined_diagnostics.py", root, "--drive", drive, "--db", str(store), "--every", "3",
+                "--json", str(out / f"{name}.json")]
+        print(f"results: {name}: python {' '.join(args)}", flush=True)
+        subprocess.run([sys.executable, *args], cwd=REPO, check=True)
+        manifest["runs"].append({"file": f"{name}.json", "command": "python " + " ".join(args), "kind": "diagnostics",
+                                 "drive": drive})
     subprocess.run([sys.executable, "scripts/paper_haversine_check.py", "--json", str(out / "haversine.json")],
                    cwd=REPO, check=True)
     manifest["runs"].append({"file": "haversine.json", "command": "python scripts/paper_haversine_check.py",
@@ -173,6 +182,13 @@ def page() -> int:
         if entry["kind"] == "bench":
             digest["bench"][entry["drive"]] = {"command": entry["command"], **digest_bench(report)}
             continue
+        if entry["kind"] == "diagnostics":
+            digest.setdefault("diagnostics", {})[entry["drive"]] = {
+                "command": entry["command"], "gps_vs_velocity_over_1s_m": report["gps_vs_velocity_over_1s_m"],
+                "conditions": {k: {kk: v[kk] for kk in ("error_m", "along_m_mean", "abs_along_m_mean",
+                                                        "abs_across_m_mean", "fallbacks")}
+                               for k, v in report["conditions"].items()}}
+            continue
         if entry["kind"] == "drives":
             digest["suite"] = {"command": entry["command"], "drives": report["drives"], "pooled": report["pooled"]}
             continue
@@ -238,6 +254,38 @@ def render_suite(s: dict, add) -> None:
     add("")
 
 
+DIAGNOSTIC_LABELS = {
+    "gps_both_sides": "GPS geotags and truth, views on both sides (the default)",
+    "gps_best_views": "GPS geotags and truth, the best views only",
+    "velocity_both_sides": "geotags and truth integrated from the OXTS velocities, views on both sides",
+    "velocity_best_views": "geotags and truth integrated from the OXTS velocities, the best views only",
+}
+
+
+def render_diagnostics(diagnostics: dict, add) -> None:
+    add("## Where the refined measurement's error comes from")
+    add("")
+    add("Every third query of each drive, same camera, 1 s exclusion, measured with the default refined parameters "
+        "under four conditions; the error is split along the direction of travel and across it (m). See the "
+        "[method notes](method.md) for what it shows.")
+    add("")
+    add("| drive | condition | error median / mean / p90 / max | along-track mean | mean abs along / across | "
+        "fallbacks |")
+    add("|---|---|---|---|---|---|")
+    for drive, dg in diagnostics.items():
+        for key, v in dg["conditions"].items():
+            e = v["error_m"]
+            add(f"| {drive} | {DIAGNOSTIC_LABELS.get(key, key)} | {c(e['median'])} / {c(e['mean'])} / {c(e['p90'])} / "
+                f"{c(e['max'])} | {c(v['along_m_mean'], '+.2f')} | {c(v['abs_along_m_mean'])} / "
+                f"{c(v['abs_across_m_mean'])} | {v['fallbacks']} |")
+    add("")
+    for drive, dg in diagnostics.items():
+        g = dg["gps_vs_velocity_over_1s_m"]
+        add(f"- {drive}: over 1 s of driving the GPS track moves {c(g['median'])} m (median, {c(g['max'])} m at most) "
+            f"differently from the track its own velocities describe. `{dg['command']}`")
+    add("")
+
+
 def render_page(d: dict) -> str:
     L: list[str] = []
     add = L.append
@@ -255,6 +303,8 @@ def render_page(d: dict) -> str:
     add("")
     if d.get("suite"):
         render_suite(d["suite"], add)
+    if d.get("diagnostics"):
+        render_diagnostics(d["diagnostics"], add)
     add("## Every drive, both modes, per step")
     add("")
     add("`visloc evaluate` with the paper's protocol: series of six queries one second apart, every start frame "

@@ -290,3 +290,20 @@ def test_filter_measurements_uses_each_measurements_own_covariance():
     np.testing.assert_allclose(steps[0].R, fp.meas_var_m2 * np.eye(2))
     # a centimetre-accurate measurement pulls the estimate onto itself
     assert np.linalg.norm(steps[1].x[:2] - geo.east_north_m) < 0.01
+
+
+def test_neighbours_are_chosen_by_distance_so_a_stopped_car_finds_its_baseline_where_it_last_moved():
+    from visloc.pose import neighbours_of
+
+    east = [0.0, 1.0, 2.0, 3.0, 4.0] + [5.0] * 20 + [6.0, 7.0, 8.0]  # stands still for 2 s at 5 m
+    T = np.array([camera_pose(e)[0] for e in east])
+    view = 15  # in the middle of the stop
+    params = RefinedParams(neighbour_baselines_m=(2.0, 3.0), min_baseline_m=1.0, max_neighbour_gap=15)
+    found = neighbours_of(view, np.arange(len(east)), T, params)
+    baselines = sorted(abs(east[j] - east[view]) for j in found)
+    assert found and min(baselines) >= 1.0  # none from the stop itself
+    assert {east[j] for j in found} == {3.0, 2.0, 7.0, 8.0}
+    # within the stop only (gap too small to leave it): no neighbour, the measurement falls back
+    assert neighbours_of(view, np.arange(len(east)), T, params.replace(max_neighbour_gap=5)) == []
+    # images the retrieval does not allow are never neighbours
+    assert not set(neighbours_of(view, np.arange(20), T, params)) & set(range(20, len(east)))
