@@ -205,13 +205,17 @@ class Tracks:
 
     points_world: (M, 3) metres; n_views: (M,) views whose observation fits the point
     (reference included); parallax_deg: (M,) widest angle between the reference ray and
-    another fitting ray; keep: (M,) bool, the trustworthy ones.
+    another fitting ray; keep: (M,) bool, the trustworthy ones; cov_world: (M, 3, 3) each
+    point's covariance, m^2: sigma^2 (J'J)^-1 over its fitting observations, with sigma^2 the
+    kept points' residual variance per pixel coordinate (``sigma_px``).
     """
 
     points_world: np.ndarray
     n_views: np.ndarray
     parallax_deg: np.ndarray
     keep: np.ndarray
+    cov_world: np.ndarray | None = None
+    sigma_px: float | None = None
 
 
 def _dlt(P: np.ndarray, xy: np.ndarray, used: np.ndarray) -> np.ndarray:
@@ -229,8 +233,10 @@ def _dlt(P: np.ndarray, xy: np.ndarray, used: np.ndarray) -> np.ndarray:
 
 
 def _refine_points(K: np.ndarray, T_camera_world: np.ndarray, X: np.ndarray, xy: np.ndarray, used: np.ndarray,
-                   iterations: int = 5) -> np.ndarray:
-    """Gauss-Newton on the reprojection error of each point over its used observations (M points at once)."""
+                   iterations: int = 5) -> tuple[np.ndarray, np.ndarray]:
+    """Gauss-Newton on the reprojection error of each point over its used observations (M points at once).
+
+    Returns the points and their normal matrices J'J (M, 3, 3) at the solution, pixels^2 per m^2."""
     R, t = T_camera_world[:, :3, :3], T_camera_world[:, :3, 3]
     f = np.array([K[0, 0], K[1, 1]])
     c = np.array([K[0, 2], K[1, 2]])
@@ -254,7 +260,7 @@ def _refine_points(K: np.ndarray, T_camera_world: np.ndarray, X: np.ndarray, xy:
         step = np.zeros_like(X)
         step[ok] = np.linalg.solve(H[ok], g[ok][..., None])[..., 0]
         X = X - step
-    return X
+    return X, H
 
 
 def triangulate_tracks(K: np.ndarray, T_world_cameras: np.ndarray, xy_px: np.ndarray, *,
@@ -275,12 +281,12 @@ def triangulate_tracks(K: np.ndarray, T_world_cameras: np.ndarray, xy_px: np.nda
     M, C = xy.shape[:2]
     if M == 0:
         z = np.zeros(0)
-        return Tracks(np.zeros((0, 3)), z.astype(int), z, np.zeros(0, bool))
+        return Tracks(np.zeros((0, 3)), z.astype(int), z, np.zeros(0, bool), np.zeros((0, 3, 3)), None)
     P = np.stack([projection_matrix(K, T[c]) for c in range(C)])
     used = np.all(np.isfinite(xy), axis=2)
     T_camera_world = invert(T)
     for _ in range(2):
-        X = _refine_points(K, T_camera_world, _dlt(P, xy, used), xy, used)
+        X, _ = _refine_points(K, T_camera_world, _dlt(P, xy, used), xy, used)
         Xh = np.c_[X, np.ones(M)]
         proj = np.einsum("cij,mj->mci", P, Xh)
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -301,7 +307,17 @@ def triangulate_tracks(K: np.ndarray, T_world_cameras: np.ndarray, xy_px: np.nda
     n_views = fits.sum(axis=1)
     keep = (np.all(np.isfinite(X), axis=1) & fits[:, 0] & (n_views >= 2) & (parallax >= min_parallax_deg)
             & (depth >= min_depth_m) & (depth <= max_depth_m))
-    return Tracks(X, n_views, parallax, keep)
+    # covariance of each point from its final fitting observations and the kept points' residuals
+    X, H = _refine_points(K, T_camera_world, X, xy, fits, iterations=1)
+    residual_px = np.where(fits[keep], err[keep], 0.0)
+    dof = 2 * int(fits[keep].sum()) - 3 * int(keep.sum())
+    sigma_px = float(np.sqrt((residual_px**2).sum() / dof)) if dof > 0 else None
+    cov = np.full((M, 3, 3), np.nan)
+    invertible = keep & (np.linalg.det(H) > 1e-12)
+    if sigma_px is not None and invertible.any():
+        cov[invertible] = sigma_px**2 * np.linalg.inv(H[invertible])
+    keep &= invertible
+    return Tracks(X, n_views, parallax, keep, cov, sigma_px)
 
 
 # -- absolute pose ---------------------------------------------------------------------
@@ -327,11 +343,12 @@ class PnPResult:
 
 def solve_pnp(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, *, reprojection_px: float = 2.0,
               iterations: int = 1000, confidence: float = 0.999, seed: int = 0,
-              min_inliers: int = 12) -> PnPResult | str:
+              min_inliers: int = 12, points_cov: np.ndarray | None = None) -> PnPResult | str:
     """Camera pose by PnP RANSAC (SQPnP minimal solver) refined with Levenberg-Marquardt on the inliers.
 
     Returns a ``PnPResult``, or a one-line reason (str) when there are too few
-    correspondences or inliers, or the solver fails.
+    correspondences or inliers, or the solver fails. With ``points_cov`` (N, 3, 3), each
+    point's own uncertainty is propagated into the pose covariance (see ``pose_covariance``).
     """
     X = np.ascontiguousarray(points_world, dtype=np.float64).reshape(-1, 3)
     x = np.ascontiguousarray(xy_px, dtype=np.float64).reshape(-1, 2)
@@ -359,16 +376,48 @@ def solve_pnp(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, *, rep
     dof = max(res.size - 6, 1)
     sigma2 = float(res @ res) / dof
     J = J[:, :6]  # d(pixels)/d(rvec, tvec)
-    JtJ = J.T @ J
+    R, _ = cv2.Rodrigues(rvec)
     try:
-        pose_cov = sigma2 * np.linalg.inv(JtJ)
+        if points_cov is None:
+            pose_cov = sigma2 * np.linalg.inv(J.T @ J)
+        else:
+            pose_cov = pose_covariance(J, res, X[inliers], np.asarray(points_cov)[inliers], K, R, tvec.ravel())
     except np.linalg.LinAlgError:
         return "PnP: degenerate geometry (singular normal equations)"
-    R, _ = cv2.Rodrigues(rvec)
     T_world_camera = invert(rigid(R, tvec.ravel()))
     return PnPResult(T_world_camera=T_world_camera, rvec=rvec.ravel().copy(), tvec=tvec.ravel().copy(),
                      inliers=inliers, reprojection_rms_px=float(np.sqrt(np.mean(res**2) * 2)),
                      pose_cov=pose_cov)
+
+
+def pose_covariance(J: np.ndarray, residual_px: np.ndarray, points_world: np.ndarray, points_cov: np.ndarray,
+                    K: np.ndarray, R_camera_world: np.ndarray, t_camera_world: np.ndarray) -> np.ndarray:
+    """(6, 6) covariance of (rvec, tvec) when both the pixels and the 3D points are uncertain.
+
+    Each correspondence's pixel error has covariance s^2 I + A S A' (A = d pixel / d point, S the
+    point's covariance): weighted least squares gives (sum J_i' W_i J_i)^-1 with W_i the inverse.
+    s^2, the pixels' own variance, and the a-posteriori variance factor are both taken from the
+    residuals: s^2 is what the residuals hold beyond the points' projected variance (never below
+    0.1 px^2), and if the weighted residuals are still larger than their degrees of freedom the
+    covariance is scaled up by their ratio.
+    """
+    Xc = points_world @ R_camera_world.T + t_camera_world
+    z = Xc[:, 2]
+    A = np.zeros((len(Xc), 2, 3))
+    A[:, 0, 0] = K[0, 0] / z
+    A[:, 1, 1] = K[1, 1] / z
+    A[:, 0, 2] = -K[0, 0] * Xc[:, 0] / z**2
+    A[:, 1, 2] = -K[1, 1] * Xc[:, 1] / z**2
+    A = A @ R_camera_world
+    projected = A @ points_cov @ np.swapaxes(A, 1, 2)  # (M, 2, 2)
+    r = residual_px.reshape(-1, 2)
+    pixel_var = max(float(np.mean(r**2)) - float(np.mean(np.trace(projected, axis1=1, axis2=2))) / 2.0, 0.1)
+    W = np.linalg.inv(pixel_var * np.eye(2) + projected)
+    Ji = J.reshape(-1, 2, 6)
+    information = np.einsum("mai,mab,mbj->ij", Ji, W, Ji)
+    chi2 = float(np.einsum("ma,mab,mb->", r, W, r))
+    factor = max(1.0, chi2 / max(r.size - 6, 1))
+    return factor * np.linalg.inv(information)
 
 
 def refine_pose(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, start: PnPResult) -> np.ndarray:

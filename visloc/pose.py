@@ -102,7 +102,8 @@ class StructureCache:
 
 def build_view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], params: RefinedParams,
                          cache: StructureCache) -> dict[int, np.ndarray]:
-    """keypoint row of ``view`` -> world point, triangulated from every neighbour that sees it."""
+    """keypoint row of ``view`` -> (world point, its 3x3 covariance), triangulated from every neighbour
+    that sees it."""
     tracks: dict[int, dict[int, np.ndarray]] = {}
     for c, j in enumerate(neighbours, 1):
         pairs = cache.pairs(geometry, view, j, params)
@@ -117,7 +118,8 @@ def build_view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequ
     T = geometry.T_world_camera[[view, *neighbours]]
     tri = triangulate_tracks(geometry.camera.K, T, xy, max_reprojection_px=params.triangulation_px,
                              min_parallax_deg=params.min_parallax_deg, max_depth_m=params.max_depth_m)
-    return {int(k): X for k, X in zip(rows[tri.keep].tolist(), tri.points_world[tri.keep])}
+    return {int(k): (X, S) for k, X, S in zip(rows[tri.keep].tolist(), tri.points_world[tri.keep],
+                                               tri.cov_world[tri.keep])}
 
 
 def view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], params: RefinedParams,
@@ -166,22 +168,25 @@ class _Views:
     """2D-3D correspondences of the query against some views: which view each comes from."""
 
     points_world: np.ndarray  # (M, 3)
+    points_cov: np.ndarray  # (M, 3, 3)
     pixels: np.ndarray  # (M, 2)
     view_of: np.ndarray  # (M,) database index of the view
 
 
 def _correspondences(chosen: list[int], pairs_of: dict[int, np.ndarray], structure_of: dict[int, dict],
                      query_xy: np.ndarray) -> _Views:
-    points, pixels, view_of = [], [], []
+    points, covs, pixels, view_of = [], [], [], []
     for i in chosen:
         structure = structure_of[i]
         for q_row, d_row in pairs_of[i].tolist():
-            X = structure.get(d_row)
-            if X is not None:
-                points.append(X)
+            found = structure.get(d_row)
+            if found is not None:
+                points.append(found[0])
+                covs.append(found[1])
                 pixels.append(query_xy[q_row])
                 view_of.append(i)
-    return _Views(np.array(points).reshape(-1, 3), np.array(pixels).reshape(-1, 2), np.array(view_of, np.int64))
+    return _Views(np.array(points).reshape(-1, 3), np.array(covs).reshape(-1, 3, 3), np.array(pixels).reshape(-1, 2),
+                  np.array(view_of, np.int64))
 
 
 def _east_north(pnp: PnPResult, query_camera: CameraModel) -> np.ndarray:
@@ -298,7 +303,8 @@ def pose_measurement(
     def solve(chosen: list[int]) -> tuple[PnPResult | str, _Views]:
         views = _correspondences(chosen, pairs_of, structure_of, query_xy)
         pnp = solve_pnp(views.points_world, views.pixels, query_camera.K, reprojection_px=params.pnp_px,
-                        iterations=params.pnp_iterations, seed=params.seed, min_inliers=params.min_pnp_inliers)
+                        iterations=params.pnp_iterations, seed=params.seed, min_inliers=params.min_pnp_inliers,
+                        points_cov=views.points_cov)
         return pnp, views
 
     # 3. pose against the best views, then against views on both sides of it where the database has them
