@@ -48,7 +48,8 @@ import numpy as np
 from visloc.errors import InputError
 from visloc.features import Query
 from visloc.geometry import (CameraModel, PnPResult, essential_inliers, heading_deg_of, imu_east_north_covariance,
-                             imu_pose_from_camera, refine_pose, solve_pnp, triangulate_tracks)
+                             imu_pose_from_camera, refine_pose, solve_pnp)
+from visloc.multiview import triangulate_tracks
 from visloc.matching import correspondences
 from visloc.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
 from visloc.params import MatchParams, RefinedParams
