@@ -273,7 +273,8 @@ def render_diagnostics(diagnostics: dict, add) -> None:
         "fallbacks |")
     add("|---|---|---|---|---|---|")
     for drive, dg in diagnostics.items():
-        for key, v in dg["conditions"].items():
+        for key in [k for k in DIAGNOSTIC_LABELS if k in dg["conditions"]]:  # the digest's keys are sorted
+            v = dg["conditions"][key]
             e = v["error_m"]
             add(f"| {drive} | {DIAGNOSTIC_LABELS.get(key, key)} | {c(e['median'])} / {c(e['mean'])} / {c(e['p90'])} / "
                 f"{c(e['max'])} | {c(v['along_m_mean'], '+.2f')} | {c(v['abs_along_m_mean'])} / "
@@ -340,7 +341,8 @@ def render_page(d: dict) -> str:
                 a = r["measurement_error_all_steps_m"]
                 src = r["measurement_source_fraction"]
                 n_steps = r["n_series"] * len(r["steps"])
-                reasons = "; ".join(f"{k}: {v}" for k, v in (r["fallback_reasons"] or {}).items()) or "-"
+                reasons = "; ".join(f"{k}: {v}" for k, v in sorted((r["fallback_reasons"] or {}).items(),
+                                                                      key=lambda kv: (-kv[1], kv[0]))) or "-"
                 add(f"| {drive} | {setup['label']} | {mode} | {c(a['median'])} | {c(a['mean'])} | {c(a['p90'])} | "
                     f"{c(a['max'])} | {c(100 * src['geometry'], '.0f')} % | {c(100 * src['geotag'], '.0f')} % | "
                     f"{r['steps_without_measurement']} of {n_steps} | {reasons} |")

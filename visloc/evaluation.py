@@ -72,7 +72,8 @@ def series_schedule(timestamps_s: np.ndarray, dt_s: float, n_steps: int, samplin
 
 def _reason_kind(reason: str) -> str:
     """A fallback reason without its numbers, to count reasons of one kind together."""
-    return re.split(r"[:(\[\d]", reason, maxsplit=1)[0].strip() or reason
+    kind = re.sub(r"\[[^\]]*\]|\([^)]*\)|(?<![\w.-])-?\d+(\.\d+)?(?![\w-])", "#", reason)  # lists, (...), numbers
+    return re.sub(r"\s+", " ", kind).strip()
 
 
 @dataclass
