@@ -87,7 +87,7 @@ def main() -> int:
     cache = ws.pair_cache(db, queries, MatchParams())
     out = {"drive": folder.name, "camera": a.camera, "every": a.every, "conditions": {}}
     for track_name, track in tracks.items():
-        geometry = replace(db.geometry(), geotag_sigma_m=db.geotag_sigma_m)
+        geometry = db.geometry()
         geometry = replace(geometry, T_world_camera=geometry.T_world_camera.copy())
         geometry.T_world_camera[:, :2, 3] += (track - db.east_north_m)[:, :2]  # move each camera with its geotag
         for sides in (True, False):

@@ -286,15 +286,12 @@ def pose_measurement(
         return fallback(f"database image {verified[0][1]} has no attitude (re-run 'visloc ingest' to fill it)",
                         n_verified_inliers=best_inliers, candidate_inliers=inliers_of)
 
-    # 2. structure of every verified candidate that has allowed neighbours
+    # 2. the verified candidates that have allowed neighbours; a view's structure is built when it is chosen
     pairs_of, structure_of, neighbours_used = {}, {}, {}
     for i, pairs in candidates:
         neighbours = neighbours_of(i, retrieval.search_area, geometry.T_world_camera, params)
-        if not neighbours:
-            continue
-        structure_of[i], ms = view_structure(geometry, i, neighbours, params, cache)
-        spent["structure_ms"] += ms
-        pairs_of[i], neighbours_used[i] = pairs, neighbours
+        if neighbours:
+            pairs_of[i], neighbours_used[i] = pairs, neighbours
     usable = list(pairs_of)  # in inlier order
     base = dict(n_verified_inliers=best_inliers, candidate_inliers=inliers_of)
     if not usable:
@@ -302,11 +299,19 @@ def pose_measurement(
                         f"allowed and at least {params.min_baseline_m:g} m away (car stopped?)", **base)
 
     def solve(chosen: list[int]) -> tuple[PnPResult | str, _Views]:
+        for i in chosen:
+            if i not in structure_of:
+                structure_of[i], ms = view_structure(geometry, i, neighbours_used[i], params, cache)
+                spent["structure_ms"] += ms
         views = _correspondences(chosen, pairs_of, structure_of, query_xy)
         pnp = solve_pnp(views.points_world, views.pixels, query_camera.K, reprojection_px=params.pnp_px,
                         iterations=params.pnp_iterations, seed=params.seed, min_inliers=params.min_pnp_inliers,
                         points_cov=views.points_cov)
         return pnp, views
+
+    def describe(chosen: list[int], views: _Views) -> None:
+        base.update(view_indices=tuple(chosen), n_correspondences_3d=len(views.points_world),
+                    neighbour_indices=tuple(j for i in chosen for j in neighbours_used[i]))
 
     # 3. pose against the best views, then against views on both sides of it where the database has them
     chosen = usable[: params.n_views]
@@ -320,8 +325,7 @@ def pose_measurement(
                 balanced, balanced_views = solve(balanced_choice)
                 if not isinstance(balanced, str):
                     pnp, views, chosen = balanced, balanced_views, balanced_choice
-    base.update(view_indices=tuple(chosen), neighbour_indices=tuple(j for i in chosen for j in neighbours_used[i]),
-                n_correspondences_3d=len(views.points_world))
+    describe(chosen, views)
     if isinstance(pnp, str):
         return fallback(pnp, **base)
 
@@ -336,9 +340,7 @@ def pose_measurement(
             again, again_views = solve(kept)
             if not isinstance(again, str):
                 pnp, views, chosen = again, again_views, kept
-                base.update(view_indices=tuple(chosen),
-                            neighbour_indices=tuple(j for i in chosen for j in neighbours_used[i]),
-                            n_correspondences_3d=len(views.points_world))
+                describe(chosen, views)
                 per_view = _per_view_positions(pnp, views, query_camera, min_points)
     spread_m = _spread_m(list(per_view.values()))
     base.update(n_pnp_inliers=len(pnp.inliers))

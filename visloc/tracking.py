@@ -120,7 +120,7 @@ class ConstantVelocityKalman:
         self.params = params
         self.gate_chi2 = float(gate_chi2)  # 0: no gating
         self.reinit_after_gated = int(reinit_after_gated)  # 0: never re-initialise
-        self._gated: list[tuple[np.ndarray, np.ndarray]] = []  # consecutive gated measurements (z, R)
+        self._gated: list[np.ndarray] = []  # consecutive gated measurements (east_m, north_m)
         self.F = transition_matrix(params.dt_s)
         self.Q = process_noise(params.dt_s, params.accel_var_m2_s4)
         self.R = params.meas_var_m2 * np.eye(MEAS_DIM)
@@ -155,7 +155,7 @@ class ConstantVelocityKalman:
             return FilterStep(x_prior, P_prior, x_prior, P_prior, None)
         x, P, innovation = update(x_prior, P_prior, z, R)
         if self.gate_chi2 > 0 and innovation.mahalanobis**2 > self.gate_chi2:
-            self._gated.append((np.asarray(z, float).reshape(MEAS_DIM), R))
+            self._gated.append(np.asarray(z, float).reshape(MEAS_DIM))
             self.x, self.P = x_prior, P_prior
             return FilterStep(x_prior, P_prior, x_prior.copy(), P_prior.copy(), innovation, gated=True, R=R)
         self._gated = []
@@ -181,7 +181,7 @@ class ConstantVelocityKalman:
         z = np.asarray(z, float).reshape(MEAS_DIM)
         velocity = np.zeros(2)
         if self._gated and self.x is not None:
-            velocity = (z - self._gated[-1][0]) / self.params.dt_s
+            velocity = (z - self._gated[-1]) / self.params.dt_s
         x_prior = np.concatenate([z, velocity])
         P_prior = self.P0.copy()
         x, P, innovation = update(x_prior, P_prior, z, R)
