@@ -27,6 +27,10 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from visloc.errors import InputError  # noqa: E402
+from visloc.suite import drive_protocols, drives_of  # noqa: E402
+
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "out" / "results"
 DIGEST = REPO / "docs" / "results" / "digest.json"
@@ -43,23 +47,16 @@ VARIANTS = {  # the paper's mode, one change each: (label, extra flags)
 
 # -- run: the commands --------------------------------------------------------------------------
 
-def setups(drive_folder: Path) -> list[tuple[str, str, str, str]]:
-    """(key, label, query camera, database camera) of the camera setups a drive allows."""
-    gray = [c for c in ("image_00", "image_01") if (drive_folder / c / "data").is_dir()]
-    out = []
-    if gray == ["image_00", "image_01"]:
-        out.append(("stereo", "left queries, right database (the paper's)", "image_00", "image_01"))
-    for camera in reversed(gray) if len(gray) == 2 else gray:
-        side = "right" if camera == "image_01" else "left"
-        out.append((f"same_{camera}", f"{side} queries, {side} database (1 s exclusion)", camera, camera))
-    return out
-
-
 def run(data: Path) -> int:
     OUT.mkdir(parents=True, exist_ok=True)
-    drives = sorted(p for p in data.glob("*/*_drive_*_sync") if p.is_dir())
+    try:
+        drives = drives_of(data)
+    except InputError as exc:
+        drives, reason = [], str(exc)
+    else:
+        reason = f"{data}: no KITTI drives"
     if not drives:
-        print(f"results: {data}: no KITTI drives", file=sys.stderr)
+        print(f"results: {reason}", file=sys.stderr)
         return 2
     # paths as the commands are shown: relative to the checkout, where they run
     root = os.path.relpath(data, REPO)
@@ -85,7 +82,8 @@ def run(data: Path) -> int:
                                      "mode": row["mode"]})
     for folder in drives:
         drive = folder.name.removesuffix("_sync")
-        key, label, query, database = setups(folder)[0]
+        first = drive_protocols(folder)[0]  # the paper's setup where the drive has it
+        key, label, query, database = first.key, first.label, first.query_camera, first.db_camera
         for variant, (_, flags) in VARIANTS.items():
             name = f"{drive}_{key}_paper_{variant}"
             command(name, ["evaluate", root, "--drive", drive, "--query-camera", query, "--db-camera", database,

@@ -33,14 +33,18 @@ def tmp_store(tmp_path):
     store.close()
 
 
-@pytest.fixture(scope="session")
-def kitti_root() -> Path:
-    root = default_data_root()
-    drive = root / "2011_09_26" / (KITTI_DRIVE + "_sync")
+def require_drive(drive: Path) -> None:
+    """Fail in CI, skip elsewhere, when a shared KITTI drive folder is missing."""
     if not drive.is_dir():
         if os.environ.get("CI"):
             pytest.fail(f"{drive}: the KITTI drive must be present in CI")
         pytest.skip(f"{drive} not found")
+
+
+@pytest.fixture(scope="session")
+def kitti_root() -> Path:
+    root = default_data_root()
+    require_drive(root / "2011_09_26" / (KITTI_DRIVE + "_sync"))
     return root
 
 

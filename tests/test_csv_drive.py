@@ -7,7 +7,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import sqlite3
 import subprocess
 import sys
@@ -27,7 +26,7 @@ from visloc.features import extract_sift, undistort_keypoints
 from visloc.ingest import ingest
 from visloc.sources import load_gray, open_csv
 
-from conftest import REPO, run_cli, write_csv_drive
+from conftest import REPO, require_drive, run_cli, write_csv_drive
 
 DRIVE = "2011_09_26_drive_0005"
 KITTI_SOURCE = DRIVE + "_sync"
@@ -45,11 +44,7 @@ def export(root: Path, out_dir: Path, *args: str) -> subprocess.CompletedProcess
 
 @pytest.fixture(scope="module")
 def drive_0005(kitti_root) -> Path:
-    folder = kitti_root / "2011_09_26" / KITTI_SOURCE
-    if not folder.is_dir():
-        if os.environ.get("CI"):
-            pytest.fail(f"{folder}: the KITTI drive must be present in CI")
-        pytest.skip(f"{folder} not found")
+    require_drive(kitti_root / "2011_09_26" / KITTI_SOURCE)
     return kitti_root
 
 

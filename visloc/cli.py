@@ -50,10 +50,10 @@ def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
     g.add_argument("--init-var", type=float, default=f.init_var, help="P0 = this * I, m^2 and m^2/s^2 (default %(default)s)")
 
 
-def _add_mode(p: argparse.ArgumentParser) -> None:
+def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True) -> None:
     g = p.add_argument_group("method (paper: the paper's; refined: a metric pose from the database, see the README)")
-    # a plain string checked by commands.method_of, so a bad value is a one-line error naming --mode
-    g.add_argument("--mode", default="paper", help="paper or refined (default %(default)s)")
+    if choose_mode:  # a plain string checked by commands.method_of, so a bad value is a one-line error naming --mode
+        g.add_argument("--mode", default="paper", help="paper or refined (default %(default)s)")
     r = REFINED
     g.add_argument("--top-k", type=int, default=r.top_k,
                    help="refined: candidates re-ranked by essential-matrix inliers (default %(default)s)")
@@ -161,7 +161,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
     p.add_argument("--smooth", action="store_true", help="also run the RTS smoother over each series")
     _add_method(p, PAPER_EVAL_RETRIEVAL)
-    _add_mode(p)
+    _add_mode(p, choose_mode=False)
     _add_sift(p)
     p.set_defaults(func=commands.cmd_evaluate_drives)
 

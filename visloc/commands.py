@@ -153,6 +153,43 @@ def _start_indices(a: argparse.Namespace, query_seq: Sequence, schedule: list[li
     return wanted
 
 
+def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence, query_seq: Sequence,
+                      methods: list[Method], sift: SiftParams, *, wanted: set[int] | None = None, label: str = ""):
+    """Ingest both sources (skipping what is stored), evaluate each method on them, keep the counts.
+
+    Returns ([evaluation per method], database, queries). Counts are saved after every series: a stop
+    loses one at most. ``wanted``: only series starting at these query frames.
+    """
+    match, retrieval, filt = method_params(a)
+    for seq in {s.name: s for s in (db_seq, query_seq)}.values():
+        _ingest(ws, seq, sift, a.workers)
+    db = ws.load_database(db_seq.source, db_seq.camera, sift)
+    queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
+    starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
+    cache = ws.pair_cache(db, queries, match)  # counts earlier runs computed with the same tau1, tau2
+    results = []
+    for method in methods:
+        bar = progress_bar(f"{label}{method.name} series", "series")
+
+        def progress(done: int, total: int, bar=bar) -> None:
+            bar(done, total)
+            ws.save_pair_counts(cache)
+
+        try:
+            results.append(evaluate(queries, db, match, retrieval, filt, method=method, n_steps=a.steps,
+                                    sampling=a.sampling, start_indices=starts, cache=cache, progress=progress,
+                                    smooth=a.smooth))
+        finally:
+            ws.save_pair_counts(cache)
+    return results, db, queries
+
+
+def _summary(result, sift: SiftParams) -> dict:
+    summary = result.summary()
+    summary["params"]["sift"] = sift.as_dict()
+    return summary
+
+
 def cmd_evaluate(a: argparse.Namespace) -> int:
     sift = sift_params(a)
     match, retrieval, filt = method_params(a)
@@ -167,25 +204,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         raise InputError(f"{query_seq.name}: too short for {a.steps} queries {filt.dt_s} s apart")
     wanted = _start_indices(a, query_seq, schedule)
     ws = Workspace(a.db, create=True)
-    for seq in {s.name: s for s in (db_seq, query_seq)}.values():
-        _ingest(ws, seq, sift, a.workers)
-    db = ws.load_database(db_seq.source, db_seq.camera, sift)
-    queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
-    starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
-    cache = ws.pair_cache(db, queries, match)  # counts earlier runs computed with the same tau1, tau2
-    bar = progress_bar("series", "series")
-
-    def progress(done: int, total: int) -> None:  # counts are saved after every series: a stop loses one at most
-        bar(done, total)
-        ws.save_pair_counts(cache)
-
-    try:
-        result = evaluate(queries, db, match, retrieval, filt, method=method, n_steps=a.steps, sampling=a.sampling,
-                          start_indices=starts, cache=cache, progress=progress, smooth=a.smooth)
-    finally:
-        ws.save_pair_counts(cache)
-    summary = result.summary()
-    summary["params"]["sift"] = sift.as_dict()
+    [result], db, queries = _evaluate_sources(a, ws, db_seq, query_seq, [method], sift, wanted=wanted)
+    summary = _summary(result, sift)
     print(summary_text(summary))
     if a.json:
         write_json(a.json, evaluation_json(result, summary))
@@ -216,7 +236,7 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
         raise InputError(f"{root}: no KITTI drives (folders named *_drive_*_sync under a date folder)")
     out_dir.mkdir(exist_ok=True)
     ws = Workspace(a.db, create=True)
-    tables, everything, report = [], [], {"root": str(root), "drives": {}, "params": {
+    everything, report = [], {"root": str(root), "drives": {}, "params": {
         "match": match.as_dict(), "retrieval": retrieval.as_dict(), "filter": filt.as_dict(), "sift": sift.as_dict(),
         "methods": [m.as_dict() for m in methods], "steps": a.steps, "sampling": a.sampling}}
     for folder in folders:
@@ -225,25 +245,10 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
         for protocol in drive_protocols(folder):
             db_seq = open_source(root, drive=drive, camera=protocol.db_camera)
             query_seq = open_source(root, drive=drive, camera=protocol.query_camera)
-            for seq in {s.name: s for s in (db_seq, query_seq)}.values():
-                _ingest(ws, seq, sift, a.workers)
-            db = ws.load_database(db_seq.source, db_seq.camera, sift)
-            queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
-            cache = ws.pair_cache(db, queries, match)
-            for method in methods:
-                bar = progress_bar(f"{drive} {protocol.key} {method.name}", "series")
-
-                def progress(done: int, total: int, bar=bar, cache=cache) -> None:
-                    bar(done, total)
-                    ws.save_pair_counts(cache)
-
-                try:
-                    result = evaluate(queries, db, match, retrieval, filt, method=method, n_steps=a.steps,
-                                      sampling=a.sampling, cache=cache, progress=progress, smooth=a.smooth)
-                finally:
-                    ws.save_pair_counts(cache)
-                summary = result.summary()
-                summary["params"]["sift"] = sift.as_dict()
+            results, _, _ = _evaluate_sources(a, ws, db_seq, query_seq, methods, sift,
+                                              label=f"{drive} {protocol.key} ")
+            for method, result in zip(methods, results):
+                summary = _summary(result, sift)
                 name = f"{drive}_{protocol.key}_{method.name}"
                 write_json(out_dir / f"{name}.json", evaluation_json(result, summary))
                 row = {**protocol_row(result), "protocol": protocol.key, "protocol_label": protocol.label,
@@ -251,8 +256,7 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
                 report["drives"].setdefault(drive, []).append(row)
                 rows.append((f"{protocol.key} ({protocol.label[:11]}), {method.name}", row))
                 everything.append(result)
-        tables.append(table_text(f"{drive}", rows))
-        print(tables[-1] + "\n", flush=True)
+        print(table_text(drive, rows) + "\n", flush=True)
     report["pooled"] = pooled_rows(everything)
     print(table_text(f"pooled over {len(folders)} drive(s), every protocol",
                      [(f"all, {r['mode']}", r) for r in report["pooled"]]))
