@@ -320,3 +320,6 @@ def test_evaluate_drives_runs_every_drive_with_the_protocols_it_supports(tmp_pat
         assert name in result.stdout
     one_line_error(run_cli("evaluate-drives", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--out-dir", out,
                            "--modes", "best"), "--mode 'best': must be paper or refined")
+    (tmp_path / "a_file").write_text("")
+    one_line_error(run_cli("evaluate-drives", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--out-dir",
+                           tmp_path / "a_file"), "a_file: exists and is not a folder")
