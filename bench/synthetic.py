@@ -7,11 +7,12 @@ anchored within +-``VISIBLE_PLACES`` places of it, each with fresh noise, so
 neighbouring images share most landmarks and far ones share none. A query of
 place j is another noisy view of place j. Everything is seeded.
 
-``build_store`` writes the images in batches (features, geotags, and one VLAD+PCA
-vector per image from an encoder trained on the first batch), never holding more
-than one batch. ``lost_query`` then localizes a query from the store the way a
-first or lost query would: global vectors only in memory, a shortlist, and the
-shortlist's descriptors streamed from SQLite for the paper's exact counts.
+``build_store`` writes the images in batches (features, geotags, one VLAD+PCA
+vector per image from an encoder trained on the first batch, and a few stored 3D
+points per image, as ingest stores structure), never holding more than one batch.
+``lost_query`` then localizes a query from the store the way a first or lost query
+would: global vectors only in memory, a shortlist, the shortlist's descriptors
+streamed from SQLite for the paper's exact counts and its structure read for posing.
 """
 
 from __future__ import annotations
@@ -24,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from visloc.db import ImageRecord
+from visloc.db import ImageRecord, StructureRecord
 from visloc.matching import count_correspondences_with
 from visloc.params import PAPER_MATCH
 from visloc.vlad import GlobalEncoder, fit_pca, shortlist, train_codebook
@@ -34,6 +35,7 @@ LANDMARKS_PER_PLACE = 16
 VISIBLE_PLACES = 2
 SOURCE, CAMERA = "synthetic", "cam0"
 VECTORS_NAME = "vlad"
+STRUCTURE_SETTINGS = '{"synthetic": true}'
 LAT0_DEG, LON0_DEG = 49.0, 8.4
 METRES_PER_DEG_LON = 111_195.0 * np.cos(np.radians(LAT0_DEG))
 
@@ -56,11 +58,13 @@ class SyntheticSpec:
     descriptors_per_image: int = 64
     n_words: int = 32
     pca_dim: int = 128
+    structure_points: int = 16  # triangulated points stored per image (the camera-rate path's structure)
     seed: int = 0
 
     def key(self) -> dict:
         return {"n_images": self.n_images, "descriptors_per_image": self.descriptors_per_image,
-                "n_words": self.n_words, "pca_dim": self.pca_dim, "seed": self.seed}
+                "n_words": self.n_words, "pca_dim": self.pca_dim, "structure_points": self.structure_points,
+                "seed": self.seed}
 
 
 @lru_cache(maxsize=4096)  # consecutive images share landmarks: generate each place's once
@@ -95,6 +99,15 @@ def _record(place: int) -> ImageRecord:
                        lat_deg=LAT0_DEG, lon_deg=LON0_DEG + place / METRES_PER_DEG_LON)
 
 
+def _structure(image_id: int, place: int, spec: SyntheticSpec) -> StructureRecord:
+    """Points seen from ``place``: a few metres ahead of it, with a 10 cm standard deviation each."""
+    rng = np.random.default_rng([spec.seed, 4, place])
+    n = spec.structure_points
+    points = np.c_[place + rng.uniform(2, 30, n), rng.uniform(-10, 10, n), rng.uniform(-1, 4, n)]
+    return StructureRecord(image_id, "both", STRUCTURE_SETTINGS, (image_id - 1, image_id + 1),
+                           np.arange(n, dtype=np.int32), points, np.tile(0.01 * np.eye(3), (n, 1, 1)))
+
+
 def build_store(path: Path, spec: SyntheticSpec, *, batch_size: int = 2000, progress=None) -> float:
     """Write the synthetic database to ``path`` (reused when it already holds this spec). Returns seconds."""
     start = time.perf_counter()
@@ -120,12 +133,13 @@ def build_store(path: Path, spec: SyntheticSpec, *, batch_size: int = 2000, prog
         ws.add_images([(_record(p), keypoints[: len(d)], d) for p, d in zip(places, descs)])
         if progress:
             progress(len(descs))
-    # vectors in a second pass over the stored images, streamed in chunks
+    # vectors and structure in a second pass over the stored images, streamed in chunks
     image_ids = ws.image_ids(SOURCE, CAMERA)
     for first in range(0, image_ids.size, batch_size):
         chunk = image_ids[first : first + batch_size]
         vecs = np.stack([encoder.encode(d) for _, d in ws.iter_descriptors(chunk)])
         ws.add_global_vectors(VECTORS_NAME, chunk.tolist(), vecs)
+        ws.save_structure([_structure(int(i), first + k, spec) for k, i in enumerate(chunk)])
     ws.save_global_encoder(VECTORS_NAME, encoder)  # last: its presence marks a finished store
     ws.record_setting("synthetic", spec.key())
     return time.perf_counter() - start
@@ -152,9 +166,11 @@ def lost_query(path: Path, spec: SyntheticSpec, places: list[int], shortlist_siz
         counts = {int(i): count_correspondences_with("faiss", q, d, PAPER_MATCH)
                   for i, d in ws.iter_descriptors(short_ids.tolist())}
         best_id = max(counts, key=lambda i: (counts[i], -i))
+        structure = ws.stored_structure(short_ids.tolist(), STRUCTURE_SETTINGS)  # what posing the query reads next
         t_best = time.perf_counter()
+        n_points = sum(len(r.rows_i32) for r in structure.values())
         rows.append({"place": place, "shortlist_ms": (t_short - t) * 1000.0,
-                     "candidates_ms": (t_best - t) * 1000.0,
+                     "candidates_ms": (t_best - t) * 1000.0, "structure_points_read": n_points,
                      "shortlist_has_place": bool(any(abs(frame_of[int(i)] - place) <= 1 for i in short_ids)),
                      "best_error_m": float(abs(frame_of[best_id] - place))})
     ms = np.array([r["candidates_ms"] for r in rows])
@@ -166,6 +182,7 @@ def lost_query(path: Path, spec: SyntheticSpec, places: list[int], shortlist_siz
         "candidates_ms": {"p50": float(np.percentile(ms, 50)), "p95": float(np.percentile(ms, 95)),
                           "max": float(ms.max())},
         "shortlist_ms_p50": float(np.median([r["shortlist_ms"] for r in rows])),
+        "structure_points_read_p50": float(np.median([r["structure_points_read"] for r in rows])),
         "recall_shortlist": float(np.mean([r["shortlist_has_place"] for r in rows])),
         "best_within_1m": float(np.mean([r["best_error_m"] <= 1 for r in rows])),
         "peak_rss_after_load_mb": rss_after_load_mb,

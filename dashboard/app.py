@@ -194,11 +194,14 @@ class DashboardApp:
         def load(cancelled) -> None:
             d, q = by_name[db_name], by_name[q_name]
             db, queries = workspace.load_database(d.source, d.camera), workspace.load_queries(q.source, q.camera)
+            fast = visloc.REFINED_FAST_METHOD
+            stored, index = workspace.load_structure(db, fast.pose), workspace.load_database_index(db, fast.shortlist)
             with self._lock:
                 if cancelled() or s.loading_key != data_key:
                     return
                 s.db, s.queries, s.data_key, s.loading_key = db, queries, data_key, None
                 s.caches, s.structures, s.run, s.matching_key, s.step_key = {}, visloc.StructureCache(), None, None, None
+                s.stored, s.index = stored, index
                 duration_s = float(queries.timestamps_s[-1] - queries.timestamps_s[0])
                 self.gui.start.max = max(0.1, round(duration_s, 1))
                 if self.gui.start.value > self.gui.start.max:
@@ -242,8 +245,11 @@ class DashboardApp:
         def match_all(cancelled) -> None:
             started = time.perf_counter()
             try:
+                # the camera-rate path's gate follows the paper's filter at the query rate
                 matches = visloc.match_drive(queries, db, match, retrieval, indices, method=method, cache=cache,
-                                             progress=progress, cancelled=cancelled, structures=structures)
+                                             progress=progress, cancelled=cancelled, structures=structures,
+                                             stored=s.stored, shortlist_index=s.index,
+                                             filter_params=visloc.PAPER_FILTER.replace(dt_s=1.0 / c.rate_hz))
             except visloc.MatchCancelled:
                 return
             except visloc.VislocError as exc:

@@ -81,7 +81,8 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
     with gui.add_folder("Matching (re-matches in the background)"):
         mode = gui.add_dropdown("Mode", tuple(visloc.METHODS), initial_value=paper["mode"],
                                 hint="paper: the best match's geotag; refined: a metric pose from the "
-                                     "database's geometry (PnP), geotag as fallback")
+                                     "database's geometry (PnP), geotag as fallback; refined-fast: the same pose "
+                                     "at camera rate, on the structure stored at ingest (choose 10 Hz and Play)")
         tau1 = gui.add_slider("τ1 (Lowe ratio)", min=0.5, max=1.0, step=0.01, initial_value=paper["tau1"],
                               hint="Equation (1): d1²/d2² < τ1²")
         tau2 = gui.add_slider("τ2 (cosine)", min=0.8, max=1.0, step=0.005, initial_value=paper["tau2"],

@@ -78,6 +78,8 @@ class Shown:
     queries: visloc.QuerySet | None = None
     caches: dict[tuple[float, float], visloc.PairCountCache] = field(default_factory=dict)
     structures: visloc.StructureCache = field(default_factory=visloc.StructureCache)
+    stored: dict = field(default_factory=dict)  # the database's stored structure (the camera-rate path)
+    index: visloc.GlobalIndex | None = None  # its stored global vectors
     run: Run | None = None
     matching_key: tuple | None = None  # a match running in the background for these controls
     failed_key: tuple | None = None  # controls whose match failed: not tried again until they change

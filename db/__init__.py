@@ -3,7 +3,7 @@
 This package is the only place in the project that speaks SQL. It knows nothing
 about SIFT or Kalman filters: it stores numpy arrays and plain metadata and hands
 them back. ``store`` holds ``FeatureStore``, ``schema`` the tables and migrations,
-``records`` the plain records and errors.
+``records`` the plain records and errors, ``structures`` the table of triangulated points.
 """
 
 from visloc.db.records import (
@@ -14,9 +14,11 @@ from visloc.db.records import (
     SettingsMismatchError,
     StoredImage,
     StoreError,
+    StructureRecord,
 )
 from visloc.db.schema import SCHEMA_VERSION
 from visloc.db.store import FeatureStore
+from visloc.db.structures import StructureTable
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -28,4 +30,6 @@ __all__ = [
     "SettingsMismatchError",
     "StoreError",
     "StoredImage",
+    "StructureRecord",
+    "StructureTable",
 ]

@@ -69,3 +69,27 @@ class CameraRecord:
     width_px: int
     height_px: int
     T_camera_imu: np.ndarray | None = None  # (4, 4) float64, metres: X_camera = T_camera_imu @ X_imu
+
+
+@dataclass(frozen=True)
+class StructureRecord:
+    """One database image's triangulated points, as the store keeps them.
+
+    variant:        which neighbours it was triangulated with ("both", "before", "after")
+    params_json:    the settings that made it (JSON); structure made with other settings is not used
+    neighbour_ids:  image ids of those neighbours
+    rows_i32:       (M,) keypoint row of the image that observes each point
+    points_f64:     (M, 3) world points, metres (the engine's local frame of the image's source)
+    cov_f64:        (M, 3, 3) their covariances, m^2
+    reason:         why there are no points (no neighbour, no attitude, ...), None otherwise
+    """
+
+    image_id: int
+    variant: str
+    params_json: str
+    neighbour_ids: tuple[int, ...]
+    rows_i32: np.ndarray
+    points_f64: np.ndarray
+    cov_f64: np.ndarray
+    reason: str | None = None
+    build_ms: float = 0.0

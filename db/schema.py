@@ -2,7 +2,9 @@
 
 Schema versions: 1 had no attitudes and no camera extrinsics. Version 2 adds them as NULL
 columns (``ALTER TABLE ... ADD COLUMN``), every existing row and cached count kept. Version 3
-adds each image's stated geotag accuracy (``position_accuracy_m``) the same way.
+adds each image's stated geotag accuracy (``position_accuracy_m``) the same way. Version 4 adds
+the tables of database structure (``structures``) and of global vectors (``global_vectors``,
+``arrays``), which ``visloc ingest`` fills; every image and cached count is kept.
 """
 
 from __future__ import annotations
@@ -11,12 +13,13 @@ import datetime as _dt
 
 import sqlite_utils
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 # columns added by each version after the first: table -> (column, SQL type)
 MIGRATIONS = {
     2: [("images", "roll_rad", "REAL"), ("images", "pitch_rad", "REAL"), ("images", "yaw_rad", "REAL"),
         ("cameras", "t_camera_imu_json", "TEXT")],
     3: [("images", "position_accuracy_m", "REAL")],
+    4: [],
 }
 REQUIRED_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # pair_counts, a cache, is added when missing
 
@@ -32,6 +35,8 @@ def migrate(db: sqlite_utils.Database, version: int) -> None:
             for table, column, sql_type in MIGRATIONS[target]:
                 if column not in db[table].columns_dict:
                     db.execute(f"ALTER TABLE [{table}] ADD COLUMN [{column}] {sql_type}")
+        if version < 4:
+            _create_v4_tables(db)
         db.execute("UPDATE visloc_schema SET version = ?", [SCHEMA_VERSION])
 
 
@@ -74,6 +79,7 @@ def create_schema(db: sqlite_utils.Database) -> None:
             not_null={"source", "camera", "frame", "timestamp_s", "lat_deg", "lon_deg", "n_keypoints"},
         )
         create_pair_counts(db)
+        _create_v4_tables(db)
         db["images"].create_index(["source", "camera", "frame"], unique=True)
         db["images"].create_index(["source", "camera", "timestamp_s"])
 
@@ -84,6 +90,21 @@ def create_pair_counts(db: sqlite_utils.Database) -> None:
          "n_correspondences": int, "match_ms": float},
         pk=("query_image_id", "db_image_id", "tau1", "tau2"),
     )
+
+
+def _create_v4_tables(db: sqlite_utils.Database) -> None:
+    """Structure and global vectors (inside the caller's transaction)."""
+    if "structures" not in db.table_names():
+        db["structures"].create(
+            {"image_id": int, "variant": str, "params_json": str, "neighbour_ids_json": str, "n_points": int,
+             "rows_i32": bytes, "points_f64": bytes, "cov_f64": bytes, "reason": str, "build_ms": float,
+             "created_at": str},
+            pk=("image_id", "variant"),
+        )
+    if "global_vectors" not in db.table_names():
+        db["global_vectors"].create({"name": str, "image_id": int, "vector_f32": bytes}, pk=("name", "image_id"))
+    if "arrays" not in db.table_names():
+        db["arrays"].create({"key": str, "dtype": str, "shape_json": str, "data": bytes}, pk="key")
 
 
 def ensure_vector_tables(db: sqlite_utils.Database) -> None:

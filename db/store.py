@@ -20,10 +20,13 @@ Tables
                    (uint8, N x 128) as BLOBs.
 ``pair_counts``    a cache: correspondences between a query image and a database
                    image for given (tau1, tau2), and how long computing it took.
-``global_vectors`` optional (the fast path): one small float32 vector per image under
-                   a name (e.g. the VLAD encoder that made it), for a shortlist search
-                   that never loads the descriptors.
-``arrays``         optional: named numpy arrays (e.g. that encoder's codebook).
+``structures``     (since version 4) each database image's triangulated points: the
+                   keypoint rows that carry one, the points and their covariances, the
+                   neighbours and settings that made them (``visloc.db.structures``).
+``global_vectors`` (since version 4) one small float32 vector per image under a name
+                   (the VLAD encoder that made it), for a shortlist search that never
+                   loads the descriptors.
+``arrays``         named numpy arrays (e.g. that encoder's codebook).
 
 Writes happen in transactions (``FeatureStore.add_images`` commits a batch at
 once), the journal is in WAL mode, and an interrupted write rolls back: a store
@@ -340,6 +343,12 @@ class FeatureStore:
             self.db["global_vectors"].insert_all(
                 ({"name": name, "image_id": int(i), "vector_f32": row.tobytes()} for i, row in zip(image_ids, v)),
                 replace=True, batch_size=1000)
+
+    def stored_vector_ids(self, name: str) -> list[int]:
+        """Image ids that have a global vector under ``name``."""
+        if "global_vectors" not in self.db.table_names():
+            return []
+        return [r[0] for r in self.db.execute("SELECT image_id FROM global_vectors WHERE name = ?", [name])]
 
     def global_vectors(self, name: str) -> tuple[np.ndarray, np.ndarray]:
         """(image ids (N,) int64, vectors (N, D) float32) stored under ``name``, ordered by image id.

@@ -7,7 +7,8 @@
 ``run`` calls the ``visloc`` command as a user would: ``visloc evaluate-drives`` on the data root
 (default ../shared/data/kitti: every drive, each protocol it supports, both modes, the RTS
 smoother); ``visloc evaluate`` in the paper's mode again with other query sampling and process
-noise; ``visloc bench`` per drive; scripts/refined_diagnostics.py per drive; and
+noise; ``visloc bench`` per drive; ``visloc track`` per drive and setup; scripts/refined_diagnostics.py per
+drive; and
 scripts/paper_haversine_check.py. Every run writes its JSON to out/results/ and
 out/results/manifest.json records the commands. ``page`` reduces those JSON
 files to docs/results/digest.json (the numbers the page shows, with their commands) and renders
@@ -28,8 +29,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 from visloc.errors import InputError  # noqa: E402
 from visloc.suite import drive_protocols, drives_of  # noqa: E402
+from results_camera_rate import digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "out" / "results"
@@ -94,6 +97,13 @@ def run(data: Path) -> int:
         command(f"bench_{drive}", ["bench", root, "--drive", drive, "--db", str(store), "--fast-db",
                                    str(fast_store), *([] if n == 0 else ["--skip-synthetic"]), "--json",
                                    str(out / f"bench_{drive}.json")], kind="bench", drive=drive)
+    for folder in drives:  # every frame at camera rate, each setup the drive has, the 1 s exclusion on
+        drive = folder.name.removesuffix("_sync")
+        for p in drive_protocols(folder):
+            name = f"track_{drive}_{p.key}"
+            command(name, ["track", root, "--drive", drive, "--camera", p.query_camera, "--db-camera", p.db_camera,
+                           "--db", str(store), "--exclusion-s", "1", "--json", str(out / f"{name}.json")],
+                    kind="track", drive=drive, setup=p.key, setup_label=p.label)
     for folder in drives:
         drive = folder.name.removesuffix("_sync")
         name = f"diagnostics_{drive}"
@@ -157,9 +167,12 @@ def digest_bench(report: dict) -> dict:
                                         "ingest_over_bare", "ingest_over_bare_per_run")}
     if "scale" in report:
         sc = report["scale"]
-        out["scale"] = {k: sc[k] for k in ("n_images", "descriptors_per_image", "vector_dim", "shortlist_size",
-                                           "n_queries", "store_mb", "global_vectors_mb", "index_load_s",
-                                           "candidates_ms", "recall_shortlist", "best_within_1m", "peak_rss_mb")}
+        out["scale"] = {k: sc.get(k) for k in ("n_images", "descriptors_per_image", "vector_dim", "shortlist_size",
+                                               "n_queries", "store_mb", "global_vectors_mb", "index_load_s",
+                                               "candidates_ms", "recall_shortlist", "best_within_1m", "peak_rss_mb",
+                                               "structure_points_read_p50")}
+    if "refined_fast" in report:
+        out["refined_fast"] = digest_refined_fast(report["refined_fast"])
     return out
 
 
@@ -179,6 +192,10 @@ def page() -> int:
             continue
         if entry["kind"] == "bench":
             digest["bench"][entry["drive"]] = {"command": entry["command"], **digest_bench(report)}
+            continue
+        if entry["kind"] == "track":
+            digest.setdefault("tracks", {})[f"{entry['drive']}, {entry['setup_label']}"] = {
+                "command": entry["command"], **digest_track(report)}
             continue
         if entry["kind"] == "diagnostics":
             digest.setdefault("diagnostics", {})[entry["drive"]] = {
@@ -406,6 +423,7 @@ def render_page(d: dict) -> str:
             add(f"| {name}: swapped | " + " | ".join(c(v) for v in h[name]["swapped_m"]) + " |")
             add(f"| {name}: correct | " + " | ".join(c(v) for v in h[name]["correct_m"]) + " |")
         add("")
+    render_camera_rate(d, add)
     if d["bench"]:
         add("## Speed")
         add("")
@@ -452,7 +470,9 @@ def render_page(d: dict) -> str:
             if sc:
                 add("")
                 add(f"Scale (a synthetic database of {sc['n_images']} images, {sc['descriptors_per_image']} "
-                    f"descriptors each): a lost query finds its candidates in p50 {c(sc['candidates_ms']['p50'], '.0f')} "
+                    f"descriptors each, {c(sc.get('structure_points_read_p50'), '.0f')} stored 3D points read per "
+                    f"query): a lost query finds its candidates and reads their structure in p50 "
+                    f"{c(sc['candidates_ms']['p50'], '.0f')} "
                     f"ms, max {c(sc['candidates_ms']['max'], '.0f')} ms over {sc['n_queries']} queries (shortlist "
                     f"recall {c(sc['recall_shortlist'])}); the process peaks at {c(sc['peak_rss_mb'], '.0f')} MB "
                     f"against a {c(sc['store_mb'], '.0f')} MB store, with {c(sc['global_vectors_mb'], '.0f')} MB of "

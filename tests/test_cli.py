@@ -25,7 +25,7 @@ def one_line_error(result, *fragments):
 def test_every_command_and_option_has_help_text():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    assert set(sub.choices) == {"ingest", "localize", "evaluate", "evaluate-drives", "info", "dashboard", "bench"}
+    assert set(sub.choices) == {"ingest", "localize", "evaluate", "evaluate-drives", "info", "dashboard", "bench", "track"}
     for name, cmd in sub.choices.items():
         assert cmd.description, name
         for action in cmd._actions:
@@ -233,7 +233,7 @@ def test_damaged_store_file_is_a_one_line_error(synthetic, tmp_path):
 
 @pytest.mark.parametrize("command", ["localize", "evaluate"])
 @pytest.mark.parametrize("flag,value,name", [
-    ("--mode", "fancy", "--mode 'fancy': must be paper or refined"),
+    ("--mode", "fancy", "--mode 'fancy': must be one of paper, refined, refined-fast"),
     ("--top-k", "0", "top_k=0: must be an integer >= 1"),
     ("--gate-chi2", "-1", "gate_chi2=-1.0: must be >= 0"),
 ])
@@ -319,7 +319,7 @@ def test_evaluate_drives_runs_every_drive_with_the_protocols_it_supports(tmp_pat
     for name in ("2011_09_26_drive_0001", "2011_09_26_drive_0002", "pooled over 2 drive(s)"):
         assert name in result.stdout
     one_line_error(run_cli("evaluate-drives", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--out-dir", out,
-                           "--modes", "best"), "--mode 'best': must be paper or refined")
+                           "--modes", "best"), "--mode 'best': must be one of paper, refined, refined-fast")
     (tmp_path / "a_file").write_text("")
     one_line_error(run_cli("evaluate-drives", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--out-dir",
                            tmp_path / "a_file"), "a_file: exists and is not a folder")

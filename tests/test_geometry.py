@@ -17,7 +17,8 @@ from visloc.errors import InputError
 from visloc.features import Query
 from visloc.measurement import GEOMETRY, GEOTAG, geotag_measurement
 from visloc.params import FilterParams, RefinedParams
-from visloc.pose import DatabaseGeometry, PoseMeasurer, StructureCache, pose_measurement
+from visloc.pose import PoseMeasurer, StructureCache, pose_measurement
+from visloc.viewpose import DatabaseGeometry
 from visloc.retrieval import Retrieval
 from visloc.tracking import run_filter
 

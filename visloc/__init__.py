@@ -15,13 +15,16 @@ the small classes that hold a stage's state):
     measurement  what a retrieval tells the filter: the best match's geotag
     geometry     rigid transforms, essential matrix, triangulation, PnP
     pose         the refined measurement: a metric pose from the database's geometry
+    structure    database structure made once at ingest, per image and variant
+    viewpose     posing a query against views whose keypoints carry 3D points (both refined paths)
+    fastpose     the refined measurement at camera rate, on stored structure
     tracking     the constant-velocity Kalman filter, its gate, the RTS smoother
     localizer    a retriever, a measurer and the filter composed; ``methods``: the named compositions
     runs         the one query loop and what each query costs
 
 Around it: ``sources`` (KITTI drives, CSV drives), ``ingest`` and ``workspace`` (the store,
 ``visloc.db``, and the only door to it), ``database`` (what is loaded from it), ``evaluation``
-(the paper's protocol), ``drive`` (whole-drive runs), ``records`` and ``report`` (results and
+(the paper's protocol), ``drive`` (whole-drive runs), ``track`` (every frame at camera rate), ``records`` and ``report`` (results and
 their tables, JSON and plots), ``cli`` and ``commands`` (the ``visloc`` command), and the
 browser dashboard ``visloc.dashboard``.
 
@@ -42,7 +45,7 @@ from visloc.matching import (MatchCancelled, NearestTwo, PairCountCache, backend
                              cancellable, correspondence_mask, correspondences, count_correspondences, count_many,
                              nearest_two, nearest_two_faiss)
 from visloc.measurement import GEOMETRY, GEOTAG, GeotagMeasurer, Measurement, MemoisedMeasurer, geotag_measurement
-from visloc.methods import METHODS, PAPER_METHOD, REFINED_METHOD, Method, build_localizer, method_named
+from visloc.methods import METHODS, PAPER_METHOD, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
 from visloc.params import (
     FAST,
     PAPER_EVAL_RETRIEVAL,
@@ -57,13 +60,19 @@ from visloc.params import (
     RefinedParams,
     RetrievalParams,
     SiftParams,
+    TRACK,
+    TrackParams,
 )
-from visloc.pose import DatabaseGeometry, PoseMeasurer, StructureCache, pose_measurement
+from visloc.pose import PoseMeasurer, StructureCache, pose_measurement
+from visloc.viewpose import DatabaseGeometry
 from visloc.queries import extract_queries
 from visloc.records import RecordGeotags, StepRecord, record_geotags, step_record
 from visloc.retrieval import (Retrieval, ShortlistRetriever, WindowRetriever, build_global_index, candidate_mask,
                               gate_mask, retrieve, shortlist_retrieve)
 from visloc.runs import TimedStep, latency_ms, run_queries
+from visloc.fastpose import FastPoseMeasurer, StructureMatcher
+from visloc.structure import ViewStructure, choose_variant, view_structures
+from visloc.track import TrackFrame, TrackRun, run_track, track_filter, track_localizer
 from visloc.sources import Frame, Sequence, default_data_root, load_gray, open_csv, open_kitti, open_source
 from visloc.tracking import (ConstantVelocityKalman, FilterStep, SmoothedStep, covariance_ellipse_m, rts_smooth,
                              run_filter)
@@ -78,7 +87,7 @@ __all__ = [
     "load_gray", "open_csv", "open_kitti", "open_source",
     # parameters and methods
     "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",
-    "PAPER_SIFT", "REFINED", "REFINED_METHOD", "FastParams", "FilterParams", "MatchParams", "Method", "RefinedParams",
+    "PAPER_SIFT", "REFINED", "REFINED_FAST_METHOD", "REFINED_METHOD", "TRACK", "TrackParams", "FastParams", "FilterParams", "MatchParams", "Method", "RefinedParams",
     "RetrievalParams", "SiftParams", "method_named",
     # pipeline stages
     "Features", "Query", "extract_sift", "make_sift", "extract_queries",
@@ -91,13 +100,14 @@ __all__ = [
     "GEOMETRY", "GEOTAG", "GeotagMeasurer", "Measurement", "MemoisedMeasurer", "geotag_measurement",
     "CameraModel", "PnPResult", "Triangulation", "essential_inliers", "solve_pnp", "triangulate",
     "DatabaseGeometry", "PoseMeasurer", "StructureCache", "pose_measurement",
+    "FastPoseMeasurer", "StructureMatcher", "ViewStructure", "choose_variant", "view_structures",
     "ConstantVelocityKalman", "FilterStep", "SmoothedStep", "covariance_ellipse_m", "rts_smooth", "run_filter",
     "Localizer", "StepResult", "StepTimings", "build_localizer",
     "TimedStep", "latency_ms", "run_queries",
     # runs and results
     "DriveMatches", "Evaluation", "RecordGeotags", "StepRecord", "drive_query_indices", "drive_summary", "evaluate",
     "filter_measurements", "match_drive", "record_geotags", "series_schedule", "step_labels", "step_record",
-    "track_drive",
+    "track_drive", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
     # geodesy, figures, errors
     "LocalFrame", "geodesic_distance_m", "haversine_distance_m", "correspondence_figure",
     "InputError", "ParameterError", "VislocError",

@@ -1,4 +1,4 @@
-"""The ``visloc`` command line: ingest, localize, evaluate, dashboard, bench, info.
+"""The ``visloc`` command line: ingest, localize, evaluate, evaluate-drives, track, dashboard, bench, info.
 
 This module only parses; ``visloc.commands`` does the work. Errors in input or
 parameters end the command with one line on stderr naming the file or parameter, and
@@ -16,7 +16,8 @@ from pathlib import Path
 from visloc import commands
 from visloc.db import StoreError
 from visloc.errors import VislocError
-from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, RetrievalParams
+from visloc.params import (PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK,
+                           RetrievalParams)
 
 DEFAULT_DB = "visloc.sqlite"
 
@@ -53,7 +54,9 @@ def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
 def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True) -> None:
     g = p.add_argument_group("method (paper: the paper's; refined: a metric pose from the database, see the README)")
     if choose_mode:  # a plain string checked by commands.method_of, so a bad value is a one-line error naming --mode
-        g.add_argument("--mode", default="paper", help="paper or refined (default %(default)s)")
+        g.add_argument("--mode", default="paper",
+                       help="paper, refined or refined-fast (the camera-rate refined path on the store's structure) "
+                            "(default %(default)s)")
     r = REFINED
     g.add_argument("--top-k", type=int, default=r.top_k,
                    help="refined: candidates re-ranked by essential-matrix inliers (default %(default)s)")
@@ -198,8 +201,53 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--synthetic-queries", type=int, default=20, help="lost queries on it (default %(default)s)")
     p.add_argument("--skip-synthetic", action="store_true", help="leave out the synthetic database test")
     p.add_argument("--skip-accuracy", action="store_true", help="leave out the accuracy over every series")
+    p.add_argument("--refined-stride", type=int, default=2,
+                   help="refined paths: time every stride-th frame of the drive with each (default %(default)s)")
+    p.add_argument("--skip-refined", action="store_true", help="leave out the exact and camera-rate refined paths")
     p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
     p.set_defaults(func=commands.cmd_bench)
+
+    t = TRACK
+    p = sub.add_parser("track", help="localize every frame of a drive in order, at the camera's rate",
+                       description="Localize every frame of a drive in order, as a vehicle would: SIFT, retrieval, "
+                                   "the refined measurement and the filter (its time step the frame interval). By "
+                                   "default the camera-rate path: the database's stored structure and global "
+                                   "vectors, the filter's gate, matching against 3D points only. Ingests the "
+                                   "database camera into --db first when the store lacks it. Prints latency per "
+                                   "frame, sustained rate and errors against the frames' geotags.",
+                       epilog="example: visloc track ../shared/data/kitti --drive 2011_09_26_drive_0005 "
+                              "--camera image_00 --db out/visloc.sqlite --exclusion-s 1 --json out/track.json")
+    _add_source(p, "camera of the frames", "image_00")
+    _add_db(p)
+    p.add_argument("--db-camera", default=None, help="database camera in the store (default: --camera)")
+    p.add_argument("--db-source", default=None, help="database drive/dataset in the store (default: the frames' drive)")
+    p.add_argument("--exact", action="store_true",
+                   help="the exact refined path (the paper's retrieval, every candidate verified; seconds per frame)")
+    p.add_argument("--exclusion-s", type=float, default=t.exclusion_s,
+                   help="ignore database images closer in time to the frame than this, s; use about 1 when the "
+                        "database is the frames' own camera (default %(default)s: off)")
+    p.add_argument("--stride", type=int, default=t.stride, help="localize every stride-th frame (default %(default)s)")
+    p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: the whole drive)")
+    p.add_argument("--query-scale", type=float, default=t.query_image_scale,
+                   help="camera-rate path: SIFT image scale of the frames, in [0.1, 1] (default %(default)s)")
+    p.add_argument("--shortlist", type=int, default=t.shortlist_size,
+                   help="camera-rate path: candidates matched per frame (default %(default)s)")
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--json", type=Path, default=None, help="write the summary and every frame as JSON")
+    f = PAPER_FILTER
+    g = p.add_argument_group("filter and refined method")
+    g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2,
+                   help="R for a frame whose pose fails and falls back to a geotag, m^2 (default %(default).1f)")
+    g.add_argument("--accel-var-m2-s4", type=float, default=f.accel_var_m2_s4,
+                   help="Q: white acceleration variance, m^2/s^4 (default %(default)s)")
+    g.add_argument("--init-var", type=float, default=f.init_var, help="P0 = this * I (default %(default)s)")
+    g.add_argument("--geotag-sigma-m", type=float, default=REFINED.geotag_sigma_m,
+                   help="accuracy assumed for database geotags whose source states none, m (default %(default)s)")
+    g.add_argument("--gate-chi2", type=float, default=REFINED.gate_chi2,
+                   help="Mahalanobis gate, 2 dof; 0 = off (default %(default)s)")
+    g.add_argument("--seed", type=int, default=REFINED.seed, help="RANSAC seed (default %(default)s)")
+    _add_sift(p)
+    p.set_defaults(func=commands.cmd_track)
 
     p = sub.add_parser("info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)
@@ -213,7 +261,7 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
-    for name in ("steps", "workers", "limit"):
+    for name in ("steps", "workers", "limit", "frames"):
         value = getattr(args, name, None)
         if value is not None and value < 1:
             print(f"visloc: error: --{name} {value}: must be >= 1", file=sys.stderr)

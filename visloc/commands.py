@@ -16,14 +16,15 @@ from tqdm import tqdm
 from visloc.bench.run import BenchParams, run_bench
 from visloc.errors import InputError, ParameterError
 from visloc.evaluation import evaluate, series_schedule
-from visloc.methods import Method, build_localizer, method_named
-from visloc.params import FAST, REFINED, FilterParams, MatchParams, RetrievalParams, SiftParams
+from visloc.methods import METHODS, Method, build_localizer, method_named
+from visloc.params import FAST, REFINED, FilterParams, MatchParams, RetrievalParams, SiftParams, TrackParams
 from visloc.queries import extract_queries
 from visloc.records import step_record
 from visloc.report import evaluation_json, record_json, save_error_plot, series_tables, summary_text, write_json
 from visloc.runs import run_queries
 from visloc.sources import Sequence, default_data_root, open_source
 from visloc.suite import drive_protocols, drives_of, pooled_rows, protocol_row, table_text
+from visloc.track import run_track, track_filter, track_localizer
 from visloc.workspace import Workspace
 
 
@@ -48,13 +49,21 @@ def method_of(a: argparse.Namespace, mode: str | None = None) -> Method:
     try:
         method = method_named(name)
     except ParameterError:
-        raise InputError(f"--mode {name!r}: must be paper or refined") from None
+        raise InputError(f"--mode {name!r}: must be one of {', '.join(METHODS)}") from None
     if method.pose is not None:
-        method = method.replace(pose=REFINED.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m,
-                                                     gate_chi2=a.gate_chi2, seed=a.seed))
+        method = method.replace(pose=method.pose.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m,
+                                                         gate_chi2=a.gate_chi2, seed=a.seed))
     else:  # the refined flags are still checked, so a bad value is refused in either mode
         REFINED.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
-    return method.replace(shortlist=FAST) if getattr(a, "fast", False) else method
+    return method.replace(shortlist=FAST) if getattr(a, "fast", False) and not method.camera_rate else method
+
+
+def stored_for(ws: Workspace, db, method: Method) -> dict:
+    """What the camera-rate method reads from the store (nothing for the others)."""
+    if not method.camera_rate:
+        return {}
+    return {"stored": ws.load_structure(db, method.pose),
+            "shortlist_index": ws.load_database_index(db, method.shortlist)}
 
 
 def progress_bar(desc: str, unit: str) -> Callable[[int, int], None]:
@@ -73,7 +82,8 @@ def progress_bar(desc: str, unit: str) -> Callable[[int, int], None]:
 
 
 def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, workers: int | None, limit: int | None = None):
-    return ws.ingest(seq, sift, workers=workers, limit=limit, progress=progress_bar(f"SIFT {seq.name}", "img"))
+    return ws.ingest(seq, sift, workers=workers, limit=limit, progress=progress_bar(f"SIFT {seq.name}", "img"),
+                     structure_progress=progress_bar(f"structure {seq.name}", "img"))
 
 
 def _check_output_folder(path: Path | None, flag: str) -> None:
@@ -118,7 +128,8 @@ def cmd_localize(a: argparse.Namespace) -> int:
         raise InputError(f"--start-frame {a.start_frame}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
                          f"{times[-1] - times[start]:.1f} s left of {seq.name}")
     indices = [start + i for i in schedule[0]]
-    localizer = build_localizer(method, db, match, retrieval, filt, query_camera=seq.camera_model, query_what=seq.name)
+    localizer = build_localizer(method, db, match, retrieval, filt, query_camera=seq.camera_model, query_what=seq.name,
+                                **stored_for(ws, db, method))
     steps = run_queries(localizer, extract_queries(seq, indices, sift))
     records = [step_record(k, s.result, db, query_frame=seq.frames[i].frame, truth_lat_deg=seq.frames[i].lat_deg,
                            truth_lon_deg=seq.frames[i].lon_deg, latency_ms=s.latency_ms, keep_counts=True,
@@ -178,7 +189,7 @@ def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence, qu
         try:
             results.append(evaluate(queries, db, match, retrieval, filt, method=method, n_steps=a.steps,
                                     sampling=a.sampling, start_indices=starts, cache=cache, progress=progress,
-                                    smooth=a.smooth))
+                                    smooth=a.smooth, **stored_for(ws, db, method)))
         finally:
             ws.save_pair_counts(cache)
     return results, db, queries
@@ -279,7 +290,8 @@ def cmd_bench(a: argparse.Namespace) -> int:
     params = BenchParams(series=a.series, shortlist_size=a.shortlist, fast_scale=a.fast_scale,
                          ingest_images=a.ingest_images, workers=a.workers, synthetic_images=a.synthetic_images,
                          synthetic_descriptors=a.synthetic_descriptors, synthetic_queries=a.synthetic_queries,
-                         skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy)
+                         skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy,
+                         refined_stride=a.refined_stride, skip_refined=a.skip_refined)
     _check_output_folder(a.json, "--json")
     for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
         _check_output_folder(Path(path), flag)
@@ -289,6 +301,53 @@ def cmd_bench(a: argparse.Namespace) -> int:
         write_json(a.json, result)
         print(f"wrote {a.json}")
     return 0
+
+
+def cmd_track(a: argparse.Namespace) -> int:
+    sift = sift_params(a)
+    params = TrackParams(fast=not a.exact, query_image_scale=a.query_scale, shortlist_size=a.shortlist,
+                         exclusion_s=a.exclusion_s, stride=a.stride)
+    pose = REFINED.replace(geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
+    _check_output_folder(a.json, "--json")
+    if a.json is not None and Path(a.json).is_dir():
+        raise InputError(f"--json {a.json}: is a folder")
+    seq = open_source(a.source, drive=a.drive, camera=a.camera)
+    db_camera = a.db_camera or seq.camera  # a CSV drive names its own camera
+    filt = track_filter(seq, params, FilterParams(meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4,
+                                                  init_var=a.init_var))
+    indices = list(range(0, len(seq), params.stride))
+    if a.frames is not None:
+        indices = indices[: a.frames]
+    ws = Workspace(a.db, create=True)
+    if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
+        _ingest(ws, open_source(a.source, drive=a.drive, camera=db_camera), sift, a.workers)
+    db = ws.load_database(ws.database_source(seq.source, db_camera, a.db_source), db_camera, sift)
+    localizer, query_sift = track_localizer(ws, db, seq.camera_model, filt, params, pose, query_what=seq.name)
+    run = run_track(localizer, seq, query_sift, db, params, indices=indices,
+                    progress=progress_bar(f"track {seq.name}", "frame"))
+    print(track_text(run.summary()))
+    if a.json:
+        write_json(a.json, run.as_json())
+        print(f"wrote {a.json}")
+    return 0
+
+
+def track_text(s: dict) -> str:
+    """The summary of a track run, for the terminal."""
+    lat, st, e, m, g = s["latency_ms"], s["stages_ms"], s["error_m"], s["measurement_error_m"], \
+        s["geometry_measurement_error_m"]
+    geometry = f"{100 * s['geometry_fraction']:.0f}% of frames measured by geometry"
+    return "\n".join([
+        f"{s['queries']} against {s['database']}: {s['frames']} frames, refined {s['path']} path, exclusion "
+        f"{s['params']['track']['exclusion_s']:g} s",
+        f"latency per frame (ms): p50 {lat['p50']:.0f}, p95 {lat['p95']:.0f}, max {lat['max']:.0f}   (median SIFT "
+        f"{st['sift_ms']:.0f}, retrieval {st['retrieval_ms']:.0f}, geometry {st['geometry_ms']:.0f}, filter "
+        f"{st['filter_ms']:.1f})",
+        f"sustained {s['sustained_hz']:.1f} frames/s over {s['wall_s']:.1f} s of wall time",
+        f"estimate error (m): mean {e['mean']:.3f}, median {e['median']:.3f}, p90 {e['p90']:.3f}, max {e['max']:.3f}",
+        f"measurement error (m): mean {m['mean']:.3f}, median {m['median']:.3f}, p90 {m['p90']:.3f}, "
+        f"max {m['max']:.3f}; {geometry}" + (f" (their mean {g['mean']:.3f})" if g["n"] else ""),
+    ])
 
 
 def cmd_info(a: argparse.Namespace) -> int:

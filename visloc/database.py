@@ -10,7 +10,7 @@ from visloc.db import CameraRecord, StoredImage
 from visloc.features import Query
 from visloc.geo import LocalFrame
 from visloc.geometry import CameraModel, imu_poses, invert
-from visloc.pose import DatabaseGeometry
+from visloc.viewpose import DatabaseGeometry
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from visloc.records import StepRecord, step_record
 from visloc.retrieval import Retrieval
 from visloc.runs import run_queries
 from visloc.tracking import FilterStep, run_filter
+from visloc.vlad import GlobalIndex
 
 
 def drive_query_indices(timestamps_s: np.ndarray, start_s: float, interval_s: float) -> np.ndarray:
@@ -73,22 +74,27 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
                 query_indices: Sequence[int], *, method: Method = PAPER_METHOD,
                 cache: PairCountCache | None = None, progress: Callable[[int, int], None] | None = None,
                 cancelled: Callable[[], bool] | None = None, structures: StructureCache | None = None,
-                filter_params: FilterParams = FilterParams()) -> DriveMatches:
+                filter_params: FilterParams = FilterParams(), stored: dict | None = None,
+                shortlist_index: GlobalIndex | None = None) -> DriveMatches:
     """Retrieve and measure every query in ``query_indices``, in order, with ``method``.
 
     ``progress(done, total)`` is called after each query; ``cancelled()`` is polled between
     small groups of candidate pairs and raises ``MatchCancelled`` when true. Counts computed so
     far stay in ``cache`` either way; database structure built by the refined method stays in
-    ``structures``. ``filter_params`` only matter to a retrieval the filter gates (the fast one).
+    ``structures``. ``filter_params`` only matter to a retrieval the filter gates (the fast ones).
+    ``stored`` and ``shortlist_index``: the database's stored structure and global vectors, which the
+    camera-rate method uses (``Workspace.load_structure``, ``Workspace.load_database_index``).
     """
     cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
     cache.check_thresholds(match_params)
     localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
                                 query_camera=queries.camera_model,
                                 query_what=queries.name,
-                                counter=cancellable(cache, cancelled), structures=structures)
+                                counter=cancellable(cache, cancelled), structures=structures, stored=stored,
+                                shortlist_index=shortlist_index)
     indices = np.asarray(query_indices, np.int64)
-    steps = run_queries(localizer, (queries.query(int(q)) for q in indices), cache=cache, cancelled=cancelled,
+    steps = run_queries(localizer, (queries.query(int(q)) for q in indices),
+                        cache=None if method.camera_rate else cache, cancelled=cancelled,
                         progress=(lambda done: progress(done, len(indices))) if progress else None)
     return DriveMatches(indices, tuple(s.result.retrieval for s in steps),
                         tuple(s.result.measurement for s in steps), match_params, retrieval_params, method,

@@ -189,6 +189,7 @@ def evaluate(
     progress: Callable[[int, int], None] | None = None,
     smooth: bool = False,
     shortlist_index: GlobalIndex | None = None,
+    stored: dict | None = None,
 ) -> Evaluation:
     """Run every series (or those starting at ``start_indices``, indices into ``queries``) with ``method``.
 
@@ -201,7 +202,8 @@ def evaluate(
     attitudes; the triangulation of database structure is database-side work, done once per
     database pair and not part of any query's latency (``structure_build_ms``). ``smooth`` adds
     the RTS smoother's estimates of every step of each series. ``progress(done, total)`` is told
-    of each series done.
+    of each series done. ``stored``: the database's stored structure, which the camera-rate method needs
+    (``Workspace.load_structure``).
     """
     schedule = series_schedule(queries.timestamps_s, filter_params.dt_s, n_steps, sampling)
     if start_indices is not None:
@@ -211,11 +213,13 @@ def evaluate(
     structures = StructureCache()
     localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
                                 query_camera=queries.camera_model, query_what=queries.name,
-                                counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True)
+                                counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True,
+                                stored=stored)
+    latency_cache = None if method.camera_rate else cache  # the camera-rate path counts without the cache
     series = []
     for done, indices in enumerate(schedule, 1):
         localizer.reset()
-        steps = run_queries(localizer, [queries.query(q) for q in indices], cache=cache)
+        steps = run_queries(localizer, [queries.query(q) for q in indices], cache=latency_cache)
         smoothed = (rts_smooth([s.result.filter for s in steps], filter_params.dt_s) if smooth
                     else [None] * len(steps))
         series.append([step_record(k, s.result, db, query_frame=int(queries.frames[q]),

@@ -234,9 +234,12 @@ def solve_pnp(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, *, rep
     if len(X) < max(min_inliers, 6):
         return f"only {len(X)} 2D-3D correspondences (need {max(min_inliers, 6)})"
     cv2.setRNGSeed(int(seed))
-    ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, x, K, None, iterationsCount=int(iterations),
-                                                 reprojectionError=float(reprojection_px), confidence=confidence,
-                                                 flags=cv2.SOLVEPNP_SQPNP)
+    try:
+        ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, x, K, None, iterationsCount=int(iterations),
+                                                     reprojectionError=float(reprojection_px), confidence=confidence,
+                                                     flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:  # SQPnP asserts on degenerate samples (points nearly coincident)
+        return "PnP RANSAC: degenerate points"
     if not ok or inliers is None:
         return "PnP RANSAC found no pose"
     inliers = inliers.ravel()

@@ -11,6 +11,8 @@ method       retriever                               measurer
 ``paper``    +-window_s around the previous match    the best match's geotag, the filter's R
 ``refined``  the same                                a metric pose from the database's geometry,
                                                      its own covariance; the filter gates outliers
+``refined-`` the filter's gate, a global-vector       the same pose on the database's stored
+``fast``     shortlist, matches to 3D points only     structure (``visloc.fastpose``): camera rate
 ===========  ======================================  ============================================
 
 Either can take the fast retrieval (``method.replace(shortlist=FAST)``): the filter's gate,
@@ -22,12 +24,13 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 from visloc.database import GeoDatabase
-from visloc.errors import ParameterError
+from visloc.errors import InputError, ParameterError
+from visloc.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.geometry import CameraModel
 from visloc.localizer import Localizer
 from visloc.matching import Counter, PairCountCache, backend_counter, brute_force_counter
 from visloc.measurement import GeotagMeasurer, MemoisedMeasurer
-from visloc.params import REFINED, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
+from visloc.params import FAST, REFINED, TRACK, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
 from visloc.pose import PoseMeasurer, StructureCache
 from visloc.retrieval import ShortlistRetriever, WindowRetriever, build_global_index
 from visloc.vlad import GlobalIndex
@@ -43,15 +46,22 @@ class Method:
                 and the filter skips measurements beyond ``pose.gate_chi2``.
     shortlist:  None: the paper's retrieval. ``FastParams``: the fast retrieval (filter gate,
                 global-vector shortlist, exact counts on the shortlist).
+    camera_rate: the camera-rate refined path (needs ``pose`` and ``shortlist``): candidates counted
+                by their matches to the database's stored structure, posed on it
+                (``visloc.fastpose``); ``min_matches`` a candidate needs to be posed against.
     """
 
     name: str
     pose: RefinedParams | None = None
     shortlist: FastParams | None = None
+    camera_rate: bool = False
+    min_matches: int = 20
 
     def __post_init__(self) -> None:
         if not (isinstance(self.name, str) and self.name):
             raise ParameterError(f"name={self.name!r}: a method needs a name")
+        if self.camera_rate and (self.pose is None or self.shortlist is None):
+            raise ParameterError(f"{self.name}: the camera-rate path needs refined and shortlist parameters")
 
     @property
     def measures_pose(self) -> bool:
@@ -75,12 +85,17 @@ class Method:
 
     def as_dict(self) -> dict:
         return {"name": self.name, "pose": None if self.pose is None else self.pose.as_dict(),
-                "shortlist": None if self.shortlist is None else self.shortlist.as_dict()}
+                "shortlist": None if self.shortlist is None else self.shortlist.as_dict(),
+                "camera_rate": self.camera_rate, "min_matches": self.min_matches}
 
 
 PAPER_METHOD = Method("paper")
 REFINED_METHOD = Method("refined", pose=REFINED)
-METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD)}
+REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=TRACK.pnp_px),
+                             shortlist=FAST.replace(shortlist_size=TRACK.shortlist_size,
+                                                    lost_shortlist_size=TRACK.lost_shortlist_size), camera_rate=True,
+                             min_matches=TRACK.min_matches)
+METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD, REFINED_FAST_METHOD)}
 
 
 def method_named(name: str) -> Method:
@@ -94,7 +109,7 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
                     filter_params: FilterParams, *, query_camera: CameraModel | None = None,
                     query_what: str = "the query camera", counter: Counter | None = None,
                     shortlist_index: GlobalIndex | None = None, structures: StructureCache | None = None,
-                    memoise: bool = False) -> Localizer:
+                    stored: dict | None = None, memoise: bool = False) -> Localizer:
     """The localizer ``method`` describes, over ``db``.
 
     query_camera:     the query camera's calibration (the refined method needs it); ``query_what``
@@ -103,8 +118,13 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
                       runs); default: computed afresh for every candidate
     shortlist_index:  the fast retrieval's global vectors of ``db``, if built already
     structures:       database structure triangulated by earlier refined measurements, to reuse
+    stored:           the database's stored structure (``Workspace.load_structure``): the camera-rate
+                      path needs it; it counts with it and ignores ``counter``
     memoise:          measure a query (by its key) with the same retrieval only once
     """
+    if method.camera_rate:
+        return _camera_rate_localizer(method, db, retrieval, filter_params, query_camera, query_what,
+                                      shortlist_index, stored)
     if isinstance(counter, PairCountCache):
         counter.check_thresholds(match)
     if method.shortlist is None:
@@ -121,5 +141,21 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
                                 query_what=query_what)
     if memoise:
         measurer = MemoisedMeasurer(measurer)
+    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
+                     reinit_after_gated=method.reinit_after_gated)
+
+
+def _camera_rate_localizer(method: Method, db: GeoDatabase, retrieval: RetrievalParams, filter_params: FilterParams,
+                           query_camera: CameraModel | None, query_what: str, shortlist_index: GlobalIndex | None,
+                           stored: dict | None) -> Localizer:
+    if not stored:
+        raise InputError(f"the camera-rate path needs the stored structure of {db.source}/{db.camera}: run "
+                         "'visloc ingest' on it (the database needs calibrated cameras and attitudes)")
+    index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
+    matcher = StructureMatcher(db.descriptors_u8, stored, method.pose.ratio)
+    retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, matcher, retrieval)
+    measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, db.geometry(), stored, matcher, query_camera,
+                                method.pose, exclusion_s=retrieval.exclusion_s, min_matches=method.min_matches,
+                                query_what=query_what)
     return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
                      reinit_after_gated=method.reinit_after_gated)

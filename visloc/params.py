@@ -254,6 +254,8 @@ class FastParams(_Params):
     gate_sigmas:        gate radius in standard deviations of the predicted position (largest axis)
     gate_min_radius_m:  the gate is never narrower than this, metres
     shortlist_size:     candidates matched exactly, the most similar by global vector (0 = all in the gate)
+    lost_shortlist_size: the same for a query without a usable gate (first query, lost track, empty
+                        gate), which searches every allowed image; 0: ``shortlist_size``
     nn_backend:         exact nearest-two search: "batched" (every shortlisted image in one GEMM),
                         "faiss" or "gemm" (numpy float32 GEMM per image, the paper path's)
     n_words:            k-means words of the VLAD codebook
@@ -265,6 +267,7 @@ class FastParams(_Params):
     gate_sigmas: float = 3.0
     gate_min_radius_m: float = 20.0
     shortlist_size: int = 8
+    lost_shortlist_size: int = 0
     nn_backend: str = "batched"
     n_words: int = 32
     pca_dim: int = 0
@@ -274,7 +277,7 @@ class FastParams(_Params):
     def __post_init__(self) -> None:
         _check("gate_sigmas", self.gate_sigmas, self.gate_sigmas > 0, "> 0")
         _check("gate_min_radius_m", self.gate_min_radius_m, self.gate_min_radius_m >= 0, ">= 0")
-        for name, low in (("shortlist_size", 0), ("n_words", 1), ("pca_dim", 0), ("train_descriptors", 1),
+        for name, low in (("shortlist_size", 0), ("lost_shortlist_size", 0), ("n_words", 1), ("pca_dim", 0), ("train_descriptors", 1),
                           ("seed", 0)):
             v = getattr(self, name)
             _check(name, v, isinstance(v, int) and not isinstance(v, bool) and v >= low, f"an integer >= {low}")
@@ -283,3 +286,47 @@ class FastParams(_Params):
 
 
 FAST = FastParams()
+
+
+@dataclass(frozen=True)
+class TrackParams(_Params):
+    """A continuous run: every frame of a drive in order, at the camera's rate.
+
+    fast:              True: the camera-rate refined path (``visloc.fastpose``: stored structure, the
+                       filter's gate, a global-vector shortlist, matching against 3D points only).
+                       False: the exact refined path (the paper's retrieval, every candidate verified)
+    query_image_scale: fast path: SIFT runs on the query image resized by this factor (the database
+                       keeps its own, full-resolution features and structure)
+    shortlist_size:    fast path: candidates matched per frame, the most similar by global vector
+                       inside the filter's gate
+    lost_shortlist_size: fast path: the same for a frame without a usable gate (the first frame, a lost
+                       track), which looks at every allowed image
+    min_matches:       fast path: a candidate needs this many matches to its 3D points to be posed against
+    pnp_px:            fast path: PnP inlier threshold, pixels (keypoints found at a reduced scale are
+                       less precise than the exact path's)
+    exclusion_s:       database images closer in time to the frame than this are not used (0: off; use
+                       it when the database is the queries' own camera)
+    stride:            localize every stride-th frame (1: every frame); the filter's time step follows
+    """
+
+    fast: bool = True
+    query_image_scale: float = 0.75
+    shortlist_size: int = 4
+    lost_shortlist_size: int = 16
+    min_matches: int = 20
+    pnp_px: float = 3.0
+    exclusion_s: float = 0.0
+    stride: int = 1
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.fast, bool):
+            raise ParameterError(f"fast={self.fast!r}: must be True or False")
+        _check("query_image_scale", self.query_image_scale, 0.1 <= self.query_image_scale <= 1, "in [0.1, 1]")
+        for name, low in (("shortlist_size", 1), ("lost_shortlist_size", 1), ("min_matches", 6), ("stride", 1)):
+            v = getattr(self, name)
+            _check(name, v, isinstance(v, int) and not isinstance(v, bool) and v >= low, f"an integer >= {low}")
+        _check("pnp_px", self.pnp_px, self.pnp_px > 0, "> 0")
+        _check("exclusion_s", self.exclusion_s, self.exclusion_s >= 0, ">= 0")
+
+
+TRACK = TrackParams()

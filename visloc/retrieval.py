@@ -10,7 +10,7 @@ Two retrievers give the same ``Retrieval``:
   position); their global vectors (``visloc.vlad``) shortlist the ``shortlist_size`` most
   similar, and only those are counted exactly. A first query, a lost track (no
   prediction) or a gate in which no candidate has a correspondence widens to every
-  allowed image.
+  allowed image (and a shortlist of ``lost_shortlist_size``).
 
 In both, images closer in time to the query than ``exclusion_s`` are removed. The best
 match is the candidate with the most correspondences; ties go to the earliest candidate,
@@ -103,18 +103,19 @@ def shortlist_retrieve(query_vector_f32: np.ndarray, counts_of: CountFn, db_time
     """
     allowed = candidate_mask(db_timestamps_s, query_timestamp_s, None, retrieval_params)
 
-    def search(area: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        chosen = shortlist(db_vectors_f32, query_vector_f32, params.shortlist_size, among=np.flatnonzero(area))
+    def search(area: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+        chosen = shortlist(db_vectors_f32, query_vector_f32, size, among=np.flatnonzero(area))
         counts = np.asarray(counts_of(chosen), np.int64) if chosen.size else np.zeros(0, np.int64)
         return chosen, counts
 
+    lost_size = params.lost_shortlist_size or params.shortlist_size
     gated = prediction is not None and bool(np.all(np.isfinite(prediction[0])))
     area = allowed & gate_mask(db_east_north_m, prediction[0], prediction[1], params) if gated else allowed
-    chosen, counts = search(area)
+    chosen, counts = search(area, params.shortlist_size if gated else lost_size)
     widened = False
     if gated and (counts.size == 0 or counts.max() == 0):
         widened, area = True, allowed
-        chosen, counts = search(area)
+        chosen, counts = search(area, lost_size)
     best = None
     if counts.size and counts.max() > 0:
         best = int(chosen[counts == counts.max()].min())  # ties go to the earliest image, as in the paper's path

@@ -17,14 +17,16 @@ from pathlib import Path
 import numpy as np
 
 from visloc.database import GeoDatabase, QuerySet
-from visloc.db import EmptyStoreError, FeatureStore, ImageRecord, StoredImage, StoreError
+from visloc.db import EmptyStoreError, FeatureStore, ImageRecord, StoredImage, StoreError, StructureRecord, StructureTable
 from visloc.errors import InputError
 from visloc.geo import LocalFrame
 from visloc.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.matching import PairCountCache
-from visloc.params import MatchParams, SiftParams
+from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
+from visloc.pose import StructureCache
 from visloc.sources import Sequence
-from visloc.vlad import GlobalEncoder, GlobalIndex
+from visloc.structure import VARIANTS, ViewStructure, structure_settings_json, view_structures
+from visloc.vlad import GlobalEncoder, GlobalIndex, train_encoder
 
 
 @dataclass(frozen=True)
@@ -119,12 +121,112 @@ class Workspace:
             return len(store.stored_frames(source, camera))
 
     def ingest(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None, limit: int | None = None,
-               progress: Callable[[int, int], None] | None = None) -> IngestReport:
-        """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``); resumable."""
+               progress: Callable[[int, int], None] | None = None,
+               structure_progress: Callable[[int, int], None] | None = None) -> IngestReport:
+        """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``), then its
+        global vectors and its structure (``build_global_vectors``, ``build_structure``); resumable."""
         with self._store(create=True) as store:
             report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit)
             self._sift = stored_sift_params(store)
+        if self.stored_frame_count(sequence.source, sequence.camera):
+            self.build_global_vectors(sequence.source, sequence.camera)
+            self.build_structure(sequence.source, sequence.camera, progress=structure_progress)
         return report
+
+    def build_structure(self, source: str, camera: str, params: RefinedParams = REFINED,
+                        progress: Callable[[int, int], None] | None = None) -> int:
+        """Triangulate every image of (source, camera) the store holds no structure for (made with
+        ``params``' structure settings), each variant of ``visloc.structure``, committing image by
+        image: an interrupted build resumes. Nothing to do without calibration and attitudes.
+        Returns the images built."""
+        settings = structure_settings_json(params)
+        ids = self.image_ids(source, camera)
+        with self._store() as store:
+            done = StructureTable(store).complete_ids(ids.tolist(), settings, len(VARIANTS))
+        if len(done) == len(ids):
+            return 0
+        db = self.load_database(source, camera)
+        geometry = db.geometry()
+        if geometry.camera is None:
+            return 0
+        ids_of = [im.image_id for im in db.images]
+        todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
+        for n, k in enumerate(todo, 1):
+            records = [StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
+                                       s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
+                       for s in view_structures(geometry, k, params, StructureCache())]
+            with self._store() as store:
+                StructureTable(store).add(records)
+            if progress:
+                progress(n, len(todo))
+        return len(todo)
+
+    def load_structure(self, db: GeoDatabase, params: RefinedParams = REFINED,
+                       views: list[int] | None = None) -> dict[int, dict[str, ViewStructure]]:
+        """Stored structure of ``db``'s images (or of the database indices ``views``): database index ->
+        variant -> structure, neighbours as database indices. Images without stored structure are absent."""
+        index_of = {im.image_id: k for k, im in enumerate(db.images)}
+        wanted = range(len(db.images)) if views is None else views
+        with self._store() as store:
+            records = StructureTable(store).get([db.images[k].image_id for k in wanted], structure_settings_json(params))
+        out: dict[int, dict[str, ViewStructure]] = {}
+        for (image_id, variant), r in records.items():
+            if any(j not in index_of for j in r.neighbour_ids):
+                continue
+            k = index_of[image_id]
+            out.setdefault(k, {})[variant] = ViewStructure(
+                k, variant, tuple(index_of[j] for j in r.neighbour_ids), r.rows_i32.astype(np.int64), r.points_f64,
+                r.cov_f64, r.reason, r.build_ms)
+        return out
+
+    def save_structure(self, records: list[StructureRecord]) -> None:
+        """Keep structure made elsewhere (e.g. a synthetic database), in one transaction."""
+        with self._store() as store:
+            StructureTable(store).add(records)
+
+    def stored_structure(self, image_ids: list[int], settings_json: str) -> dict[tuple[int, str], StructureRecord]:
+        """(image id, variant) -> the stored record, for ``image_ids`` only (large databases read what they pose)."""
+        with self._store() as store:
+            return StructureTable(store).get(image_ids, settings_json)
+
+    def structure_summary(self) -> dict[str, int]:
+        with self._store() as store:
+            return StructureTable(store).summary()
+
+    def build_global_vectors(self, source: str, camera: str, params: FastParams = FAST) -> int:
+        """Train the global-vector encoder of (source, camera) if the store has none, and encode every image
+        that lacks a vector; returns how many were encoded. Images added later are encoded with the
+        encoder trained first."""
+        name = global_vectors_name(source, camera, params)
+        ids = self.image_ids(source, camera)
+        with self._store() as store:
+            have = set(store.stored_vector_ids(name))
+        todo = [int(i) for i in ids if int(i) not in have]
+        if not todo:
+            return 0
+        if self.has_global_index(name):
+            encoder = self.load_global_encoder(name)
+        else:
+            with self._store() as store:
+                descriptors = [d for _, d in store.iter_descriptors(ids.tolist())]
+            encoder = train_encoder(descriptors, params.n_words, params.pca_dim, params.train_descriptors, params.seed)
+            self.save_global_encoder(name, encoder)
+        for start in range(0, len(todo), 256):
+            chunk = todo[start : start + 256]
+            self.add_global_vectors(name, chunk, np.stack([encoder.encode(d) for _, d in self.iter_descriptors(chunk)]))
+        return len(todo)
+
+    def load_database_index(self, db: GeoDatabase, params: FastParams = FAST) -> GlobalIndex | None:
+        """The stored global vectors of ``db``'s images in its order, or None when any image lacks one."""
+        name = global_vectors_name(db.source, db.camera, params)
+        if not self.has_global_index(name):
+            return None
+        ids, index = self.load_global_index(name)
+        row_of = {int(i): r for r, i in enumerate(ids)}
+        rows = [row_of.get(im.image_id) for im in db.images]
+        if any(r is None for r in rows):
+            return None
+        return GlobalIndex(index.encoder, index.vectors_f32[rows])
 
     # -- loading it ----------------------------------------------------------------------------
 
@@ -247,6 +349,11 @@ class Workspace:
         with self._store() as store:
             return store.get_array(f"{name}_codebook") is not None
 
+    def load_global_encoder(self, name: str) -> GlobalEncoder:
+        with self._store() as store:
+            return GlobalEncoder(store.get_array(f"{name}_codebook"), store.get_array(f"{name}_pca_mean"),
+                                 store.get_array(f"{name}_pca_basis"))
+
     def load_global_index(self, name: str) -> tuple[np.ndarray, GlobalIndex]:
         """(image ids (N,), the index) of the global vectors called ``name``, in image id order."""
         with self._store() as store:
@@ -256,6 +363,12 @@ class Workspace:
             encoder = GlobalEncoder(codebook, store.get_array(f"{name}_pca_mean"), store.get_array(f"{name}_pca_basis"))
             ids, vectors = store.global_vectors(name)
         return ids, GlobalIndex(encoder, vectors)
+
+
+def global_vectors_name(source: str, camera: str, params: FastParams) -> str:
+    """The name a store keeps (source, camera)'s global vectors under, for the encoder ``params`` describe."""
+    return (f"vlad:{source}/{camera}:words={params.n_words},pca={params.pca_dim},"
+            f"train={params.train_descriptors},seed={params.seed}")
 
 
 def _sigmas(images: tuple[StoredImage, ...]) -> np.ndarray:

@@ -1,0 +1,78 @@
+"""The ``structures`` table: each database image's triangulated points (schema version 4).
+
+One row per (image, variant): the keypoint rows that carry a 3D point, the points and their
+covariances as BLOBs, the neighbours they were triangulated with and the settings that made
+them. A row with no points says why (``reason``), so an interrupted build resumes where it
+stopped and never redoes an image.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Sequence
+
+import numpy as np
+
+from visloc.db.records import StructureRecord
+from visloc.db.schema import now_iso
+from visloc.db.store import FeatureStore
+
+
+class StructureTable:
+    """Structure rows of one open ``FeatureStore``."""
+
+    def __init__(self, store: FeatureStore):
+        self.db = store.db
+
+    def complete_ids(self, image_ids: Iterable[int], params_json: str, n_variants: int) -> set[int]:
+        """Those of ``image_ids`` whose every variant is stored with settings ``params_json``."""
+        ids = [int(i) for i in image_ids]
+        done: set[int] = set()
+        for start in range(0, len(ids), 500):
+            chunk = ids[start : start + 500]
+            marks = ",".join("?" * len(chunk))
+            rows = self.db.execute(
+                f"SELECT image_id FROM structures WHERE params_json = ? AND image_id IN ({marks}) "
+                "GROUP BY image_id HAVING count(*) = ?", [params_json, *chunk, n_variants])
+            done.update(int(r[0]) for r in rows)
+        return done
+
+    def add(self, records: Sequence[StructureRecord]) -> None:
+        """Store ``records`` in one transaction, replacing rows of the same image and variant."""
+        rows = [{
+            "image_id": int(r.image_id), "variant": r.variant, "params_json": r.params_json,
+            "neighbour_ids_json": json.dumps([int(i) for i in r.neighbour_ids]), "n_points": int(len(r.rows_i32)),
+            "rows_i32": np.ascontiguousarray(r.rows_i32, np.int32).tobytes(),
+            "points_f64": np.ascontiguousarray(r.points_f64, np.float64).tobytes(),
+            "cov_f64": np.ascontiguousarray(r.cov_f64, np.float64).tobytes(),
+            "reason": r.reason, "build_ms": float(r.build_ms), "created_at": now_iso(),
+        } for r in records]
+        if rows:
+            with self.db.atomic():
+                self.db["structures"].insert_all(rows, replace=True)
+
+    def get(self, image_ids: Iterable[int], params_json: str) -> dict[tuple[int, str], StructureRecord]:
+        """(image id, variant) -> record, for ``image_ids`` with settings ``params_json``."""
+        ids = [int(i) for i in image_ids]
+        out: dict[tuple[int, str], StructureRecord] = {}
+        for start in range(0, len(ids), 500):
+            chunk = ids[start : start + 500]
+            marks = ",".join("?" * len(chunk))
+            for r in self.db.query(
+                "SELECT image_id, variant, neighbour_ids_json, n_points, rows_i32, points_f64, cov_f64, reason, "
+                f"build_ms FROM structures WHERE params_json = ? AND image_id IN ({marks})", [params_json, *chunk]
+            ):
+                n = r["n_points"]
+                out[(r["image_id"], r["variant"])] = StructureRecord(
+                    image_id=r["image_id"], variant=r["variant"], params_json=params_json,
+                    neighbour_ids=tuple(json.loads(r["neighbour_ids_json"])),
+                    rows_i32=np.frombuffer(r["rows_i32"], np.int32).copy(),
+                    points_f64=np.frombuffer(r["points_f64"], np.float64).reshape(n, 3).copy(),
+                    cov_f64=np.frombuffer(r["cov_f64"], np.float64).reshape(n, 3, 3).copy(),
+                    reason=r["reason"], build_ms=r["build_ms"] or 0.0)
+        return out
+
+    def summary(self) -> dict[str, int]:
+        """Rows and points stored, over every image and variant."""
+        rows, points = self.db.execute("SELECT count(*), coalesce(sum(n_points), 0) FROM structures").fetchone()
+        return {"rows": int(rows), "points": int(points)}

@@ -1,0 +1,84 @@
+"""The camera-rate part of the results page: ``visloc track`` per drive and setup, and the bench's
+``refined_fast`` section (used by scripts/results.py)."""
+
+from __future__ import annotations
+
+
+def digest_track(report: dict) -> dict:
+    """A ``visloc track`` JSON without its per-frame rows."""
+    return {k: v for k, v in report.items() if k != "per_frame"}
+
+
+def digest_refined_fast(section: dict) -> dict:
+    out = {k: section[k] for k in ("queries", "database", "stride", "exclusion_s", "frames", "latency_ms",
+                                   "stages_ms", "speed_ratio_exact_over_fast", "final_error_m")}
+    for path in ("exact", "fast"):
+        out[path] = {k: v for k, v in section[path].items() if k not in ("per_frame", "params")}
+    return out
+
+
+def _c(value, fmt: str = ".2f") -> str:
+    return "-" if value is None else format(value, fmt)
+
+
+def render_camera_rate(d: dict, add) -> None:
+    """The "Camera rate" section: every track run, then the bench's exact-against-fast comparison."""
+    tracks, bench = d.get("tracks") or {}, {k: v["refined_fast"] for k, v in d.get("bench", {}).items()
+                                            if v.get("refined_fast")}
+    if not tracks and not bench:
+        return
+    add("## Camera rate")
+    add("")
+    add("`visloc track` localizes every frame of a drive in order, as a vehicle would, on the camera-rate path "
+        "(the database's stored structure and global vectors, the filter's gate, SIFT at half scale on the frame). "
+        "Latency per frame counts SIFT from the decoded image, retrieval, geometry and the filter; the sustained "
+        "rate is frames per second of wall time over the whole run, reading included. Errors are against each "
+        "frame's own geotag. The 1 s exclusion window is on in every run (a same-camera database would otherwise "
+        "give a frame its own image).")
+    add("")
+    if tracks:
+        add("| drive / setup | frames | latency p50 / p95 / max (ms) | SIFT / retrieval / geometry p50 (ms) | "
+            "sustained (frames/s) | estimate error mean / median / p90 / max (m) | measurement error mean / median "
+            "(m) | posed by geometry |")
+        add("|---|---|---|---|---|---|---|---|")
+        for name, t in tracks.items():
+            lat, st, e, m = t["latency_ms"], t["stages_ms"], t["error_m"], t["measurement_error_m"]
+            add(f"| {name} | {t['frames']} | {_c(lat['p50'], '.0f')} / {_c(lat['p95'], '.0f')} / "
+                f"{_c(lat['max'], '.0f')} | {_c(st['sift_ms'], '.0f')} / {_c(st['retrieval_ms'], '.0f')} / "
+                f"{_c(st['geometry_ms'], '.0f')} | {_c(t['sustained_hz'], '.1f')} | {_c(e['mean'], '.3f')} / "
+                f"{_c(e['median'], '.3f')} / {_c(e['p90'], '.3f')} / {_c(e['max'], '.3f')} | {_c(m['mean'], '.3f')} / "
+                f"{_c(m['median'], '.3f')} | {_c(100 * t['geometry_fraction'], '.0f')} % |")
+        add("")
+        for name, t in tracks.items():
+            add(f"- {name}: `{t['command']}`")
+        add("")
+    if bench:
+        add("`visloc bench` runs the exact refined path (the paper's retrieval, every candidate verified, "
+            "full-resolution SIFT) and the camera-rate path on the same frames of each drive, one after the other in "
+            "one process, both as `visloc track` runs them. The speed ratio is per frame, exact over fast.")
+        add("")
+        add("| drive | frames (every n-th) | exact: latency p50 / p95 (ms) | camera-rate: latency p50 / p95 (ms) | "
+            "speed ratio median (min-max) | estimate error mean, exact -> camera-rate (m) | measurement error mean, "
+            "exact -> camera-rate (m) | posed by geometry, exact -> camera-rate |")
+        add("|---|---|---|---|---|---|---|---|")
+        for drive, b in bench.items():
+            ex, fa, r = b["exact"], b["fast"], b["speed_ratio_exact_over_fast"]
+            add(f"| {drive}: {b['queries'].split('/')[-1]} against {b['database'].split('/')[-1]} | {b['frames']} "
+                f"({b['stride']}) | {_c(ex['latency_ms']['p50'], '.0f')} / {_c(ex['latency_ms']['p95'], '.0f')} | "
+                f"{_c(fa['latency_ms']['p50'], '.0f')} / {_c(fa['latency_ms']['p95'], '.0f')} | "
+                f"{_c(r['p50'], '.0f')}x ({_c(r['min'], '.0f')}-{_c(r['max'], '.0f')}x) | "
+                f"{_c(b['final_error_m']['exact'], '.3f')} -> {_c(b['final_error_m']['fast'], '.3f')} | "
+                f"{_c(ex['measurement_error_m']['mean'], '.3f')} -> {_c(fa['measurement_error_m']['mean'], '.3f')} | "
+                f"{_c(100 * ex['geometry_fraction'], '.0f')} % -> {_c(100 * fa['geometry_fraction'], '.0f')} % |")
+        add("")
+        add("Targets (each drive): camera-rate latency p50 at most 100 ms and p95 at most 150 ms; at least 20x faster "
+            "than the exact path; mean estimate error within 10 % (or 2 cm, whichever is larger) of the exact "
+            "path's.")
+        add("")
+        for drive, b in d["bench"].items():
+            targets = {k: v for k, v in (b.get("targets") or {}).items() if k.startswith("refined_fast")}
+            if targets:
+                add(f"- {drive}: " + "; ".join(f"{k.removeprefix('refined_fast_')} "
+                                               f"{'met' if v['met'] else 'NOT met'} ({v['value']})"
+                                               for k, v in targets.items()))
+        add("")

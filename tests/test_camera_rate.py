@@ -1,0 +1,232 @@
+"""The camera-rate refined path: structure and global vectors stored at ingest, the fast measurement,
+the store migration, and ``visloc track`` run as a user runs it (on the first frames of drive 0005)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import sqlite3
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import REPO, require_drive, run_cli, write_csv_drive
+from visloc.fastpose import FastPoseMeasurer, StructureMatcher
+from visloc.params import PAPER_MATCH, REFINED
+from visloc.pose import pose_measurement
+from visloc.queries import extract_queries
+from visloc.retrieval import Retrieval
+from visloc.sources import open_source
+from visloc.structure import VARIANTS, ViewStructure, choose_variant, view_structures
+from visloc.matching import count_correspondences
+from visloc.workspace import Workspace
+
+DRIVE = "2011_09_26_drive_0005"
+SOURCE = DRIVE + "_sync"
+N_FRAMES = 40
+
+
+@pytest.fixture(scope="module")
+def store(kitti_root, tmp_path_factory) -> Path:
+    """The first 40 frames of drive 0005's image_00, ingested with the CLI (features, global vectors, structure)."""
+    require_drive(kitti_root / "2011_09_26" / SOURCE)
+    path = tmp_path_factory.mktemp("camera_rate") / "store.sqlite"
+    result = run_cli("ingest", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", path,
+                     "--limit", N_FRAMES, "--workers", "2", timeout=900)
+    assert result.returncode == 0, result.stderr
+    return path
+
+
+def test_stored_structure_equals_structure_computed_afresh(store):
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    stored = ws.load_structure(db)
+    geometry = db.geometry()
+    assert sorted(stored) == list(range(N_FRAMES))
+    n_points = 0
+    for k in range(N_FRAMES):
+        assert set(stored[k]) == set(VARIANTS)
+        for fresh in view_structures(geometry, k, REFINED):
+            got = stored[k][fresh.variant]
+            assert got.neighbours == fresh.neighbours and got.reason == fresh.reason
+            np.testing.assert_array_equal(got.rows, fresh.rows)
+            np.testing.assert_array_equal(got.points_world, fresh.points_world)  # bit for bit
+            np.testing.assert_array_equal(got.cov_world, fresh.cov_world)
+            n_points += len(got)
+    assert n_points > 50 * N_FRAMES  # real structure, not empty rows
+
+
+def test_stored_global_vectors_are_the_stored_encoders_vectors(store):
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    index = ws.load_database_index(db)
+    assert index is not None and index.vectors_f32.shape[0] == N_FRAMES
+    np.testing.assert_array_equal(index.vectors_f32, index.encoder.encode_many(db.descriptors_u8))
+
+
+def _exact_and_fast(store: Path, query_frame: int):
+    """The exact refined measurement of one query against every image, and the fast measurer given the
+    same candidates in the exact path's verified order with the exact path's matches."""
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    seq = open_source(None, drive=DRIVE, camera="image_00")
+    # the frame described at half scale: other descriptors than the stored ones, the same place
+    (query,) = extract_queries(seq, [query_frame], ws.sift_params.replace(image_scale=0.5))
+    candidates = np.arange(len(db))
+    counts = np.array([count_correspondences(query.descriptors_u8, d, PAPER_MATCH) for d in db.descriptors_u8])
+    retrieval = Retrieval(candidates, counts, int(candidates[np.argmax(counts)]))
+    geometry = db.geometry()
+    exact = pose_measurement(query.keypoints_f32, query.descriptors_u8, retrieval, db.east_north_m, geometry,
+                             seq.camera_model, REFINED)
+    rank = {int(i): r for r, i in enumerate(np.argsort(-counts, kind="stable"))}
+    verified = sorted(exact.candidate_inliers.items(), key=lambda kv: (-kv[1], rank[kv[0]]))
+    structures = ws.load_structure(db)
+    matcher = StructureMatcher(db.descriptors_u8, structures, REFINED.ratio, against="image")
+    fast_candidates = np.array([i for i, _ in verified])
+    matcher(query.descriptors_u8)(fast_candidates)
+    fast_retrieval = Retrieval(fast_candidates, np.array([n for _, n in verified]), int(fast_candidates[0]))
+    measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, geometry, structures, matcher, seq.camera_model,
+                                REFINED, min_matches=REFINED.min_verified_inliers)
+    return exact, measurer.measure(query, fast_retrieval)
+
+
+@pytest.mark.parametrize("query_frame", [14, 26])
+def test_the_fast_measurement_equals_the_exact_one_on_the_same_candidates(store, query_frame):
+    exact, fast = _exact_and_fast(store, query_frame)
+    assert exact.source == fast.source == "geometry", (exact.fallback_reason, fast.fallback_reason)
+    assert fast.view_indices == exact.view_indices and fast.neighbour_indices == exact.neighbour_indices
+    np.testing.assert_array_equal(fast.east_north_m, exact.east_north_m)
+    np.testing.assert_array_equal(fast.cov_m2, exact.cov_m2)
+    assert fast.n_pnp_inliers == exact.n_pnp_inliers
+
+
+def test_variants_keep_the_excluded_images_out_of_the_structure():
+    def structure(variant: str, neighbours: tuple[int, ...]) -> ViewStructure:
+        return ViewStructure(10, variant, neighbours, np.array([0]), np.zeros((1, 3)), np.zeros((1, 3, 3)))
+
+    variants = {"both": structure("both", (8, 12)), "before": structure("before", (8, 6)),
+                "after": structure("after", (12, 14))}
+    allowed = np.ones(20, bool)
+    assert choose_variant(variants, allowed, query_after_view=True).variant == "both"
+    allowed[12:16] = False  # a query at frame 13, 1 s exclusion: the view's later neighbours are out
+    assert choose_variant(variants, allowed, query_after_view=True).variant == "before"
+    allowed[:] = True
+    allowed[7:9] = False  # a query before the view: its earlier neighbours are out
+    assert choose_variant(variants, allowed, query_after_view=False).variant == "after"
+    allowed[:] = False
+    assert choose_variant(variants, allowed, query_after_view=False) is None
+
+
+def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_structure(store, tmp_path):
+    path = tmp_path / "v3.sqlite"
+    shutil.copy(store, path)
+    conn = sqlite3.connect(path)
+    conn.execute("INSERT INTO pair_counts VALUES (1, 2, 0.8, 0.97, 42, 3.5)")
+    for table in ("structures", "global_vectors", "arrays"):  # what schema version 3 had not
+        conn.execute(f"DROP TABLE {table}")
+    conn.execute("UPDATE visloc_schema SET version = 3")
+    conn.commit()
+    before = conn.execute("SELECT * FROM images ORDER BY id").fetchall()
+    counts = conn.execute("SELECT * FROM pair_counts ORDER BY query_image_id, db_image_id").fetchall()
+    conn.close()
+    ws = Workspace(path)  # migrated in place
+    db = ws.load_database(SOURCE, "image_00")
+    assert ws.load_structure(db) == {} and ws.load_database_index(db) is None
+    # what ingest does after SIFT, for a store that lacks it
+    assert ws.build_global_vectors(SOURCE, "image_00") == N_FRAMES
+    assert ws.build_structure(SOURCE, "image_00") == N_FRAMES
+    assert ws.build_structure(SOURCE, "image_00") == 0  # resumes: nothing left to do
+    conn = sqlite3.connect(path)
+    assert conn.execute("SELECT version FROM visloc_schema").fetchone() == (4,)
+    assert conn.execute("SELECT * FROM images ORDER BY id").fetchall() == before
+    assert conn.execute("SELECT * FROM pair_counts ORDER BY query_image_id, db_image_id").fetchall() == counts
+    assert conn.execute("SELECT count(*) FROM structures").fetchone() == (N_FRAMES * len(VARIANTS),)
+    assert conn.execute("SELECT count(DISTINCT image_id) FROM global_vectors").fetchone() == (N_FRAMES,)
+    conn.close()
+    original = Workspace(store).load_structure(db)
+    for k, variants in ws.load_structure(db).items():
+        for variant, s in variants.items():
+            np.testing.assert_array_equal(s.points_world, original[k][variant].points_world)
+
+
+def test_an_interrupted_structure_build_resumes_where_it_stopped(store, tmp_path):
+    path = tmp_path / "partial.sqlite"
+    shutil.copy(store, path)
+    conn = sqlite3.connect(path)
+    conn.execute("DELETE FROM structures WHERE image_id > 25")  # as if stopped after image 25
+    conn.commit()
+    kept = conn.execute("SELECT image_id, variant, created_at FROM structures ORDER BY image_id, variant").fetchall()
+    conn.close()
+    ws = Workspace(path)
+    assert ws.build_structure(SOURCE, "image_00") == N_FRAMES - 25
+    conn = sqlite3.connect(path)
+    again = conn.execute("SELECT image_id, variant, created_at FROM structures WHERE image_id <= 25 "
+                         "ORDER BY image_id, variant").fetchall()
+    assert again == kept and conn.execute("SELECT count(*) FROM structures").fetchone() == (N_FRAMES * 3,)
+    conn.close()
+
+
+def test_track_localizes_every_frame_and_writes_its_json(store, kitti_root, tmp_path):
+    out = tmp_path / "track.json"
+    result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
+                     "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "30", "--json", out)
+    assert result.returncode == 0, result.stderr
+    assert "refined fast path" in result.stdout and "sustained" in result.stdout
+    run = json.loads(out.read_text())
+    assert run["frames"] == 30 and len(run["per_frame"]) == 30
+    assert [f["frame"] for f in run["per_frame"]] == list(range(30))
+    for key in ("latency_ms",):
+        assert set(run[key]) == {"p50", "p95", "max"} and 0 < run[key]["p50"] <= run[key]["p95"] <= run[key]["max"]
+    for key in ("error_m", "measurement_error_m"):
+        assert {"mean", "median", "p90", "max"} <= set(run[key])
+    assert run["sustained_hz"] > 0 and run["params"]["track"]["exclusion_s"] == 1.0
+    frame_interval_s = float(np.median(np.diff(open_source(kitti_root, drive=DRIVE, camera="image_00").timestamps_s)))
+    assert run["params"]["filter"]["dt_s"] == pytest.approx(frame_interval_s)  # the filter steps frame by frame
+    frame = run["per_frame"][20]
+    for key in ("sift_ms", "retrieval_ms", "geometry_ms", "filter_ms"):
+        assert frame[key] >= 0
+    assert frame["latency_ms"] == pytest.approx(frame["sift_ms"] + frame["retrieval_ms"] + frame["geometry_ms"]
+                                                + frame["filter_ms"])
+    # the refined measurement works here: most frames posed, and no view within the exclusion window
+    geometry = [f for f in run["per_frame"] if f["measurement_source"] == "geometry"]
+    assert len(geometry) >= 15
+    assert all(abs(v - f["frame"]) >= 10 for f in geometry for v in f["view_frames"])
+    assert np.median([f["measurement_error_m"] for f in geometry]) < 1.0
+
+
+def test_track_exact_path_runs_too(store, kitti_root, tmp_path):
+    out = tmp_path / "exact.json"
+    result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store, "--exact",
+                     "--db-source", SOURCE,
+                     "--exclusion-s", "1", "--frames", "2", "--stride", "10", "--json", out)
+    assert result.returncode == 0, result.stderr
+    run = json.loads(out.read_text())
+    assert run["path"] == "exact" and [f["frame"] for f in run["per_frame"]] == [0, 10]
+    frame_interval_s = float(np.median(np.diff(open_source(kitti_root, drive=DRIVE, camera="image_00").timestamps_s)))
+    assert run["params"]["filter"]["dt_s"] == pytest.approx(10 * frame_interval_s)
+
+
+def test_track_refuses_bad_input_in_one_line_before_any_work(store, kitti_root, tmp_path):
+    cases = [
+        (["--json", tmp_path], "is a folder"),
+        (["--json", tmp_path / "no" / "x.json"], "folder does not exist"),
+        (["--query-scale", "2"], "query_image_scale"),
+        (["--stride", "0"], "stride"),
+    ]
+    for extra, message in cases:
+        result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
+                         "--db-source", SOURCE, *extra)
+        assert result.returncode == 2 and message in result.stderr, (extra, result.stderr)
+        assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_track_on_a_drive_without_calibration_says_what_is_missing(tmp_path):
+    csv_path = write_csv_drive(tmp_path / "drive", n_frames=6)
+    result = run_cli("track", csv_path, "--db", tmp_path / "csv.sqlite", "--workers", "1")
+    assert result.returncode == 2, result.stderr
+    assert "calibrat" in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_the_track_command_is_documented():
+    assert "visloc track" in (REPO / "README.md").read_text()
