@@ -96,7 +96,7 @@ def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.Drive
             f"query latency median {np.median(matches.latency_ms):.0f} ms, p95 "
             f"{np.percentile(matches.latency_ms, 95):.0f} ms (SIFT + retrieval + geometry + filter, when first "
             "computed)." + (" Camera-rate path on the stored query features; `visloc track` describes each frame "
-                            "at half scale as a vehicle would." if matches.method.camera_rate else ""))
+                            "at three quarters of its size, as a vehicle would." if matches.method.camera_rate else ""))
 
 
 def store_markdown(path: str, datasets: list[visloc.Dataset], sift: visloc.SiftParams | None) -> str:

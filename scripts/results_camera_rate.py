@@ -30,7 +30,7 @@ def render_camera_rate(d: dict, add) -> None:
     add("## Camera rate")
     add("")
     add("`visloc track` localizes every frame of a drive in order, as a vehicle would, on the camera-rate path "
-        "(the database's stored structure and global vectors, the filter's gate, SIFT at half scale on the frame). "
+        "(the database's stored structure and global vectors, the filter's gate, SIFT on the frame at three quarters of its size). "
         "Latency per frame counts SIFT from the decoded image, retrieval, geometry and the filter; the sustained "
         "rate is frames per second of wall time over the whole run, reading included. Errors are against each "
         "frame's own geotag. The 1 s exclusion window is on in every run (a same-camera database would otherwise "

@@ -353,3 +353,31 @@ def test_switching_to_the_refined_mode_measures_metric_poses(dashboard, browser)
     finally:
         reset(page)
         page.close()
+
+
+def current_step(page) -> int:
+    return int(re.search(r"Step (\d+) of \d+", page.get_by_text(re.compile(r"^Step \d+ of \d+$")).first.inner_text())
+               .group(1))
+
+
+def test_the_camera_rate_path_plays_every_frame_at_the_camera_rate(dashboard, browser):
+    page = open_page(browser, dashboard.url)
+    try:
+        runs = run_number(page)
+        choose(page, "Mode", "refined-fast")
+        choose(page, "Query rate (Hz)", "10")
+        wait_for(lambda: run_number(page) > runs and "refined-fast" in status_text(page)
+                 and "108 queries" in status_text(page), 600, "the camera-rate run over every frame")
+        summary = page.get_by_text(re.compile(r"^This run")).first.inner_text()
+        assert "refined-fast mode, 108 queries" in summary and "Camera-rate path" in summary
+        go_to_step(page, 60)
+        assert row(page, "measured by").startswith("geometry: PnP against frames")
+        assert float(row(page, "measurement error").split()[0]) < 1.0
+        control(page, "Play").locator("input").first.check()
+        wait_for(lambda: current_step(page) >= 66, 60, "playback to move on")  # the page advances by itself
+        control(page, "Play").locator("input").first.uncheck()
+        dismiss_webgl_notice(page)
+        screenshot(page, "dashboard_camera_rate.png")
+    finally:
+        reset(page)
+        page.close()

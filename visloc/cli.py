@@ -230,6 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: the whole drive)")
     p.add_argument("--query-scale", type=float, default=t.query_image_scale,
                    help="camera-rate path: SIFT image scale of the frames, in [0.1, 1] (default %(default)s)")
+    p.add_argument("--query-keypoints", type=int, default=t.query_max_keypoints,
+                   help="camera-rate path: SIFT keeps the frame's strongest keypoints, at most this many; 0 = all "
+                        "(default %(default)s)")
     p.add_argument("--shortlist", type=int, default=t.shortlist_size,
                    help="camera-rate path: candidates matched per frame (default %(default)s)")
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")

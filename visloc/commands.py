@@ -305,7 +305,8 @@ def cmd_bench(a: argparse.Namespace) -> int:
 
 def cmd_track(a: argparse.Namespace) -> int:
     sift = sift_params(a)
-    params = TrackParams(fast=not a.exact, query_image_scale=a.query_scale, shortlist_size=a.shortlist,
+    params = TrackParams(fast=not a.exact, query_image_scale=a.query_scale, query_max_keypoints=a.query_keypoints,
+                         shortlist_size=a.shortlist,
                          exclusion_s=a.exclusion_s, stride=a.stride)
     pose = REFINED.replace(geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
     _check_output_folder(a.json, "--json")

@@ -47,19 +47,22 @@ def structure_rows(structures: dict[str, ViewStructure]) -> np.ndarray:
     return np.unique(np.concatenate(parts)) if parts else np.zeros(0, np.int64)
 
 
-def _matches(query_u8: np.ndarray, db_u8: np.ndarray, ratio: float, mutual: bool) -> np.ndarray:
-    """(M, 2) (query row, database row): Lowe's ratio against ``db_u8``, and, with ``mutual``, the
-    database row's nearest query descriptor is that query row too (a cross-check: matching
-    against a subset of an image's keypoints lets more ambiguous matches pass the ratio alone)."""
-    q = np.asarray(query_u8, np.float32)
-    d = np.asarray(db_u8, np.float32)
+def _matches(q: np.ndarray, q_sq: np.ndarray, d: np.ndarray, half_d_sq: np.ndarray, ratio: float,
+             mutual: bool) -> np.ndarray:
+    """(M, 2) (query row, database row): Lowe's ratio against the rows of ``d``, and, with ``mutual``,
+    the database row's nearest query descriptor is that query row too (a cross-check: matching
+    against a subset of an image's keypoints lets more ambiguous matches pass the ratio alone).
+    ``q``, ``d``: float32 descriptors; ``q_sq`` = |q|^2 per row, ``half_d_sq`` = |d|^2 / 2 per row."""
     if len(q) == 0 or len(d) < 2:
         return np.zeros((0, 2), np.int64)
     score = q @ d.T  # |g - f|^2 = |g|^2 + |f|^2 - 2 g.f
-    score -= 0.5 * np.einsum("ij,ij->i", d, d)[None, :]
-    q_sq = np.einsum("ij,ij->i", q, q)
     rows = np.arange(len(q))
-    back = np.argmax(score - 0.5 * q_sq[:, None], axis=0) if mutual else None  # each database row's nearest query
+    back = None
+    if mutual:  # each database row's nearest query: the largest g.f - |g|^2 / 2 down its column
+        score -= 0.5 * q_sq[:, None]
+        back = np.argmax(score, axis=0)
+        score += 0.5 * q_sq[:, None]
+    score -= half_d_sq[None, :]
     index1 = np.argmax(score, axis=1)  # two passes of argmax: much faster than a partial sort
     best = score[rows, index1]
     score[rows, index1] = -np.inf
@@ -89,12 +92,16 @@ class StructureMatcher:
         self.against = against
         self._rows = {i: structure_rows(s) for i, s in structures.items()}
         self._db_descriptors = db_descriptors
-        self._descriptors = {i: np.ascontiguousarray(db_descriptors[i][rows]) for i, rows in self._rows.items()}
+        self._descriptors = {i: np.ascontiguousarray(db_descriptors[i][rows], np.float32)
+                             for i, rows in self._rows.items()}
+        self._half_sq = {i: 0.5 * np.einsum("ij,ij->i", d, d) for i, d in self._descriptors.items()}
         self._pairs: dict[int, np.ndarray] = {}
         self._key: Hashable = object()
 
     def __call__(self, query_u8: np.ndarray, key: Hashable = None) -> CountFn:
         self._pairs, self._key = {}, key
+        q = np.asarray(query_u8, np.float32)
+        q_sq = np.einsum("ij,ij->i", q, q)
 
         def counts(candidates: np.ndarray) -> np.ndarray:
             out = np.zeros(len(candidates), np.int64)
@@ -106,7 +113,7 @@ class StructureMatcher:
                     pairs = correspondences(query_u8, self._db_descriptors[i], self.match)
                     n_3d = int(np.isin(pairs[:, 1], rows).sum())
                 else:
-                    pairs = _matches(query_u8, self._descriptors[i], self.match.tau1, mutual=True)
+                    pairs = _matches(q, q_sq, self._descriptors[i], self._half_sq[i], self.match.tau1, mutual=True)
                     pairs[:, 1] = rows[pairs[:, 1]]  # subset index -> keypoint row of the view
                     n_3d = len(pairs)
                 self._pairs[i] = pairs

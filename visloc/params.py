@@ -297,13 +297,15 @@ class TrackParams(_Params):
                        False: the exact refined path (the paper's retrieval, every candidate verified)
     query_image_scale: fast path: SIFT runs on the query image resized by this factor (the database
                        keeps its own, full-resolution features and structure)
+    query_max_keypoints: fast path: SIFT keeps at most this many keypoints of a frame, the strongest
+                       (0: all)
     shortlist_size:    fast path: candidates matched per frame, the most similar by global vector
                        inside the filter's gate
     lost_shortlist_size: fast path: the same for a frame without a usable gate (the first frame, a lost
                        track), which looks at every allowed image
     min_matches:       fast path: a candidate needs this many matches to its 3D points to be posed against
     pnp_px:            fast path: PnP inlier threshold, pixels (keypoints found at a reduced scale are
-                       less precise than the exact path's)
+                       less precise than the exact path's full-resolution ones)
     exclusion_s:       database images closer in time to the frame than this are not used (0: off; use
                        it when the database is the queries' own camera)
     stride:            localize every stride-th frame (1: every frame); the filter's time step follows
@@ -311,7 +313,8 @@ class TrackParams(_Params):
 
     fast: bool = True
     query_image_scale: float = 0.75
-    shortlist_size: int = 4
+    query_max_keypoints: int = 1500
+    shortlist_size: int = 3
     lost_shortlist_size: int = 16
     min_matches: int = 20
     pnp_px: float = 3.0
@@ -322,7 +325,8 @@ class TrackParams(_Params):
         if not isinstance(self.fast, bool):
             raise ParameterError(f"fast={self.fast!r}: must be True or False")
         _check("query_image_scale", self.query_image_scale, 0.1 <= self.query_image_scale <= 1, "in [0.1, 1]")
-        for name, low in (("shortlist_size", 1), ("lost_shortlist_size", 1), ("min_matches", 6), ("stride", 1)):
+        for name, low in (("query_max_keypoints", 0), ("shortlist_size", 1), ("lost_shortlist_size", 1),
+                          ("min_matches", 6), ("stride", 1)):
             v = getattr(self, name)
             _check(name, v, isinstance(v, int) and not isinstance(v, bool) and v >= low, f"an integer >= {low}")
         _check("pnp_px", self.pnp_px, self.pnp_px > 0, "> 0")
