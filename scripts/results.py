@@ -50,7 +50,7 @@ VARIANTS = {  # the paper's mode, one change each: (label, extra flags)
 
 # -- run: the commands --------------------------------------------------------------------------
 
-def run(data: Path) -> int:
+def run(data: Path, speed_only: bool = False) -> int:
     OUT.mkdir(parents=True, exist_ok=True)
     try:
         drives = drives_of(data)
@@ -66,16 +66,51 @@ def run(data: Path) -> int:
     out = OUT.relative_to(REPO)
     store, fast_store = out / "visloc.sqlite", out / "visloc_s05.sqlite"
     visloc = [sys.executable, "-m", "visloc"]
-    manifest = {"commit": subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                                         text=True).stdout.strip(),
-                "started": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-                "cores": os.cpu_count(), "load_before": os.getloadavg()[0], "runs": []}
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                            text=True).stdout.strip()
+    now = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    manifest = {"commit": commit, "started": now, "cores": os.cpu_count(), "load_before": os.getloadavg()[0],
+                "runs": []}
+    if speed_only:  # keep the evaluations of the last full run, measure the speed sections again
+        manifest = json.loads((OUT / "manifest.json").read_text())
+        manifest["runs"] = [r for r in manifest["runs"] if r["kind"] not in ("bench", "track")]
+        manifest["speed"] = {"commit": commit, "started": now, "load_before": os.getloadavg()[0]}
 
     def command(name: str, args: list[str], **meta) -> None:
         print(f"results: {name}: {' '.join(args)}", flush=True)
         subprocess.run([*visloc, *args], cwd=REPO, check=True)
         manifest["runs"].append({"file": f"{name}.json", "command": "visloc " + " ".join(args), **meta})
 
+    if not speed_only:
+        evaluations(drives, root, out, store, command, manifest)
+    for n, folder in enumerate(drives):
+        drive = folder.name.removesuffix("_sync")
+        command(f"bench_{drive}", ["bench", root, "--drive", drive, "--db", str(store), "--fast-db",
+                                   str(fast_store), *([] if n == 0 else ["--skip-synthetic"]), "--json",
+                                   str(out / f"bench_{drive}.json")], kind="bench", drive=drive)
+    for folder in drives:  # every frame at camera rate, each setup the drive has, the 1 s exclusion on
+        drive = folder.name.removesuffix("_sync")
+        for p in drive_protocols(folder):
+            name = f"track_{drive}_{p.key}"
+            command(name, ["track", root, "--drive", drive, "--camera", p.query_camera, "--db-camera", p.db_camera,
+                           "--db", str(store), "--exclusion-s", "1", "--json", str(out / f"{name}.json")],
+                    kind="track", drive=drive, setup=p.key, setup_label=p.label)
+    if speed_only:
+        manifest["speed"].update(finished=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                                 load_after=os.getloadavg()[0])
+        (OUT / "manifest.json").write_text(json.dumps(manifest, indent=1))
+        print(f"results: wrote {OUT / 'manifest.json'}; now: python scripts/results.py page")
+        return 0
+    diagnostics(drives, root, out, store, manifest)
+    manifest["finished"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    manifest["load_after"] = os.getloadavg()[0]
+    (OUT / "manifest.json").write_text(json.dumps(manifest, indent=1))
+    print(f"results: wrote {OUT / 'manifest.json'}; now: python scripts/results.py page")
+    return 0
+
+
+def evaluations(drives: list, root: str, out: Path, store: Path, command, manifest: dict) -> None:
+    """evaluate-drives on the root, then the paper's mode with one change per variant."""
     suite = ["evaluate-drives", root, "--db", str(store), "--smooth", "--out-dir", str(out)]
     command("drives", suite, kind="drives")
     for drive, rows in json.loads((OUT / "drives.json").read_text())["drives"].items():
@@ -92,18 +127,10 @@ def run(data: Path) -> int:
             command(name, ["evaluate", root, "--drive", drive, "--query-camera", query, "--db-camera", database,
                            "--db", str(store), *flags, "--json", str(out / f"{name}.json")],
                     kind="variant", drive=drive, setup=key, setup_label=label, variant=variant)
-    for n, folder in enumerate(drives):
-        drive = folder.name.removesuffix("_sync")
-        command(f"bench_{drive}", ["bench", root, "--drive", drive, "--db", str(store), "--fast-db",
-                                   str(fast_store), *([] if n == 0 else ["--skip-synthetic"]), "--json",
-                                   str(out / f"bench_{drive}.json")], kind="bench", drive=drive)
-    for folder in drives:  # every frame at camera rate, each setup the drive has, the 1 s exclusion on
-        drive = folder.name.removesuffix("_sync")
-        for p in drive_protocols(folder):
-            name = f"track_{drive}_{p.key}"
-            command(name, ["track", root, "--drive", drive, "--camera", p.query_camera, "--db-camera", p.db_camera,
-                           "--db", str(store), "--exclusion-s", "1", "--json", str(out / f"{name}.json")],
-                    kind="track", drive=drive, setup=p.key, setup_label=p.label)
+
+
+def diagnostics(drives: list, root: str, out: Path, store: Path, manifest: dict) -> None:
+    """scripts/refined_diagnostics.py per drive and the paper's Haversine check."""
     for folder in drives:
         drive = folder.name.removesuffix("_sync")
         name = f"diagnostics_{drive}"
@@ -117,11 +144,6 @@ def run(data: Path) -> int:
                    cwd=REPO, check=True)
     manifest["runs"].append({"file": "haversine.json", "command": "python scripts/paper_haversine_check.py",
                              "kind": "haversine"})
-    manifest["finished"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
-    manifest["load_after"] = os.getloadavg()[0]
-    (OUT / "manifest.json").write_text(json.dumps(manifest, indent=1))
-    print(f"results: wrote {OUT / 'manifest.json'}; now: python scripts/results.py page")
-    return 0
 
 
 # -- page: JSON -> digest -------------------------------------------------------------------------
@@ -184,7 +206,7 @@ def page() -> int:
     manifest = json.loads(manifest_path.read_text())
     digest = {"commit": manifest["commit"], "started": manifest["started"], "finished": manifest["finished"],
               "cores": manifest["cores"], "load_before": manifest["load_before"], "load_after": manifest["load_after"],
-              "drives": {}, "bench": {}, "haversine": None}
+              "drives": {}, "bench": {}, "haversine": None, "speed": manifest.get("speed")}
     for entry in manifest["runs"]:
         report = json.loads((OUT / entry["file"]).read_text())
         if entry["kind"] == "haversine":
@@ -316,6 +338,13 @@ def render_page(d: dict) -> str:
         "(its numbers are also in `docs/results/digest.json`). Distances are geodesic on WGS84; the paper's "
         "Haversine distances appear only in the check of its Table 3. What the numbers mean: "
         "[method notes](method.md).")
+    speed = d.get("speed")
+    if speed:
+        add("")
+        add(f"The sections \"Camera rate\" and \"Speed\" were measured again with commit `{speed['commit']}` "
+            f"(`python scripts/results.py run --speed-only`) from {speed['started']} to {speed['finished']} (1-minute "
+            f"load average {speed['load_before']:.2f} before, {speed['load_after']:.2f} after); that commit evaluates "
+            "the paper's and the refined method as the one above does.")
     add("")
     if d.get("suite"):
         render_suite(d["suite"], add)
@@ -486,13 +515,15 @@ def main(argv: list[str]) -> int:
                                      description="Run the commands behind docs/results.md, or write the page.")
     sub = parser.add_subparsers(dest="what", required=True)
     p = sub.add_parser("run", help="run every command (out/results/)")
+    p.add_argument("--speed-only", action="store_true",
+                   help="run only visloc bench and visloc track again, keeping the other runs' JSON")
     p.add_argument("--data", type=Path, default=Path(os.environ.get("VISLOC_DATA", REPO.parent / "shared" / "data"
                                                                       / "kitti")).resolve(), help="KITTI data root")
     sub.add_parser("page", help="digest and page from out/results/")
     sub.add_parser("render", help="the page from the committed digest")
     a = parser.parse_args(argv)
     if a.what == "run":
-        return run(a.data)
+        return run(a.data, a.speed_only)
     if a.what == "page":
         return page()
     PAGE.write_text(render_page(json.loads(DIGEST.read_text())))
