@@ -187,6 +187,7 @@ def digest_bench(report: dict) -> dict:
     ing = report["ingest"]
     out["ingest"] = {k: ing[k] for k in ("n_images", "workers", "bare_sift_images_per_s", "ingest_images_per_s",
                                         "ingest_over_bare", "ingest_over_bare_per_run")}
+    out["ingest"]["structure_ms_per_image"] = ing.get("structure_ms_per_image")
     if "scale" in report:
         sc = report["scale"]
         out["scale"] = {k: sc.get(k) for k in ("n_images", "descriptors_per_image", "vector_dim", "shortlist_size",
@@ -494,7 +495,8 @@ def render_page(d: dict) -> str:
                 f"(from {c(r['min'], '.0f')}x to {c(r['max'], '.0f')}x). Ingest: {c(ing['ingest_images_per_s'])} "
                 f"images/s against bare OpenCV SIFT's {c(ing['bare_sift_images_per_s'])} on {ing['workers']} "
                 f"processes ({c(100 * ing['ingest_over_bare'], '.0f')} %, medians of 3 interleaved runs of "
-                f"{ing['n_images']} images).")
+                f"{ing['n_images']} images); ingest then adds global vectors and structure in "
+                f"{c(ing.get('structure_ms_per_image'), '.0f')} ms per image.")
             sc = b.get("scale")
             if sc:
                 add("")

@@ -122,13 +122,14 @@ class Workspace:
 
     def ingest(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None, limit: int | None = None,
                progress: Callable[[int, int], None] | None = None,
-               structure_progress: Callable[[int, int], None] | None = None) -> IngestReport:
+               structure_progress: Callable[[int, int], None] | None = None, structure: bool = True) -> IngestReport:
         """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``), then its
-        global vectors and its structure (``build_global_vectors``, ``build_structure``); resumable."""
+        global vectors and its structure (``build_global_vectors``, ``build_structure``; ``structure=False``:
+        SIFT only); resumable."""
         with self._store(create=True) as store:
             report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit)
             self._sift = stored_sift_params(store)
-        if self.stored_frame_count(sequence.source, sequence.camera):
+        if structure and self.stored_frame_count(sequence.source, sequence.camera):
             self.build_global_vectors(sequence.source, sequence.camera)
             self.build_structure(sequence.source, sequence.camera, progress=structure_progress)
         return report
