@@ -23,8 +23,9 @@ def _c(value, fmt: str = ".2f") -> str:
 
 def render_camera_rate(d: dict, add) -> None:
     """The "Camera rate" section: every track run, then the bench's exact-against-fast comparison."""
-    tracks, bench = d.get("tracks") or {}, {k: v["refined_fast"] for k, v in d.get("bench", {}).items()
-                                            if v.get("refined_fast")}
+    # sorted: the digest is stored with sorted keys, and the page must render the same from it
+    tracks = dict(sorted((d.get("tracks") or {}).items()))
+    bench = {k: v["refined_fast"] for k, v in sorted(d.get("bench", {}).items()) if v.get("refined_fast")}
     if not tracks and not bench:
         return
     add("## Camera rate")
@@ -75,7 +76,7 @@ def render_camera_rate(d: dict, add) -> None:
             "than the exact path; mean estimate error within 10 % (or 2 cm, whichever is larger) of the exact "
             "path's.")
         add("")
-        for drive, b in d["bench"].items():
+        for drive, b in sorted(d["bench"].items()):
             targets = {k: v for k, v in (b.get("targets") or {}).items() if k.startswith("refined_fast")}
             if targets:
                 add(f"- {drive}: " + "; ".join(f"{k.removeprefix('refined_fast_')} "
