@@ -71,8 +71,3 @@ class StructureTable:
                     cov_f64=np.frombuffer(r["cov_f64"], np.float64).reshape(n, 3, 3).copy(),
                     reason=r["reason"], build_ms=r["build_ms"] or 0.0)
         return out
-
-    def summary(self) -> dict[str, int]:
-        """Rows and points stored, over every image and variant."""
-        rows, points = self.db.execute("SELECT count(*), coalesce(sum(n_points), 0) FROM structures").fetchone()
-        return {"rows": int(rows), "points": int(points)}

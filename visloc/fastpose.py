@@ -36,7 +36,7 @@ from visloc.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
 from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval import Retrieval
 from visloc.structure import ViewStructure, choose_variant
-from visloc.viewpose import DatabaseGeometry, pose_from_views
+from visloc.viewpose import DatabaseGeometry, pose_from_views, require_calibrated
 
 StoredStructures = dict[int, dict[str, ViewStructure]]  # database index -> variant -> structure
 
@@ -96,10 +96,9 @@ class StructureMatcher:
                              for i, rows in self._rows.items()}
         self._half_sq = {i: 0.5 * np.einsum("ij,ij->i", d, d) for i, d in self._descriptors.items()}
         self._pairs: dict[int, np.ndarray] = {}
-        self._key: Hashable = object()
 
     def __call__(self, query_u8: np.ndarray, key: Hashable = None) -> CountFn:
-        self._pairs, self._key = {}, key
+        self._pairs = {}
         q = np.asarray(query_u8, np.float32)
         q_sq = np.einsum("ij,ij->i", q, q)
 
@@ -134,15 +133,11 @@ class FastPoseMeasurer:
     def __init__(self, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray, geometry: DatabaseGeometry,
                  structures: StoredStructures, matcher: StructureMatcher, query_camera: CameraModel | None,
                  params: RefinedParams, *, exclusion_s: float = 0.0, min_matches: int = 20,
-                 query_what: str = "the query camera"):
-        if geometry.camera is None:
-            raise InputError(f"the refined method needs a calibrated database: {geometry.unavailable_reason}")
-        if query_camera is None:
-            raise InputError(f"the refined method needs a calibrated query camera: {query_what} has no intrinsics "
-                             "and extrinsics")
+                 query_what: str = "the query camera", db_name: str = "the database"):
+        require_calibrated(geometry, query_camera, query_what)
         if not structures:
-            raise InputError("the fast refined path needs the database's stored structure: run 'visloc ingest' "
-                             "on the database drive")
+            raise InputError(f"the camera-rate path needs the stored structure of the database ({db_name}): run "
+                             "'visloc ingest' on it (the database needs calibrated cameras and attitudes)")
         self.db_east_north_m = np.asarray(db_east_north_m, float)
         self.db_timestamps_s = np.asarray(db_timestamps_s, float)
         self.geometry = geometry

@@ -24,7 +24,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 from visloc.database import GeoDatabase
-from visloc.errors import InputError, ParameterError
+from visloc.errors import ParameterError
 from visloc.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.geometry import CameraModel
 from visloc.localizer import Localizer
@@ -148,14 +148,12 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
 def _camera_rate_localizer(method: Method, db: GeoDatabase, retrieval: RetrievalParams, filter_params: FilterParams,
                            query_camera: CameraModel | None, query_what: str, shortlist_index: GlobalIndex | None,
                            stored: dict | None) -> Localizer:
-    if not stored:
-        raise InputError(f"the camera-rate path needs the stored structure of {db.source}/{db.camera}: run "
-                         "'visloc ingest' on it (the database needs calibrated cameras and attitudes)")
-    index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
+    stored = stored or {}
     matcher = StructureMatcher(db.descriptors_u8, stored, method.pose.ratio)
-    retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, matcher, retrieval)
     measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, db.geometry(), stored, matcher, query_camera,
                                 method.pose, exclusion_s=retrieval.exclusion_s, min_matches=method.min_matches,
-                                query_what=query_what)
+                                query_what=query_what, db_name=f"{db.source}/{db.camera}")  # refuses first
+    index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
+    retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, matcher, retrieval)
     return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
                      reinit_after_gated=method.reinit_after_gated)

@@ -44,7 +44,6 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from visloc.errors import InputError
 from visloc.features import Query
 from visloc.geometry import CameraModel, essential_inliers
 from visloc.multiview import triangulate_tracks
@@ -52,7 +51,7 @@ from visloc.matching import correspondences
 from visloc.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
 from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval import Retrieval
-from visloc.viewpose import DatabaseGeometry, pose_from_views
+from visloc.viewpose import DatabaseGeometry, pose_from_views, require_calibrated
 
 
 class StructureCache:
@@ -237,11 +236,7 @@ class PoseMeasurer:
 
     def __init__(self, db_east_north_m: np.ndarray, geometry: DatabaseGeometry, query_camera: CameraModel | None,
                  params: RefinedParams, *, structures: StructureCache | None = None, query_what: str = "the query camera"):
-        if geometry.camera is None:
-            raise InputError(f"the refined method needs a calibrated database: {geometry.unavailable_reason}")
-        if query_camera is None:
-            raise InputError(f"the refined method needs a calibrated query camera: {query_what} has no intrinsics "
-                             "and extrinsics")
+        require_calibrated(geometry, query_camera, query_what)
         self.db_east_north_m = np.asarray(db_east_north_m, float)
         self.geometry = geometry
         self.query_camera = query_camera

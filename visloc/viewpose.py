@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from visloc.errors import InputError
 from visloc.geometry import (CameraModel, PnPResult, heading_deg_of, imu_east_north_covariance, imu_pose_from_camera,
                              refine_pose, solve_pnp)
 from visloc.params import RefinedParams
@@ -34,6 +35,15 @@ class DatabaseGeometry:
     camera: CameraModel | None
     unavailable_reason: str | None = None
     geotag_sigma_m: np.ndarray | None = None  # (N,) stated accuracy of each geotag, per axis, NaN if unknown
+
+
+def require_calibrated(geometry: DatabaseGeometry, query_camera: CameraModel | None, query_what: str) -> None:
+    """Refuse a refined measurer without what a pose needs, naming what is missing."""
+    if geometry.camera is None:
+        raise InputError(f"the refined method needs a calibrated database: {geometry.unavailable_reason}")
+    if query_camera is None:
+        raise InputError(f"the refined method needs a calibrated query camera: {query_what} has no intrinsics "
+                         "and extrinsics")
 
 
 @dataclass(frozen=True)

@@ -190,10 +190,6 @@ class Workspace:
         with self._store() as store:
             return StructureTable(store).get(image_ids, settings_json)
 
-    def structure_summary(self) -> dict[str, int]:
-        with self._store() as store:
-            return StructureTable(store).summary()
-
     def build_global_vectors(self, source: str, camera: str, params: FastParams = FAST) -> int:
         """Train the global-vector encoder of (source, camera) if the store has none, and encode every image
         that lacks a vector; returns how many were encoded. Images added later are encoded with the
