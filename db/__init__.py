@@ -3,7 +3,7 @@
 This package is the only place in the project that speaks SQL. It knows nothing
 about SIFT or Kalman filters: it stores numpy arrays and plain metadata and hands
 them back. ``store`` holds ``FeatureStore``, ``schema`` the tables and migrations,
-``records`` the plain records and errors, ``structures`` the table of triangulated points.
+``records`` the plain records and errors, ``structures`` the table of triangulated points, ``vectors`` global vectors and named arrays.
 """
 
 from visloc.db.records import (
@@ -12,6 +12,7 @@ from visloc.db.records import (
     ImageRecord,
     NotAStoreError,
     SettingsMismatchError,
+    SkippedFrame,
     StoredImage,
     StoreError,
     StructureRecord,
@@ -19,6 +20,7 @@ from visloc.db.records import (
 from visloc.db.schema import SCHEMA_VERSION
 from visloc.db.store import FeatureStore
 from visloc.db.structures import StructureTable
+from visloc.db.vectors import VectorTable
 
 __all__ = [
     "SCHEMA_VERSION",
@@ -28,8 +30,10 @@ __all__ = [
     "ImageRecord",
     "NotAStoreError",
     "SettingsMismatchError",
+    "SkippedFrame",
     "StoreError",
     "StoredImage",
     "StructureRecord",
     "StructureTable",
+    "VectorTable",
 ]

@@ -93,3 +93,14 @@ class StructureRecord:
     cov_f64: np.ndarray
     reason: str | None = None
     build_ms: float = 0.0
+
+
+@dataclass(frozen=True)
+class SkippedFrame:
+    """A frame that ingest left out because it could not be described, and why."""
+
+    source: str
+    camera: str
+    frame: int
+    path: str
+    reason: str

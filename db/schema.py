@@ -113,3 +113,10 @@ def ensure_vector_tables(db: sqlite_utils.Database) -> None:
         with db.atomic():
             db["global_vectors"].create({"name": str, "image_id": int, "vector_f32": bytes}, pk=("name", "image_id"))
             db["arrays"].create({"key": str, "dtype": str, "shape_json": str, "data": bytes}, pk="key")
+
+
+def ensure_skipped_frames(db: sqlite_utils.Database) -> None:
+    """The table of frames ingest skipped as bad (inside the caller's transaction); made when first needed."""
+    if "skipped_frames" not in db.table_names():
+        db["skipped_frames"].create({"source": str, "camera": str, "frame": int, "path": str, "reason": str,
+                                     "skipped_at": str}, pk=("source", "camera", "frame"))

@@ -40,17 +40,18 @@ re-extracting any feature.
 from __future__ import annotations
 
 import json
-import sqlite3
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import numpy as np
 import sqlite_utils
 
+from visloc.db.blobs import array_from_blob
+from visloc.db.connection import Database, connect
 from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, EmptyStoreError, ImageRecord,
-                               NotAStoreError, SettingsMismatchError, StoredImage, StoreError)
+                               NotAStoreError, SettingsMismatchError, SkippedFrame, StoredImage, StoreError)
 from visloc.db.schema import (REQUIRED_TABLES, SCHEMA_VERSION, create_pair_counts, create_schema,
-                              ensure_vector_tables, migrate, now_iso)
+                              ensure_skipped_frames, migrate, now_iso)
 
 
 class FeatureStore:
@@ -63,59 +64,68 @@ class FeatureStore:
     untouched. ``FeatureStore.memory()`` gives an in-memory store for tests.
     """
 
-    def __init__(self, path: str | Path, *, create: bool = False):
+    def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False):
         self.path = Path(path)
+        self.read_only = read_only
         label = str(self.path)
         if not self.path.exists():
-            if not create:
+            if not create or read_only:
                 raise StoreError(f"{label}: database file does not exist (build it with 'visloc ingest')")
             if not self.path.parent.exists():
                 raise StoreError(f"{label}: folder {self.path.parent} does not exist")
         elif self.path.is_dir():
             raise StoreError(f"{label}: is a folder, not a database file")
-        conn = self._connect(label)
-        self._open(sqlite_utils.Database(conn), label, create=create, on_disk=True)
+        conn = connect(self.path, label, read_only=read_only)
+        self._open(Database(conn), label, create=create and not read_only, on_disk=True)
 
     @classmethod
     def memory(cls) -> "FeatureStore":
         store = cls.__new__(cls)
         store.path = Path(":memory:")
-        store._open(sqlite_utils.Database(memory=True), ":memory:", create=True, on_disk=False)
+        store.read_only = False
+        store._open(Database(memory=True), ":memory:", create=True, on_disk=False)
         return store
-
-    @staticmethod
-    def _connect(label: str) -> sqlite3.Connection:
-        try:
-            conn = sqlite3.connect(label, timeout=30.0)
-            conn.execute("SELECT name FROM sqlite_master LIMIT 1").fetchall()
-        except sqlite3.DatabaseError as exc:
-            raise NotAStoreError(f"{label}: not a SQLite database, or a damaged one ({exc})") from None
-        return conn
 
     def _open(self, db: sqlite_utils.Database, label: str, *, create: bool, on_disk: bool) -> None:
         self.db = db
         self.label = label
         tables = set(db.table_names())
+        if not tables and create:
+            # another process may be creating this store right now: take the write lock (waiting for
+            # it), then look again
+            with db.atomic():
+                tables = set(db.table_names())
+                if not tables:
+                    create_schema(db)
+            if not tables:
+                self._finish_writable(db, on_disk)
+                return
         if not tables:
-            if not create:
-                raise EmptyStoreError(f"{label}: empty database file (build it with 'visloc ingest')")
-            create_schema(db)
-        elif "visloc_schema" not in tables:
+            raise EmptyStoreError(f"{label}: empty database file (build it with 'visloc ingest')")
+        if "visloc_schema" not in tables:
             shown = ", ".join(sorted(tables)[:5])
             raise NotAStoreError(f"{label}: SQLite database but not a visloc store (its tables: {shown})")
-        else:
-            row = next(db.query("SELECT version FROM visloc_schema LIMIT 1"), None)
-            version = None if row is None else row["version"]
-            if isinstance(version, int) and 1 <= version < SCHEMA_VERSION and not (REQUIRED_TABLES - tables):
-                migrate(db, version)
-                version = SCHEMA_VERSION
-            if version != SCHEMA_VERSION:
-                raise NotAStoreError(
-                    f"{label}: visloc store schema version {version}, this visloc reads version {SCHEMA_VERSION}"
-                )
-            missing = REQUIRED_TABLES - tables
-            if missing:
-                raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}")
+        row = next(db.query("SELECT version FROM visloc_schema LIMIT 1"), None)
+        version = None if row is None else row["version"]
+        older = isinstance(version, int) and 1 <= version < SCHEMA_VERSION and not (REQUIRED_TABLES - tables)
+        if older and self.read_only:
+            raise NotAStoreError(f"{label}: visloc store schema version {version}; reading it needs version "
+                                 f"{SCHEMA_VERSION}: upgrade it first with 'visloc upgrade --db {label}'")
+        if older:
+            migrate(db, version)
+            version = SCHEMA_VERSION
+        if version != SCHEMA_VERSION:
+            raise NotAStoreError(
+                f"{label}: visloc store schema version {version}, this visloc reads version {SCHEMA_VERSION}"
+            )
+        missing = REQUIRED_TABLES - tables
+        if missing:
+            raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}")
+        if not self.read_only:
+            self._finish_writable(db, on_disk)
+
+    @staticmethod
+    def _finish_writable(db: sqlite_utils.Database, on_disk: bool) -> None:
         if on_disk and db.journal_mode != "wal":
             db.enable_wal()
         if "pair_counts" not in db.table_names():
@@ -191,11 +201,13 @@ class FeatureStore:
         rows = self.db.query("SELECT frame FROM images WHERE source = ? AND camera = ?", [source, camera])
         return {r["frame"] for r in rows}
 
-    def add_images(self, batch: Sequence[tuple[ImageRecord, np.ndarray, np.ndarray]]) -> int:
-        """Insert (record, keypoints_f32 (N, 6), descriptors_u8 (N, 128)) triples in one transaction.
+    def add_images(self, batch: Sequence[tuple[ImageRecord, np.ndarray, np.ndarray]],
+                   skipped: Sequence[SkippedFrame] = ()) -> int:
+        """Insert (record, keypoints_f32 (N, 6), descriptors_u8 (N, 128)) triples in one transaction,
+        together with the frames ``skipped`` as bad (replacing what was recorded for them).
 
-        Images already stored (same source, camera, frame) are skipped. Returns the
-        number inserted. Either the whole batch is committed or none of it.
+        Images already stored (same source, camera, frame) are skipped; a stored image is no longer
+        recorded as skipped. Returns the number inserted. Either all of it is committed or none.
         """
         rows = []
         for record, keypoints, descriptors in batch:
@@ -218,12 +230,28 @@ class FeatureStore:
                 created_at=now_iso(),
             )
             rows.append(row)
-        if not rows:
+        if not rows and not skipped:
             return 0
         before = self.image_count()
         with self.db.atomic():
             self.db["images"].insert_all(rows, ignore=True)
+            if skipped or "skipped_frames" in self.db.table_names():
+                ensure_skipped_frames(self.db)
+                self.db["skipped_frames"].insert_all(
+                    [{**vars(f), "skipped_at": now_iso()} for f in skipped], replace=True)
+                for r in rows:
+                    self.db.execute("DELETE FROM skipped_frames WHERE source = ? AND camera = ? AND frame = ?",
+                                    [r["source"], r["camera"], r["frame"]])
         return self.image_count() - before
+
+    def skipped_frames(self, source: str | None = None, camera: str | None = None) -> list[SkippedFrame]:
+        """The frames ingest skipped as bad, of (source, camera) (None: of all), in order."""
+        if "skipped_frames" not in self.db.table_names():
+            return []
+        where, args = _where(source, camera)
+        return [SkippedFrame(**r) for r in self.db.query(
+            f"SELECT source, camera, frame, path, reason FROM skipped_frames {where} ORDER BY source, camera, frame",
+            args)]
 
     def frames_without_attitude(self, source: str, camera: str) -> set[int]:
         rows = self.db.query("SELECT frame FROM images WHERE source = ? AND camera = ? AND "
@@ -275,11 +303,12 @@ class FeatureStore:
             chunk = ids[start : start + 500]
             marks = ",".join("?" * len(chunk))
             for r in self.db.query(
-                f"SELECT id, n_keypoints, keypoints_f32, descriptors_u8 FROM images WHERE id IN ({marks})", chunk
+                f"SELECT id, source, camera, frame, n_keypoints, keypoints_f32, descriptors_u8 FROM images "
+                f"WHERE id IN ({marks})", chunk
             ):
-                n = r["n_keypoints"]
-                kp = np.frombuffer(r["keypoints_f32"], dtype=np.float32).reshape(n, KEYPOINT_COLUMNS).copy()
-                desc = np.frombuffer(r["descriptors_u8"], dtype=np.uint8).reshape(n, DESCRIPTOR_DIM).copy()
+                n, what = _count(r, self.label), _row_name(r, self.label)
+                kp = array_from_blob(r["keypoints_f32"], np.float32, (n, KEYPOINT_COLUMNS), what + " keypoints")
+                desc = array_from_blob(r["descriptors_u8"], np.uint8, (n, DESCRIPTOR_DIM), what + " descriptors")
                 out[r["id"]] = (kp, desc)
         missing = set(ids) - set(out)
         if missing:
@@ -310,7 +339,7 @@ class FeatureStore:
             with self.db.atomic():
                 self.db["pair_counts"].insert_all(rows, replace=True)
 
-    # -- streaming and global vectors (the fast path) ---------------------------------
+    # -- streaming (the fast path) ----------------------------------------------------------
 
     def iter_descriptors(self, image_ids: Iterable[int], chunk_size: int = 256):
         """Yield (image_id, descriptors_u8 (N, 128)) for ``image_ids`` in order, ``chunk_size`` rows per
@@ -320,69 +349,20 @@ class FeatureStore:
             chunk = ids[start : start + chunk_size]
             marks = ",".join("?" * len(chunk))
             rows = {r["id"]: r for r in self.db.query(
-                f"SELECT id, n_keypoints, descriptors_u8 FROM images WHERE id IN ({marks})", chunk)}
+                f"SELECT id, source, camera, frame, n_keypoints, descriptors_u8 FROM images WHERE id IN ({marks})",
+                chunk)}
             for i in chunk:
                 if i not in rows:
                     raise StoreError(f"{self.label}: no image with id {i}")
                 r = rows[i]
-                yield i, np.frombuffer(r["descriptors_u8"], dtype=np.uint8).reshape(r["n_keypoints"], DESCRIPTOR_DIM)
+                yield i, array_from_blob(r["descriptors_u8"], np.uint8, (_count(r, self.label), DESCRIPTOR_DIM),
+                                         _row_name(r, self.label) + " descriptors")
 
     def image_ids(self, source: str | None = None, camera: str | None = None) -> np.ndarray:
         """(N,) int64 image ids in (source, camera, timestamp) order, without loading any metadata."""
         where, args = _where(source, camera)
         rows = self.db.execute(f"SELECT id FROM images {where} ORDER BY source, camera, timestamp_s, frame", args)
         return np.array([r[0] for r in rows], np.int64)
-
-    def add_global_vectors(self, name: str, image_ids: Sequence[int], vectors_f32: np.ndarray) -> None:
-        """Store one float32 vector per image under ``name`` (replacing what was there), one transaction."""
-        ensure_vector_tables(self.db)
-        v = np.ascontiguousarray(vectors_f32, np.float32)
-        if v.ndim != 2 or v.shape[0] != len(image_ids):
-            raise StoreError(f"{self.label}: global vectors must be ({len(image_ids)}, D), got {v.shape}")
-        with self.db.atomic():
-            self.db["global_vectors"].insert_all(
-                ({"name": name, "image_id": int(i), "vector_f32": row.tobytes()} for i, row in zip(image_ids, v)),
-                replace=True, batch_size=1000)
-
-    def stored_vector_ids(self, name: str) -> list[int]:
-        """Image ids that have a global vector under ``name``."""
-        if "global_vectors" not in self.db.table_names():
-            return []
-        return [r[0] for r in self.db.execute("SELECT image_id FROM global_vectors WHERE name = ?", [name])]
-
-    def global_vectors(self, name: str) -> tuple[np.ndarray, np.ndarray]:
-        """(image ids (N,) int64, vectors (N, D) float32) stored under ``name``, ordered by image id.
-        Reads row by row into one preallocated array (no per-row Python objects kept)."""
-        if "global_vectors" not in self.db.table_names():
-            raise StoreError(f"{self.label}: no global vectors (build them first)")
-        n = self.db.execute("SELECT count(*) FROM global_vectors WHERE name = ?", [name]).fetchone()[0]
-        if n == 0:
-            raise StoreError(f"{self.label}: no global vectors named {name!r}")
-        ids = np.empty(n, np.int64)
-        out = None
-        cur = self.db.execute("SELECT image_id, vector_f32 FROM global_vectors WHERE name = ? ORDER BY image_id",
-                              [name])
-        for k, (image_id, blob) in enumerate(cur):
-            row = np.frombuffer(blob, np.float32)
-            if out is None:
-                out = np.empty((n, row.size), np.float32)
-            ids[k], out[k] = image_id, row
-        return ids, out
-
-    def put_array(self, key: str, array: np.ndarray) -> None:
-        ensure_vector_tables(self.db)
-        a = np.ascontiguousarray(array)
-        with self.db.atomic():
-            self.db["arrays"].upsert({"key": key, "dtype": a.dtype.str, "shape_json": json.dumps(list(a.shape)),
-                                      "data": a.tobytes()}, pk="key")
-
-    def get_array(self, key: str) -> np.ndarray | None:
-        if "arrays" not in self.db.table_names():
-            return None
-        row = next(self.db.query("SELECT dtype, shape_json, data FROM arrays WHERE key = ?", [key]), None)
-        if row is None:
-            return None
-        return np.frombuffer(row["data"], np.dtype(row["dtype"])).reshape(json.loads(row["shape_json"])).copy()
 
     def sources(self) -> list[dict]:
         """One dict per (source, camera): image count, time span, keypoint statistics."""
@@ -393,6 +373,17 @@ class FeatureStore:
                 "FROM images GROUP BY source, camera ORDER BY source, camera"
             )
         )
+
+
+def _row_name(row: dict, label: str) -> str:
+    return f"{label}: {row['source']}/{row['camera']} frame {row['frame']}"
+
+
+def _count(row: dict, label: str) -> int:
+    n = row["n_keypoints"]
+    if not isinstance(n, int) or n < 0:
+        raise StoreError(f"{_row_name(row, label)}: keypoint count {n!r} is not a count; the store is damaged")
+    return n
 
 
 def _where(source: str | None, camera: str | None) -> tuple[str, list]:

@@ -13,6 +13,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from visloc.db.blobs import array_from_blob
 from visloc.db.records import StructureRecord
 from visloc.db.schema import now_iso
 from visloc.db.store import FeatureStore
@@ -23,6 +24,7 @@ class StructureTable:
 
     def __init__(self, store: FeatureStore):
         self.db = store.db
+        self.label = store.label
 
     def complete_ids(self, image_ids: Iterable[int], params_json: str, n_variants: int) -> set[int]:
         """Those of ``image_ids`` whose every variant is stored with settings ``params_json``."""
@@ -62,12 +64,12 @@ class StructureTable:
                 "SELECT image_id, variant, neighbour_ids_json, n_points, rows_i32, points_f64, cov_f64, reason, "
                 f"build_ms FROM structures WHERE params_json = ? AND image_id IN ({marks})", [params_json, *chunk]
             ):
-                n = r["n_points"]
+                n, what = r["n_points"], f"{self.label}: structure of image id {r['image_id']} ({r['variant']})"
                 out[(r["image_id"], r["variant"])] = StructureRecord(
                     image_id=r["image_id"], variant=r["variant"], params_json=params_json,
                     neighbour_ids=tuple(json.loads(r["neighbour_ids_json"])),
-                    rows_i32=np.frombuffer(r["rows_i32"], np.int32).copy(),
-                    points_f64=np.frombuffer(r["points_f64"], np.float64).reshape(n, 3).copy(),
-                    cov_f64=np.frombuffer(r["cov_f64"], np.float64).reshape(n, 3, 3).copy(),
+                    rows_i32=array_from_blob(r["rows_i32"], np.int32, (n,), what + " rows"),
+                    points_f64=array_from_blob(r["points_f64"], np.float64, (n, 3), what + " points"),
+                    cov_f64=array_from_blob(r["cov_f64"], np.float64, (n, 3, 3), what + " covariances"),
                     reason=r["reason"], build_ms=r["build_ms"] or 0.0)
         return out

@@ -17,9 +17,11 @@ from pathlib import Path
 import numpy as np
 
 from visloc.database import GeoDatabase, QuerySet
-from visloc.db import EmptyStoreError, FeatureStore, ImageRecord, StoredImage, StoreError, StructureRecord, StructureTable
+from visloc.db import (EmptyStoreError, FeatureStore, ImageRecord, StoredImage, StoreError, StructureRecord, StructureTable,
+                       SkippedFrame, VectorTable)
 from visloc.errors import InputError
 from visloc.geo import LocalFrame
+from visloc.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.matching import PairCountCache
 from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
@@ -48,17 +50,20 @@ class Dataset:
 
 
 class Workspace:
-    """A store file. ``create=True`` makes a new store when the file does not exist yet."""
+    """A store file. ``create=True`` makes a new store when the file does not exist yet;
+    ``read_only=True`` never changes the file (no migration, no cached counts saved, works on a
+    read-only medium): every method that would write raises ``InputError`` instead."""
 
-    def __init__(self, path: str | Path, *, create: bool = False):
+    def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False):
         self.path = Path(path)
+        self.read_only = read_only
         with self._store(create=create) as store:  # fail now, with the file's name, if it is no store
             self._sift = stored_sift_params(store)
 
     @contextmanager
     def _store(self, *, create: bool = False) -> Iterator[FeatureStore]:
         try:
-            store = FeatureStore(self.path, create=create)
+            store = FeatureStore(self.path, create=create and not self.read_only, read_only=self.read_only)
         except StoreError as exc:
             raise InputError(str(exc)) from None
         except sqlite3.Error as exc:
@@ -116,18 +121,25 @@ class Workspace:
 
     # -- building it ---------------------------------------------------------------------------
 
+    def skipped_frames(self) -> list[SkippedFrame]:
+        """The frames ingest skipped because they could not be described, with the reason."""
+        with self._store() as store:
+            return store.skipped_frames()
+
     def stored_frame_count(self, source: str, camera: str) -> int:
         with self._store() as store:
             return len(store.stored_frames(source, camera))
 
     def ingest(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None, limit: int | None = None,
                progress: Callable[[int, int], None] | None = None,
-               structure_progress: Callable[[int, int], None] | None = None, structure: bool = True) -> IngestReport:
-        """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``), then its
-        global vectors and its structure (``build_global_vectors``, ``build_structure``; ``structure=False``:
-        SIFT only); resumable."""
+               structure_progress: Callable[[int, int], None] | None = None, structure: bool = True,
+               skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP) -> IngestReport:
+        """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``, also for
+        ``skip_bad_frames`` and ``max_image_mp``), then its global vectors and its structure
+        (``build_global_vectors``, ``build_structure``; ``structure=False``: SIFT only); resumable."""
         with self._store(create=True) as store:
-            report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit)
+            report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit,
+                            skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp)
             self._sift = stored_sift_params(store)
         if structure and self.stored_frame_count(sequence.source, sequence.camera):
             self.build_global_vectors(sequence.source, sequence.camera)
@@ -197,7 +209,7 @@ class Workspace:
         name = global_vectors_name(source, camera, params)
         ids = self.image_ids(source, camera)
         with self._store() as store:
-            have = set(store.stored_vector_ids(name))
+            have = set(VectorTable(store).stored_vector_ids(name))
         todo = [int(i) for i in ids if int(i) not in have]
         if not todo:
             return 0
@@ -294,7 +306,10 @@ class Workspace:
         return PairCountCache(db.descriptors_u8, match_params, db_keys=[im.image_id for im in db.images], known=known)
 
     def save_pair_counts(self, cache: PairCountCache) -> int:
-        """Persist the counts ``cache`` computed since the last save; returns how many."""
+        """Persist the counts ``cache`` computed since the last save; returns how many. A read-only
+        workspace saves nothing (the counts stay in ``cache``) and returns 0."""
+        if self.read_only:
+            return 0
         new = cache.take_new_entries()
         if new:
             with self._store() as store:
@@ -332,33 +347,33 @@ class Workspace:
     def save_global_encoder(self, name: str, encoder: GlobalEncoder) -> None:
         """Keep the encoder of the global vectors called ``name`` (its codebook and PCA)."""
         with self._store() as store:
-            store.put_array(f"{name}_codebook", encoder.codebook_f32)
+            VectorTable(store).put_array(f"{name}_codebook", encoder.codebook_f32)
             if encoder.pca_basis_f32 is not None:
-                store.put_array(f"{name}_pca_mean", encoder.pca_mean_f32)
-                store.put_array(f"{name}_pca_basis", encoder.pca_basis_f32)
+                VectorTable(store).put_array(f"{name}_pca_mean", encoder.pca_mean_f32)
+                VectorTable(store).put_array(f"{name}_pca_basis", encoder.pca_basis_f32)
 
     def add_global_vectors(self, name: str, image_ids, vectors_f32: np.ndarray) -> None:
         """Keep one global vector per image under ``name`` (replacing what was there)."""
         with self._store() as store:
-            store.add_global_vectors(name, list(image_ids), vectors_f32)
+            VectorTable(store).add_global_vectors(name, list(image_ids), vectors_f32)
 
     def has_global_index(self, name: str) -> bool:
         with self._store() as store:
-            return store.get_array(f"{name}_codebook") is not None
+            return VectorTable(store).get_array(f"{name}_codebook") is not None
 
     def load_global_encoder(self, name: str) -> GlobalEncoder:
         with self._store() as store:
-            return GlobalEncoder(store.get_array(f"{name}_codebook"), store.get_array(f"{name}_pca_mean"),
-                                 store.get_array(f"{name}_pca_basis"))
+            return GlobalEncoder(VectorTable(store).get_array(f"{name}_codebook"), VectorTable(store).get_array(f"{name}_pca_mean"),
+                                 VectorTable(store).get_array(f"{name}_pca_basis"))
 
     def load_global_index(self, name: str) -> tuple[np.ndarray, GlobalIndex]:
         """(image ids (N,), the index) of the global vectors called ``name``, in image id order."""
         with self._store() as store:
-            codebook = store.get_array(f"{name}_codebook")
+            codebook = VectorTable(store).get_array(f"{name}_codebook")
             if codebook is None:
                 raise InputError(f"{self.path}: no global vectors named {name!r}")
-            encoder = GlobalEncoder(codebook, store.get_array(f"{name}_pca_mean"), store.get_array(f"{name}_pca_basis"))
-            ids, vectors = store.global_vectors(name)
+            encoder = GlobalEncoder(codebook, VectorTable(store).get_array(f"{name}_pca_mean"), VectorTable(store).get_array(f"{name}_pca_basis"))
+            ids, vectors = VectorTable(store).global_vectors(name)
         return ids, GlobalIndex(encoder, vectors)
 
 
