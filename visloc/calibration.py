@@ -1,6 +1,6 @@
-"""A camera's calibration brought beside a CSV drive: ``calibration.json``.
+"""A camera's calibration: ``calibration.json`` beside a CSV drive, and KITTI's calibration files.
 
-One JSON object, numbers only::
+``calibration.json`` is UTF-8 (a byte-order mark is skipped), one JSON object, numbers only::
 
     {"fx": 721.5377, "fy": 721.5377, "cx": 609.5593, "cy": 172.854,
      "width_px": 1242, "height_px": 375,
@@ -19,6 +19,16 @@ transform in metres, row by row (a list of 4 rows, or 16 numbers): X_vehicle =
 T_vehicle_camera @ X_camera, with the vehicle frame x forward, y left, z up (the frame whose
 attitude ``roll_deg, pitch_deg, heading`` give) and the camera frame x right, y down,
 z forward. visloc stores ``P_rect = [K | 0]`` and ``T_camera_imu = inverse(T_vehicle_camera)``.
+
+KITTI's ``calib_cam_to_cam.txt`` (``P_rect_0X``, ``R_rect_00``), ``calib_velo_to_cam.txt`` and
+``calib_imu_to_velo.txt`` (``R``, ``T``) hold ``key: numbers`` lines; each value read must be finite
+and the 3x3 part of ``P_rect_0X`` regular.
+Camera extrinsics (KITTI's chain, all rigid, metres): a point X_imu in the OXTS/IMU
+frame is X_velo = T_velo_imu X_imu, X_cam0 = T_cam0_velo X_velo (unrectified left
+gray camera), then rotated by R_rect_00 into the common rectified frame, and camera N
+sits at t_N = K^-1 P_rect_0N[:, 3] from the rectified camera 0 (for image_01 about
+-0.54 m in x: 0.54 m to the right). So T_camera_imu = [I | t_N] R_rect_00 T_cam0_velo
+T_velo_imu, and the rectified intrinsics are K = P_rect_0N[:, :3].
 """
 
 from __future__ import annotations
@@ -88,38 +98,71 @@ def write_calibration(path: Path, calibration: dict) -> None:
     Path(path).write_text("{\n" + body + "\n}\n")
 
 
+def read_text(path: Path, *, encoding: str = "utf-8") -> str:
+    """A text file's content; ``InputError`` naming the file, and the line of the first byte that is not
+    UTF-8, if it is unreadable (``encoding="utf-8-sig"`` also takes a leading byte-order mark)."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{path}: unreadable ({exc.strerror or exc})") from None
+    try:
+        return data.decode(encoding)
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise InputError(f"{path}:{line}: not UTF-8 text (byte 0x{data[exc.start]:02x}); save the file as UTF-8") \
+            from None
+
+
+def _finite(value: object) -> bool:
+    """A JSON number (not a bool) that is finite as a float (an int too large for a float is not)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def _number(data: dict, key: str, where: str) -> float:
     if key not in data:
         raise InputError(f"{where}: {key}: missing")
     value = data[key]
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise InputError(f"{where}: {key}: expected a finite number, got {value!r}")
+    if not _finite(value):
+        raise InputError(f"{where}: {key}: expected a finite number, got {_short(value)}")
     return float(value)
+
+
+def _short(value: object) -> str:
+    """``repr(value)`` cut to one short line, for messages."""
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
 
 
 def _size(data: dict, key: str, where: str) -> int:
     if key not in data:
         raise InputError(f"{where}: {key}: missing")
     value = data[key]
-    if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-        raise InputError(f"{where}: {key}: expected a positive whole number of pixels, got {value!r}")
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 < value < 2**31:
+        raise InputError(f"{where}: {key}: expected a positive whole number of pixels, got {_short(value)}")
     return value
 
 
 def _matrix(value: object, where: str) -> np.ndarray:
-    try:
-        T = np.array(value, dtype=float)
-    except (TypeError, ValueError):
-        T = np.zeros(0)
-    if T.size != 16 or T.ndim not in (1, 2) or (T.ndim == 2 and T.shape != (4, 4)):
+    if isinstance(value, list) and len(value) == 4 and all(isinstance(row, list) and len(row) == 4 for row in value):
+        numbers = [v for row in value for v in row]
+    elif isinstance(value, list) and len(value) == 16 and not any(isinstance(v, list) for v in value):
+        numbers = value
+    else:
         raise InputError(f"{where}: T_vehicle_camera: expected a 4x4 matrix (4 rows of 4 numbers, or 16 numbers)")
-    T = T.reshape(4, 4)
-    if not np.all(np.isfinite(T)):
-        raise InputError(f"{where}: T_vehicle_camera: holds a number that is not finite")
+    if not all(_finite(v) for v in numbers):
+        raise InputError(f"{where}: T_vehicle_camera: holds a value that is not a finite number")
+    T = np.array(numbers, dtype=float).reshape(4, 4)
     R = T[:3, :3]
-    off = max(float(np.abs(R.T @ R - np.eye(3)).max()), abs(float(np.linalg.det(R)) - 1.0),
-              float(np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max()))
-    if off > RIGID_TOLERANCE:
+    with np.errstate(over="ignore", invalid="ignore"):  # huge entries: off is inf or nan, refused below
+        off = float(np.max([np.abs(R.T @ R - np.eye(3)).max(), abs(np.linalg.det(R) - 1.0),
+                            np.abs(T[3] - (0.0, 0.0, 0.0, 1.0)).max()]))  # nan if any is nan
+    if not off <= RIGID_TOLERANCE:
         raise InputError(f"{where}: T_vehicle_camera: not a rigid transform (rotation off by {off:.2g}, "
                          f"tolerance {RIGID_TOLERANCE:g}; last row must be 0 0 0 1)")
     return T
@@ -129,12 +172,13 @@ def read_calibration(path: Path) -> Calibration:
     """``calibration.json`` (see the module docstring), checked; ``InputError`` naming the file and key."""
     path = Path(path)
     where = str(path)
+    text = read_text(path, encoding="utf-8-sig")
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(f"{where}: unreadable ({exc})") from None
+        data = json.loads(text)
     except json.JSONDecodeError as exc:
         raise InputError(f"{where}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    except (ValueError, RecursionError) as exc:  # e.g. an integer of more than 4300 digits, or nesting too deep
+        raise InputError(f"{where}: not a calibration file ({str(exc).splitlines()[0][:80]})") from None
     if not isinstance(data, dict):
         raise InputError(f"{where}: expected a JSON object with fx, fy, cx, cy, width_px, height_px, "
                          "T_vehicle_camera")
@@ -153,11 +197,89 @@ def read_calibration(path: Path) -> Calibration:
     distortion = None
     if data.get("distortion") is not None:
         d = data["distortion"]
-        ok = isinstance(d, list) and len(d) in DISTORTION_LENGTHS and all(
-            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in d)
+        ok = isinstance(d, list) and len(d) in DISTORTION_LENGTHS and all(_finite(v) for v in d)
         if not ok:
             raise InputError(f"{where}: distortion: expected a list of 4, 5, 8, 12 or 14 finite numbers "
                              "(OpenCV's k1, k2, p1, p2[, k3, ...])")
         distortion = np.array(d, float) if any(d) else None  # all zero: no distortion
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return Calibration(K=K, width_px=width_px, height_px=height_px, T_vehicle_camera=T, distortion=distortion)
+
+
+# -- KITTI's calibration files ---------------------------------------------------
+
+def _calib_entries(path: Path) -> dict[str, str]:
+    """The ``key: values`` lines of a KITTI calibration file (the first line of a repeated key)."""
+    out: dict[str, str] = {}
+    for line in read_text(path).split("\n"):
+        key, sep, rest = line.partition(":")
+        if sep:
+            out.setdefault(key.strip(), rest)
+    return out
+
+
+def _calib_numbers(path: Path, entries: dict[str, str], key: str, count: int) -> np.ndarray | None:
+    """The ``count`` finite numbers of ``key``, None if the file has no such key."""
+    if key not in entries:
+        return None
+    try:
+        values = np.array([float(v) for v in entries[key].split()])
+    except ValueError:
+        values = np.array([])
+    if values.size != count:
+        raise InputError(f"{path}: {key} must hold {count} numbers")
+    if not np.all(np.isfinite(values)):
+        raise InputError(f"{path}: {key} holds a number that is not finite")
+    return values
+
+
+def read_kitti_calibration(calib_path: Path, camera: str) -> np.ndarray | None:
+    """``P_rect_0X`` (3x4) from ``calib_cam_to_cam.txt``, or None if the file is absent."""
+    if not calib_path.is_file():
+        return None
+    key = "P_rect_" + camera[-2:]
+    values = _calib_numbers(calib_path, _calib_entries(calib_path), key, 12)
+    if values is None:
+        raise InputError(f"{calib_path}: no {key} entry")
+    P = values.reshape(3, 4)
+    try:
+        with np.errstate(all="ignore"):
+            sv = np.linalg.svd(P[:, :3], compute_uv=False)
+    except np.linalg.LinAlgError:
+        sv = np.zeros(3)
+    if not sv[-1] > 1e-9 * sv[0]:  # also inf or nan singular values, from numbers near the float limit
+        raise InputError(f"{calib_path}: {key}: its 3x3 part is singular (no camera projects so)")
+    return P
+
+
+def _rigid(entries: dict[str, str], path: Path, r_key: str = "R", t_key: str = "T") -> np.ndarray:
+    R, t = _calib_numbers(path, entries, r_key, 9), _calib_numbers(path, entries, t_key, 3)
+    if R is None or t is None:
+        raise InputError(f"{path}: needs {r_key} (9 numbers) and {t_key} (3 numbers)")
+    T = np.eye(4)
+    T[:3, :3] = R.reshape(3, 3)
+    T[:3, 3] = t
+    return T
+
+
+def read_kitti_extrinsics(date_folder: Path, camera: str) -> np.ndarray | None:
+    """T_camera_imu (4x4, metres) of a rectified KITTI camera, or None if a calibration file is absent.
+
+    See the module docstring for the chain of transforms.
+    """
+    paths = [date_folder / n for n in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt")]
+    if not all(p.is_file() for p in paths):
+        return None
+    cam, velo, imu = (_calib_entries(p) for p in paths)
+    T_velo_imu = _rigid(imu, paths[2])
+    T_cam0_velo = _rigid(velo, paths[1])
+    r_rect = _calib_numbers(paths[0], cam, "R_rect_00", 9)
+    if r_rect is None:
+        raise InputError(f"{paths[0]}: no R_rect_00 entry with 9 numbers")
+    T_rect_cam0 = np.eye(4)
+    T_rect_cam0[:3, :3] = r_rect.reshape(3, 3)
+    P = read_kitti_calibration(paths[0], camera)  # its 3x3 part is regular
+    T_camera_rect = np.eye(4)
+    with np.errstate(all="ignore"):
+        T_camera_rect[:3, 3] = np.linalg.solve(P[:, :3], P[:, 3])  # baseline of camera N in the rectified frame
+        return T_camera_rect @ T_rect_cam0 @ T_cam0_velo @ T_velo_imu

@@ -8,34 +8,33 @@ KITTI raw layout: ``ROOT/<date>/<date>_drive_<NNNN>_sync/`` with ``image_0X/data
 ``image_0X/timestamps.txt`` (falls back to ``oxts/timestamps.txt``), ``oxts/data/*.txt``
 (lat, lon, alt, roll, pitch, yaw, ...) and ``ROOT/<date>/calib_cam_to_cam.txt``
 (``P_rect_0X``, ``R_rect_00``), ``calib_velo_to_cam.txt`` and ``calib_imu_to_velo.txt``
-(rigid transforms). Timestamps are read as UTC and kept as Unix seconds.
-
-Camera extrinsics (KITTI's chain, all rigid, metres): a point X_imu in the OXTS/IMU
-frame is X_velo = T_velo_imu X_imu, X_cam0 = T_cam0_velo X_velo (unrectified left
-gray camera), then rotated by R_rect_00 into the common rectified frame, and camera N
-sits at t_N = K^-1 P_rect_0N[:, 3] from the rectified camera 0 (for image_01 about
--0.54 m in x: 0.54 m to the right). So T_camera_imu = [I | t_N] R_rect_00 T_cam0_velo
-T_velo_imu, and the rectified intrinsics are K = P_rect_0N[:, :3].
+(rigid transforms, read by ``visloc.calibration``). Timestamps are read as UTC and kept as Unix
+seconds; each line must be later than the one before. Every text file is read as UTF-8.
 
 KITTI's OXTS record also states its position accuracy (field 24, ``pos_accuracy``, metres,
 north/east): read as ``Frame.position_accuracy_m``, the standard deviation per horizontal axis.
 
 CSV: a header with ``file,timestamp,lat,lon`` and optionally ``alt`` (metres), ``heading``
 (compass degrees, 0 = north, clockwise), ``roll_deg``, ``pitch_deg`` and ``accuracy_m``;
-``file`` is relative to the CSV's folder; ``timestamp`` is seconds (any epoch) or ISO 8601.
+``file`` is a path inside the CSV's folder, relative to it (not absolute, no ``..`` leading out of
+it, symbolic links resolved; a symbolic link inside may point anywhere, as those
+``scripts/kitti_to_csv.py`` makes do); ``timestamp`` is seconds (any epoch) or ISO 8601, and no two
+rows may share one (rows may come in any order: frames are ordered by time).
 ``roll_deg``, ``pitch_deg`` and ``heading`` give the attitude of the geotag's reference frame
 (x forward, y left, z up) in KITTI's OXTS convention: roll about x, pitch about y (same signs
 as OXTS), yaw_rad = radians(90 - heading) wrapped to (-pi, pi]; a row has an attitude only
 when all three are present. ``accuracy_m`` is the geotag's stated accuracy, the standard
 deviation per horizontal axis in metres (> 0). Empty cells mean unknown. A
 ``calibration.json`` beside the CSV gives the camera's intrinsics, distortion and pose on the
-vehicle (format: ``visloc.calibration``); the refined mode needs it and the attitudes.
+vehicle (format: ``visloc.calibration``); the refined mode needs it and the attitudes. The CSV is
+UTF-8, with or without a byte-order mark.
 """
 
 from __future__ import annotations
 
 import csv
 import datetime as _dt
+import io
 import math
 import os
 import re
@@ -45,7 +44,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from visloc.calibration import CALIBRATION_FILE, read_calibration
+from visloc.calibration import (
+    CALIBRATION_FILE,
+    read_calibration,
+    read_kitti_calibration,
+    read_kitti_extrinsics,
+    read_text,
+)
 from visloc.errors import InputError
 from visloc.features import to_gray_u8
 from visloc.geo import yaw_enu_to_heading_deg
@@ -53,6 +58,7 @@ from visloc.geometry import CameraModel
 
 KITTI_CAMERAS = ("image_00", "image_01", "image_02", "image_03")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
+OXTS_FIELDS = ("lat", "lon", "alt", "roll", "pitch", "yaw")  # the first 6 of an OXTS record's 30
 
 
 @dataclass(frozen=True)
@@ -153,97 +159,53 @@ def resolve_drive(root: Path, drive: str | None) -> Path:
 
 
 def _read_timestamps(path: Path) -> list[float]:
-    out = []
-    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+    """Unix seconds of each line of a KITTI ``timestamps.txt``; each must be later than the one before."""
+    out: list[float] = []
+    previous = (0, "")  # line number and text of the last timestamp
+    for line_no, line in enumerate(read_text(path).split("\n"), 1):
         line = line.strip()
         if not line:
             continue
+        # KITTI writes nanoseconds; datetime takes microseconds.
+        day, dot, frac = line.partition(".")
         try:
-            # KITTI writes nanoseconds; datetime takes microseconds.
-            day, _, frac = line.partition(".")
+            if dot and not (frac.isascii() and frac.isdigit()):
+                raise ValueError(frac)
             stamp = _dt.datetime.strptime(day, "%Y-%m-%d %H:%M:%S").replace(tzinfo=_dt.timezone.utc)
-            out.append(stamp.timestamp() + (float("0." + frac) if frac else 0.0))
         except ValueError:
             raise InputError(f"{path}:{line_no}: not a timestamp: {line[:40]!r}") from None
+        t = stamp.timestamp() + float("0." + (frac or "0"))
+        if out and t <= out[-1]:
+            what = "repeats" if t == out[-1] else f"is earlier than {previous[1]!r}"
+            raise InputError(f"{path}:{previous[0]} and :{line_no}: timestamp {line[:40]!r} {what}; "
+                             "timestamps must increase")
+        out.append(t)
+        previous = (line_no, line)
     return out
 
 
 def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, float, float | None]:
     """(lat_deg, lon_deg, alt_m, heading_deg, roll_rad, pitch_rad, yaw_rad, position_accuracy_m) of one
     OXTS record; the accuracy (field 24, ``pos_accuracy``) is None when absent, not finite or not > 0."""
-    try:
-        values = [float(v) for v in path.read_text().split()]
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: unreadable OXTS record ({exc})") from None
-    if len(values) < 6 or not all(math.isfinite(v) for v in values[:6]):
-        raise InputError(f"{path}: OXTS record needs at least 6 numbers (lat lon alt roll pitch yaw)")
+    tokens = read_text(path).split()
+    values = []
+    for i, token in enumerate(tokens, 1):
+        name = f" ({OXTS_FIELDS[i - 1]})" if i <= len(OXTS_FIELDS) else ""
+        try:
+            values.append(float(token))
+        except ValueError:
+            raise InputError(f"{path}: unreadable OXTS record: field {i}{name} is not a number: {token[:40]!r}") \
+                from None
+        if i <= len(OXTS_FIELDS) and not math.isfinite(values[-1]):
+            raise InputError(f"{path}: OXTS record field {i}{name} is not a finite number: {token[:40]!r}")
+    if len(values) < 6:
+        raise InputError(f"{path}: OXTS record needs at least 6 numbers (lat lon alt roll pitch yaw), "
+                         f"found {len(values)}")
     lat, lon, alt, roll, pitch, yaw = values[:6]
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):
         raise InputError(f"{path}: lat/lon out of range ({lat}, {lon})")
     accuracy = values[23] if len(values) >= 24 and math.isfinite(values[23]) and values[23] > 0 else None
     return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw, accuracy
-
-
-def read_kitti_calibration(calib_path: Path, camera: str) -> np.ndarray | None:
-    """``P_rect_0X`` (3x4) from ``calib_cam_to_cam.txt``, or None if the file is absent."""
-    if not calib_path.is_file():
-        return None
-    key = "P_rect_" + camera[-2:] + ":"
-    for line in calib_path.read_text().splitlines():
-        if line.startswith(key):
-            try:
-                values = np.array([float(v) for v in line[len(key):].split()])
-            except ValueError:
-                values = np.array([])
-            if values.size != 12:
-                raise InputError(f"{calib_path}: {key[:-1]} must hold 12 numbers")
-            return values.reshape(3, 4)
-    raise InputError(f"{calib_path}: no {key[:-1]} entry")
-
-
-def _read_calib_values(path: Path) -> dict[str, np.ndarray]:
-    out = {}
-    for line in path.read_text().splitlines():
-        key, sep, rest = line.partition(":")
-        if not sep:
-            continue
-        try:
-            out[key.strip()] = np.array([float(v) for v in rest.split()])
-        except ValueError:
-            continue  # e.g. calib_time
-    return out
-
-
-def _rigid(values: dict[str, np.ndarray], path: Path, r_key: str = "R", t_key: str = "T") -> np.ndarray:
-    R, t = values.get(r_key), values.get(t_key)
-    if R is None or t is None or R.size != 9 or t.size != 3:
-        raise InputError(f"{path}: needs {r_key} (9 numbers) and {t_key} (3 numbers)")
-    T = np.eye(4)
-    T[:3, :3] = R.reshape(3, 3)
-    T[:3, 3] = t
-    return T
-
-
-def read_kitti_extrinsics(date_folder: Path, camera: str) -> np.ndarray | None:
-    """T_camera_imu (4x4, metres) of a rectified KITTI camera, or None if a calibration file is absent.
-
-    See the module docstring for the chain of transforms.
-    """
-    paths = [date_folder / n for n in ("calib_cam_to_cam.txt", "calib_velo_to_cam.txt", "calib_imu_to_velo.txt")]
-    if not all(p.is_file() for p in paths):
-        return None
-    cam, velo, imu = (_read_calib_values(p) for p in paths)
-    T_velo_imu = _rigid(imu, paths[2])
-    T_cam0_velo = _rigid(velo, paths[1])
-    r_rect = cam.get("R_rect_00")
-    if r_rect is None or r_rect.size != 9:
-        raise InputError(f"{paths[0]}: no R_rect_00 entry with 9 numbers")
-    T_rect_cam0 = np.eye(4)
-    T_rect_cam0[:3, :3] = r_rect.reshape(3, 3)
-    P = read_kitti_calibration(paths[0], camera)
-    T_camera_rect = np.eye(4)
-    T_camera_rect[:3, 3] = np.linalg.solve(P[:, :3], P[:, 3])  # baseline of camera N in the rectified frame
-    return T_camera_rect @ T_rect_cam0 @ T_cam0_velo @ T_velo_imu
 
 
 def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
@@ -323,13 +285,28 @@ def heading_deg_to_yaw_rad(heading_deg: float) -> float:
     return yaw + 2.0 * math.pi if yaw <= -math.pi else yaw
 
 
-def _csv_frame(row: dict[str, str], frame: int, folder: Path, where: str) -> Frame:
+def _image_path(name: str, folder: Path, inside: Path, where: str) -> Path:
+    """``folder / name``, refused if ``name`` is absolute or its ``..`` lead out of ``inside`` (the folder
+    resolved; ``..`` after a symbolic link is resolved as the system does, from the link's target)."""
+    path = folder / name
+    try:
+        ok = "\x00" not in name and not Path(name).is_absolute() and (
+            ".." not in Path(name).parts or path.resolve().is_relative_to(inside))
+    except (OSError, RuntimeError, ValueError):  # a symbolic-link loop, a name too long
+        ok = False
+    if not ok:
+        raise InputError(f"{where}: column file: {name[:60]!r} must be a path inside {inside}")
+    return path
+
+
+def _csv_frame(row: dict[str, str], frame: int, folder: Path, inside: Path, where: str) -> Frame:
     if not row["file"]:
         raise InputError(f"{where}: column file: empty file name")
+    image_path = _image_path(row["file"], folder, inside, where)
     t = _parse_time(row["timestamp"], where)
     lat, lon = _number(row, "lat", where), _number(row, "lon", where)
     if lat is None or lon is None or not (-90 <= lat <= 90 and -180 <= lon <= 180):
-        raise InputError(f"{where}: lat/lon out of range ({row['lat']!r}, {row['lon']!r})")
+        raise InputError(f"{where}: lat/lon out of range ({row['lat'][:40]!r}, {row['lon'][:40]!r})")
     heading = _number(row, "heading", where)
     heading = None if heading is None else heading % 360.0
     roll, pitch = _number(row, "roll_deg", where), _number(row, "pitch_deg", where)
@@ -341,19 +318,15 @@ def _csv_frame(row: dict[str, str], frame: int, folder: Path, where: str) -> Fra
     attitude = (None, None, None)
     if None not in (roll, pitch, heading):
         attitude = (math.radians(roll), math.radians(pitch), heading_deg_to_yaw_rad(heading))
-    return Frame(frame=frame, image_path=folder / row["file"], timestamp_s=t, lat_deg=lat, lon_deg=lon,
+    return Frame(frame=frame, image_path=image_path, timestamp_s=t, lat_deg=lat, lon_deg=lon,
                  alt_m=_number(row, "alt", where), heading_deg=heading, roll_rad=attitude[0],
                  pitch_rad=attitude[1], yaw_rad=attitude[2], position_accuracy_m=accuracy)
 
 
-def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera") -> Sequence:
-    """A drive brought as images plus a CSV of geotags, and ``calibration.json`` beside it when present
-    (see the module docstring)."""
-    csv_path = Path(csv_path)
-    if not csv_path.is_file():
-        raise InputError(f"{csv_path}: CSV file not found")
-    with csv_path.open(newline="") as fh:
-        reader = csv.DictReader(fh)
+def _rows(csv_path: Path) -> list[tuple[int, dict[str, str]]]:
+    """(line number, row with stripped keys and values) of every data row, the header checked."""
+    reader = csv.DictReader(io.StringIO(read_text(csv_path, encoding="utf-8-sig"), newline=""))
+    try:
         header = [h.strip() for h in (reader.fieldnames or [])]
         missing = {"file", "timestamp", "lat", "lon"} - set(header)
         if missing:
@@ -362,13 +335,34 @@ def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera
         if {"roll_deg", "pitch_deg"} & set(header) and not attitude_columns <= set(header):
             lacking = ", ".join(sorted(attitude_columns - set(header)))
             raise InputError(f"{csv_path}: roll_deg, pitch_deg and heading give the attitude together; missing {lacking}")
-        rows = list(reader)
+        # keys: None gathers the cells beyond the header; values: None for cells a short row lacks
+        return [(reader.line_num, {k.strip(): (v or "").strip() for k, v in row.items() if k})
+                for row in reader]
+    except csv.Error as exc:
+        raise InputError(f"{csv_path}:{reader.reader.line_num}: not readable as CSV ({exc})") from None
+
+
+def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera") -> Sequence:
+    """A drive brought as images plus a CSV of geotags, and ``calibration.json`` beside it when present
+    (see the module docstring), its frames ordered by time."""
+    csv_path = Path(csv_path)
+    if not csv_path.is_file():
+        raise InputError(f"{csv_path}: CSV file not found")
+    rows = _rows(csv_path)
     if not rows:
         raise InputError(f"{csv_path}: no rows")
+    folder = csv_path.parent
+    inside = folder.resolve()
     # frame = data row number, so appending rows to the CSV keeps earlier frames' identity
-    parsed = [_csv_frame({k.strip(): (v or "").strip() for k, v in row.items() if k}, line_no - 2, csv_path.parent,
-                         f"{csv_path}:{line_no}") for line_no, row in enumerate(rows, 2)]
+    parsed = [_csv_frame(row, frame, folder, inside, f"{csv_path}:{line_no}")
+              for frame, (line_no, row) in enumerate(rows)]
     frames = tuple(sorted(parsed, key=lambda f: (f.timestamp_s, f.frame)))
+    for a, b in zip(frames, frames[1:]):
+        if a.timestamp_s == b.timestamp_s:
+            (line_a, row_a), (line_b, row_b) = rows[a.frame], rows[b.frame]
+            same = (f"timestamp {row_a['timestamp'][:40]} repeats" if row_a["timestamp"] == row_b["timestamp"] else
+                    f"timestamps {row_a['timestamp'][:40]} and {row_b['timestamp'][:40]} are the same time")
+            raise InputError(f"{csv_path}:{line_a} and :{line_b}: {same}; timestamps must increase")
     source = source or csv_path.parent.name
     calibration_path = csv_path.parent / CALIBRATION_FILE
     if not calibration_path.is_file():
