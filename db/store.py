@@ -89,6 +89,7 @@ class FeatureStore:
     def _open(self, db: sqlite_utils.Database, label: str, *, create: bool, on_disk: bool) -> None:
         self.db = db
         self.label = label
+        self.migrated_from: int | None = None  # the schema version this opening migrated from, if it did
         tables = set(db.table_names())
         if not tables and create:
             # another process may be creating this store right now: take the write lock (waiting for
@@ -113,6 +114,7 @@ class FeatureStore:
                                  f"{SCHEMA_VERSION}: upgrade it first with 'visloc upgrade --db {label}'")
         if older:
             migrate(db, version)
+            self.migrated_from = version
             version = SCHEMA_VERSION
         if version != SCHEMA_VERSION:
             raise NotAStoreError(

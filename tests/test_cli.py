@@ -25,7 +25,7 @@ def one_line_error(result, *fragments):
 def test_every_command_and_option_has_help_text():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    assert set(sub.choices) == {"ingest", "localize", "evaluate", "evaluate-drives", "info", "dashboard", "bench", "track"}
+    assert set(sub.choices) == {"ingest", "localize", "evaluate", "evaluate-drives", "info", "upgrade", "dashboard", "bench", "track"}
     for name, cmd in sub.choices.items():
         assert cmd.description, name
         for action in cmd._actions:

@@ -16,6 +16,7 @@ from pathlib import Path
 from visloc import commands
 from visloc.db import StoreError
 from visloc.errors import VislocError
+from visloc.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.params import (PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK,
                            RetrievalParams)
 
@@ -84,6 +85,16 @@ def _add_sampling(p: argparse.ArgumentParser) -> None:
                         "time: the frame nearest to each multiple of dt (default %(default)s)")
 
 
+def _add_bad_frames(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("ingest: bad frames and limits")
+    g.add_argument("--skip-bad-frames", action="store_true",
+                   help="skip frames that cannot be described (unreadable, too large, no keypoints) instead of "
+                        "stopping; the store records which and why ('visloc info' lists them)")
+    g.add_argument("--max-image-mp", type=float, default=DEFAULT_MAX_IMAGE_MP,
+                   help="refuse images larger than this many megapixels, checked before decoding; SIFT needs "
+                        "about 230 bytes per pixel in each worker (default %(default)s)")
+
+
 def _add_db(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
 
@@ -104,6 +115,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_db(p)
     p.add_argument("--workers", type=int, default=None, help="SIFT processes (default: number of cores)")
     p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
+    _add_bad_frames(p)
     _add_sift(p)
     p.set_defaults(func=commands.cmd_ingest)
 
@@ -146,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method(p, PAPER_EVAL_RETRIEVAL)
     _add_mode(p)
     _add_sift(p)
+    _add_bad_frames(p)
     p.set_defaults(func=commands.cmd_evaluate)
 
     p = sub.add_parser("evaluate-drives", help="the evaluation on every drive of a data root, every protocol and mode",
@@ -166,6 +179,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method(p, PAPER_EVAL_RETRIEVAL)
     _add_mode(p, choose_mode=False)
     _add_sift(p)
+    _add_bad_frames(p)
     p.set_defaults(func=commands.cmd_evaluate_drives)
 
     p = sub.add_parser("dashboard", help="browser dashboard: scrub through a drive, tune the method live",
@@ -250,7 +264,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Mahalanobis gate, 2 dof; 0 = off (default %(default)s)")
     g.add_argument("--seed", type=int, default=REFINED.seed, help="RANSAC seed (default %(default)s)")
     _add_sift(p)
+    _add_bad_frames(p)
     p.set_defaults(func=commands.cmd_track)
+
+    p = sub.add_parser("upgrade", help="migrate a store of an older schema version in place",
+                       description="Bring a store written by an older visloc to this version's schema, keeping every "
+                                   "image and cached count. Reading commands (info, dashboard) never migrate; ingest "
+                                   "and the other commands that write do it on their own.")
+    _add_db(p)
+    p.set_defaults(func=commands.cmd_upgrade)
 
     p = sub.add_parser("info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)
@@ -264,6 +286,10 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
+    if getattr(args, "max_image_mp", None) is not None and not 0 < args.max_image_mp < float("inf"):
+        print(f"visloc: error: --max-image-mp {args.max_image_mp}: must be a finite number of megapixels > 0",
+              file=sys.stderr)
+        return 2
     for name in ("steps", "workers", "limit", "frames"):
         value = getattr(args, name, None)
         if value is not None and value < 1:

@@ -8,7 +8,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from tqdm import tqdm
@@ -17,6 +18,7 @@ from visloc.bench.run import BenchParams, run_bench
 from visloc.errors import InputError, ParameterError
 from visloc.evaluation import evaluate, series_schedule
 from visloc.methods import METHODS, Method, build_localizer, method_named
+from visloc.outputs import require_output_folder, require_writable_output
 from visloc.params import FAST, REFINED, FilterParams, MatchParams, RetrievalParams, SiftParams, TrackParams
 from visloc.queries import extract_queries
 from visloc.records import step_record
@@ -25,21 +27,57 @@ from visloc.runs import run_queries
 from visloc.sources import Sequence, default_data_root, open_source
 from visloc.suite import drive_protocols, drives_of, pooled_rows, protocol_row, table_text
 from visloc.track import run_track, track_filter, track_localizer
-from visloc.workspace import Workspace
+from visloc.workspace import STORE_SCHEMA_VERSION, Workspace
 
 
 # -- arguments -> parameters ------------------------------------------------------------------
 
+# the flag setting each parameter (visloc.cli), so that a refused value is reported by the flag the user typed
+FLAGS = {"n_features": "--sift-features", "n_octave_layers": "--sift-octave-layers",
+         "contrast_threshold": "--sift-contrast", "edge_threshold": "--sift-edge", "sigma": "--sift-sigma",
+         "image_scale": "--sift-scale", "tau1": "--tau1", "tau2": "--tau2", "window_s": "--window-s",
+         "exclusion_s": "--exclusion-s", "dt_s": "--dt-s", "meas_var_m2": "--meas-var-m2",
+         "accel_var_m2_s4": "--accel-var-m2-s4", "init_var": "--init-var", "top_k": "--top-k",
+         "geotag_sigma_m": "--geotag-sigma-m", "gate_chi2": "--gate-chi2", "seed": "--seed",
+         "query_image_scale": "--query-scale", "query_max_keypoints": "--query-keypoints",
+         "shortlist_size": "--shortlist", "stride": "--stride"}
+
+
+@contextmanager
+def flags_named() -> Iterator[None]:
+    """Parameters built from flags: a ``ParameterError`` is re-raised starting with the flags at fault."""
+    try:
+        yield
+    except ParameterError as exc:
+        flags = [FLAGS[n] for n in getattr(exc, "params", ()) if n in FLAGS]
+        if not flags:
+            raise
+        raise ParameterError(f"{' and '.join(flags)}: {exc}") from None
+
+
 def sift_params(a: argparse.Namespace) -> SiftParams:
-    return SiftParams(n_features=a.sift_features, n_octave_layers=a.sift_octave_layers,
-                      contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma,
-                      image_scale=a.sift_scale)
+    with flags_named():
+        return SiftParams(n_features=a.sift_features, n_octave_layers=a.sift_octave_layers,
+                          contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma,
+                          image_scale=a.sift_scale)
 
 
 def method_params(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, FilterParams]:
-    return (MatchParams(tau1=a.tau1, tau2=a.tau2),
-            RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s),
-            FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var))
+    with flags_named():
+        return (MatchParams(tau1=a.tau1, tau2=a.tau2),
+                RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s),
+                FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4,
+                             init_var=a.init_var))
+
+
+def refined_params(a: argparse.Namespace, base=REFINED, **more):
+    """``base`` with the refined flags; a geotag accuracy of 0 needs P0 > 0 (see ``FilterParams``)."""
+    with flags_named():
+        pose = base.replace(geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed, **more)
+    if a.geotag_sigma_m == 0 and a.init_var == 0:
+        raise ParameterError("--geotag-sigma-m 0 with --init-var 0: a geotag fallback's measurement variance R = 0 "
+                             "on P0 = 0 makes the innovation covariance S = P + R singular; give either a value > 0")
+    return pose
 
 
 def method_of(a: argparse.Namespace, mode: str | None = None) -> Method:
@@ -51,10 +89,10 @@ def method_of(a: argparse.Namespace, mode: str | None = None) -> Method:
     except ParameterError:
         raise InputError(f"--mode {name!r}: must be one of {', '.join(METHODS)}") from None
     if method.pose is not None:
-        method = method.replace(pose=method.pose.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m,
-                                                         gate_chi2=a.gate_chi2, seed=a.seed))
+        method = method.replace(pose=refined_params(a, method.pose, top_k=a.top_k))
     else:  # the refined flags are still checked, so a bad value is refused in either mode
-        REFINED.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
+        with flags_named():
+            REFINED.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
     return method.replace(shortlist=FAST) if getattr(a, "fast", False) and not method.camera_rate else method
 
 
@@ -81,14 +119,10 @@ def progress_bar(desc: str, unit: str) -> Callable[[int, int], None]:
     return progress
 
 
-def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, workers: int | None, limit: int | None = None):
-    return ws.ingest(seq, sift, workers=workers, limit=limit, progress=progress_bar(f"SIFT {seq.name}", "img"),
-                     structure_progress=progress_bar(f"structure {seq.name}", "img"))
-
-
-def _check_output_folder(path: Path | None, flag: str) -> None:
-    if path is not None and not Path(path).resolve().parent.is_dir():
-        raise InputError(f"{flag} {path}: folder does not exist")
+def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None):
+    return ws.ingest(seq, sift, workers=a.workers, limit=limit, progress=progress_bar(f"SIFT {seq.name}", "img"),
+                     structure_progress=progress_bar(f"structure {seq.name}", "img"),
+                     skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp)
 
 
 # -- commands -----------------------------------------------------------------------------------
@@ -99,14 +133,16 @@ def cmd_ingest(a: argparse.Namespace) -> int:
     ws = Workspace(a.db, create=True)  # only once every source opened: a bad source creates no store file
     for seq in sequences:
         try:
-            report = _ingest(ws, seq, sift, a.workers, a.limit)
+            report = _ingest(ws, seq, sift, a, a.limit)
         except KeyboardInterrupt:
             n = ws.stored_frame_count(seq.source, seq.camera)
             print(f"visloc: interrupted; {a.db} keeps {n} images of {seq.name}", file=sys.stderr)
             return 130
         filled = f", attitude filled in for {report.n_attitudes_filled}" if report.n_attitudes_filled else ""
+        bad = report.n_bad_skipped
+        bad = f", {bad} bad frame{'s' if bad > 1 else ''} skipped (visloc info lists them)" if bad else ""
         print(f"{a.db}: {seq.name}: {report.n_added} added, {report.n_skipped} already stored, "
-              f"{len(seq)} frames ({report.images_per_s:.1f} images/s){filled}")
+              f"{len(seq)} frames{bad} ({report.images_per_s:.1f} images/s){filled}")
     return 0
 
 
@@ -114,7 +150,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
     sift = sift_params(a)
     match, retrieval, filt = method_params(a)
     method = method_of(a)
-    _check_output_folder(a.json, "--json")
+    require_writable_output(a.json, "--json")
     seq = open_source(a.source, drive=a.drive, camera=a.camera)
     ws = Workspace(a.db)
     db = ws.load_database(ws.database_source(seq.source, a.db_camera, a.db_source), a.db_camera, sift)
@@ -173,7 +209,7 @@ def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence, qu
     """
     match, retrieval, filt = method_params(a)
     for seq in {s.name: s for s in (db_seq, query_seq)}.values():
-        _ingest(ws, seq, sift, a.workers)
+        _ingest(ws, seq, sift, a)
     db = ws.load_database(db_seq.source, db_seq.camera, sift)
     queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
     starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
@@ -205,8 +241,9 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     sift = sift_params(a)
     match, retrieval, filt = method_params(a)
     method = method_of(a)
-    for path, flag in ((a.json, "--json"), (a.plot, "--plot")):
-        _check_output_folder(path, flag)
+    plot = a.plot or (Path(a.json).with_suffix(".png") if a.json else None)
+    require_writable_output(a.json, "--json")
+    require_writable_output(plot, "--plot" if a.plot else "--json (its plot, .png)")
     db_seq = open_source(a.root, drive=a.drive, camera=a.db_camera)
     query_seq = open_source(a.root, drive=a.drive, camera=a.query_camera)
     # check the series before any slow work
@@ -221,7 +258,6 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     if a.json:
         write_json(a.json, evaluation_json(result, summary))
         print(f"wrote {a.json}")
-    plot = a.plot or (Path(a.json).with_suffix(".png") if a.json else None)
     if plot:
         title = (f"{db.source}: queries {queries.camera}, database {db.camera}, exclusion "
                  f"{retrieval.exclusion_s:g} s, {summary['n_series']} series, mode {method.name}")
@@ -238,9 +274,7 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
     if not methods:
         raise InputError(f"--modes {a.modes!r}: name at least one of paper, refined")
     out_dir = Path(a.out_dir)
-    _check_output_folder(out_dir, "--out-dir")
-    if out_dir.exists() and not out_dir.is_dir():
-        raise InputError(f"--out-dir {out_dir}: exists and is not a folder")
+    require_output_folder(out_dir, "--out-dir", files=("drives.json",))
     root = a.root if a.root is not None else default_data_root()
     folders = drives_of(root)
     if not folders:
@@ -292,9 +326,9 @@ def cmd_bench(a: argparse.Namespace) -> int:
                          synthetic_descriptors=a.synthetic_descriptors, synthetic_queries=a.synthetic_queries,
                          skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy,
                          refined_stride=a.refined_stride, skip_refined=a.skip_refined)
-    _check_output_folder(a.json, "--json")
+    require_writable_output(a.json, "--json")
     for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
-        _check_output_folder(Path(path), flag)
+        require_writable_output(path, flag)
     open_source(a.root, drive=a.drive, camera="image_00")  # a missing drive fails here, before any slow work
     result = run_bench(a.root, a.drive, Path(a.db), Path(a.fast_db), params, say=lambda t: print(t, flush=True))
     if a.json:
@@ -305,23 +339,22 @@ def cmd_bench(a: argparse.Namespace) -> int:
 
 def cmd_track(a: argparse.Namespace) -> int:
     sift = sift_params(a)
-    params = TrackParams(fast=not a.exact, query_image_scale=a.query_scale, query_max_keypoints=a.query_keypoints,
-                         shortlist_size=a.shortlist,
-                         exclusion_s=a.exclusion_s, stride=a.stride)
-    pose = REFINED.replace(geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
-    _check_output_folder(a.json, "--json")
-    if a.json is not None and Path(a.json).is_dir():
-        raise InputError(f"--json {a.json}: is a folder")
+    with flags_named():
+        params = TrackParams(fast=not a.exact, query_image_scale=a.query_scale,
+                             query_max_keypoints=a.query_keypoints, shortlist_size=a.shortlist,
+                             exclusion_s=a.exclusion_s, stride=a.stride)
+        base = FilterParams(meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var)
+    pose = refined_params(a)
+    require_writable_output(a.json, "--json")
     seq = open_source(a.source, drive=a.drive, camera=a.camera)
     db_camera = a.db_camera or seq.camera  # a CSV drive names its own camera
-    filt = track_filter(seq, params, FilterParams(meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4,
-                                                  init_var=a.init_var))
+    filt = track_filter(seq, params, base)
     indices = list(range(0, len(seq), params.stride))
     if a.frames is not None:
         indices = indices[: a.frames]
     ws = Workspace(a.db, create=True)
     if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
-        _ingest(ws, open_source(a.source, drive=a.drive, camera=db_camera), sift, a.workers)
+        _ingest(ws, open_source(a.source, drive=a.drive, camera=db_camera), sift, a)
     db = ws.load_database(ws.database_source(seq.source, db_camera, a.db_source), db_camera, sift)
     localizer, query_sift = track_localizer(ws, db, seq.camera_model, filt, params, pose, query_what=seq.name)
     run = run_track(localizer, seq, query_sift, db, params, indices=indices,
@@ -351,8 +384,18 @@ def track_text(s: dict) -> str:
     ])
 
 
+def cmd_upgrade(a: argparse.Namespace) -> int:
+    ws = Workspace(a.db)  # opening for writing migrates in place
+    if ws.migrated_from is None:
+        print(f"{a.db}: already at schema version {STORE_SCHEMA_VERSION}")
+    else:
+        print(f"{a.db}: schema version {ws.migrated_from} -> {STORE_SCHEMA_VERSION}, every image and cached count kept; "
+              "'visloc ingest' on its drives fills in what the new version adds")
+    return 0
+
+
 def cmd_info(a: argparse.Namespace) -> int:
-    ws = Workspace(a.db)
+    ws = Workspace(a.db, read_only=True)  # reading never changes the file
     sift = ws.sift_params
     print(f"{a.db}: {ws.image_count()} images")
     print(f"SIFT settings: {sift.as_dict() if sift else 'none yet'}")
@@ -362,4 +405,9 @@ def cmd_info(a: argparse.Namespace) -> int:
         calib += f", {d.n_without_attitude} without attitude" if d.n_without_attitude else ", attitudes known"
         print(f"  {d.name}: {d.n_images} images over {d.duration_s:.1f} s, "
               f"{d.mean_keypoints:.0f} keypoints per image, {calib}")
+    skipped = ws.skipped_frames()
+    if skipped:
+        print(f"{len(skipped)} frame{'s' if len(skipped) > 1 else ''} skipped at ingest (could not be described):")
+        for f in skipped:
+            print(f"  {f.source}/{f.camera} frame {f.frame} ({f.path}): {f.reason}")
     return 0

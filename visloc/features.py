@@ -12,6 +12,10 @@ import numpy as np
 from visloc.errors import InputError
 from visloc.params import SiftParams
 
+# visloc names an image it cannot decode in its own one-line error: OpenCV's decoder warnings on
+# stderr ("IHDR chunk shall be first", ...) would only add lines to it
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)  # failures raise or return None
+
 KEYPOINT_COLUMNS = ("x_px", "y_px", "size_px", "angle_deg", "response", "octave")
 
 

@@ -182,7 +182,7 @@ def ingest(
     require_sift_settings(store, params)
     _refuse_mixed_undistortion(store, sequence)
     stored = store.stored_frames(sequence.source, sequence.camera)
-    skipped_before = store.skipped_frames(sequence.source, sequence.camera)
+    skipped_before = {f.frame for f in store.skipped_frames(sequence.source, sequence.camera)}
     missing = [f for f in sequence.frames if f.frame not in stored]
     todo = missing if limit is None else missing[:limit]
     workers = workers or min(os.cpu_count() or 1, 8)

@@ -15,9 +15,31 @@ from visloc.errors import ParameterError
 METRES_PER_DEGREE = 2 * math.pi * 6_371_008.8 / 360.0
 
 
+# Ranges that keep the filter's numbers finite (every product of dt, Q, R and P0 it forms, over any
+# drive, stays far below the float maximum, and a positive variance is never so small that y' S^-1 y
+# overflows or dt^4 Q underflows to 0):
+MIN_DT_S, MAX_DT_S = 1e-3, 3600.0  # time between queries, s: 1 ms .. 1 hour
+MIN_VARIANCE, MAX_VARIANCE = 1e-12, 1e12  # a positive R, Q or P0, in its units
+MAX_GEOTAG_SIGMA_M = 1e6  # so its square stays a variance <= MAX_VARIANCE
+MAX_SECONDS = 1e9  # any time window, s (about 32 years)
+MAX_C_INT = 2**31 - 1  # integers handed to OpenCV
+
+
+def _refuse(message: str, *names: str) -> ParameterError:
+    """A ``ParameterError``; ``names`` (the fields at fault) let the command line name its flags."""
+    err = ParameterError(message)
+    err.params = names  # type: ignore[attr-defined]
+    return err
+
+
 def _check(name: str, value: float, ok: bool, rule: str) -> None:
     if not (isinstance(value, (int, float)) and math.isfinite(value) and ok):
-        raise ParameterError(f"{name}={value!r}: must be {rule}")
+        raise _refuse(f"{name}={value!r}: must be {rule}", name.split(" ")[0])
+
+
+def _variance(name: str, value: float) -> None:
+    _check(name, value, value == 0 or MIN_VARIANCE <= value <= MAX_VARIANCE,
+           f">= 0 (0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}])")
 
 
 class _Params:
@@ -58,13 +80,14 @@ class SiftParams(_Params):
         return d
 
     def __post_init__(self) -> None:
-        _check("n_features", self.n_features, isinstance(self.n_features, int) and self.n_features >= 0,
-               "an integer >= 0 (0 keeps every keypoint)")
+        _check("n_features", self.n_features,
+               isinstance(self.n_features, int) and 0 <= self.n_features <= MAX_C_INT,
+               f"an integer in [0, {MAX_C_INT}] (0 keeps every keypoint)")
         _check("n_octave_layers", self.n_octave_layers,
-               isinstance(self.n_octave_layers, int) and self.n_octave_layers >= 1, "an integer >= 1")
+               isinstance(self.n_octave_layers, int) and 1 <= self.n_octave_layers <= 32, "an integer in [1, 32]")
         _check("contrast_threshold", self.contrast_threshold, self.contrast_threshold >= 0, ">= 0")
         _check("edge_threshold", self.edge_threshold, self.edge_threshold > 0, "> 0")
-        _check("sigma", self.sigma, self.sigma > 0, "> 0")
+        _check("sigma", self.sigma, 0 < self.sigma <= 10, "in (0, 10]")  # larger: OpenCV's blur kernel overflows
         _check("image_scale", self.image_scale, 0.1 <= self.image_scale <= 1, "in [0.1, 1]")
 
 
@@ -100,8 +123,8 @@ class RetrievalParams(_Params):
     exclusion_s: float = 0.0
 
     def __post_init__(self) -> None:
-        _check("window_s", self.window_s, self.window_s > 0, "> 0")
-        _check("exclusion_s", self.exclusion_s, self.exclusion_s >= 0, ">= 0")
+        _check("window_s", self.window_s, 0 < self.window_s <= MAX_SECONDS, f"in (0, {MAX_SECONDS:g}]")
+        _check("exclusion_s", self.exclusion_s, 0 <= self.exclusion_s <= MAX_SECONDS, f"in [0, {MAX_SECONDS:g}]")
 
 
 @dataclass(frozen=True)
@@ -116,6 +139,12 @@ class FilterParams(_Params):
     init_var:            P0 = init_var * I4 (m^2 on position, m^2/s^2 on velocity).
 
     See ``PAPER_FILTER`` for how Table 1's values map onto these.
+
+    Ranges, so that every number the filter forms stays finite: dt_s in [MIN_DT_S, MAX_DT_S]
+    (1 ms .. 1 h); each variance 0 or in [MIN_VARIANCE, MAX_VARIANCE] (1e-12 .. 1e12). R = 0 (exact
+    measurements) needs P0 > 0, else the innovation covariance S = H P H' + R of the first
+    measurement is 0 and singular, and Q > 0, else two exact measurements fix position and
+    velocity, the predicted P becomes 0 and S is singular from the third measurement on.
     """
 
     dt_s: float = 1.0
@@ -124,10 +153,18 @@ class FilterParams(_Params):
     init_var: float = 1000.0
 
     def __post_init__(self) -> None:
-        _check("dt_s", self.dt_s, self.dt_s > 0, "> 0")
-        _check("meas_var_m2 (R)", self.meas_var_m2, self.meas_var_m2 >= 0, ">= 0")
-        _check("accel_var_m2_s4 (Q)", self.accel_var_m2_s4, self.accel_var_m2_s4 >= 0, ">= 0")
-        _check("init_var (P0)", self.init_var, self.init_var >= 0, ">= 0")
+        _check("dt_s", self.dt_s, MIN_DT_S <= self.dt_s <= MAX_DT_S, f"in [{MIN_DT_S:g}, {MAX_DT_S:g}] s")
+        _variance("meas_var_m2 (R)", self.meas_var_m2)
+        _variance("accel_var_m2_s4 (Q)", self.accel_var_m2_s4)
+        _variance("init_var (P0)", self.init_var)
+        if self.meas_var_m2 == 0 and self.init_var == 0:
+            raise _refuse("meas_var_m2 (R)=0 with init_var (P0)=0: the innovation covariance S = P + R of the first "
+                          "measurement would be 0, a singular matrix; give R or P0 a value > 0",
+                          "meas_var_m2", "init_var")
+        if self.meas_var_m2 == 0 and self.accel_var_m2_s4 == 0:
+            raise _refuse("meas_var_m2 (R)=0 with accel_var_m2_s4 (Q)=0: after two exact measurements the predicted "
+                          "covariance P is 0, so the innovation covariance S = P + R would be singular; give R or Q "
+                          "a value > 0", "meas_var_m2", "accel_var_m2_s4")
 
 
 # The paper's Table 1, mapped onto our parameters:
@@ -232,14 +269,17 @@ class RefinedParams(_Params):
             raise ParameterError(f"neighbour_baselines_m={baselines!r}: must be a non-empty tuple of distances > 0")
         integer("pnp_iterations", 1)
         integer("min_pnp_inliers", 6)
-        integer("seed", 0)
         integer("reinit_after_gated", 0)
+        _check("seed", self.seed, isinstance(self.seed, int) and not isinstance(self.seed, bool)
+               and 0 <= self.seed <= MAX_C_INT, f"an integer in [0, {MAX_C_INT}]")  # OpenCV's RNG seed is a C int
         _check("ratio", self.ratio, 0 < self.ratio <= 1, "in (0, 1]")
         for name in ("essential_px", "triangulation_px", "pnp_px", "max_depth_m", "max_offset_m",
                      "max_view_spread_m", "max_heading_diff_deg"):
             _check(name, getattr(self, name), getattr(self, name) > 0, "> 0")
-        for name in ("min_baseline_m", "min_parallax_deg", "geotag_sigma_m", "gate_chi2"):
+        for name in ("min_baseline_m", "min_parallax_deg", "gate_chi2"):
             _check(name, getattr(self, name), getattr(self, name) >= 0, ">= 0")
+        _check("geotag_sigma_m", self.geotag_sigma_m, 0 <= self.geotag_sigma_m <= MAX_GEOTAG_SIGMA_M,
+               f"in [0, {MAX_GEOTAG_SIGMA_M:g}] m")  # its square is a measurement variance
 
 
 REFINED = RefinedParams()
@@ -329,8 +369,10 @@ class TrackParams(_Params):
                           ("min_matches", 6), ("stride", 1)):
             v = getattr(self, name)
             _check(name, v, isinstance(v, int) and not isinstance(v, bool) and v >= low, f"an integer >= {low}")
+        _check("query_max_keypoints", self.query_max_keypoints, self.query_max_keypoints <= MAX_C_INT,
+               f"an integer in [0, {MAX_C_INT}]")
         _check("pnp_px", self.pnp_px, self.pnp_px > 0, "> 0")
-        _check("exclusion_s", self.exclusion_s, self.exclusion_s >= 0, ">= 0")
+        _check("exclusion_s", self.exclusion_s, 0 <= self.exclusion_s <= MAX_SECONDS, f"in [0, {MAX_SECONDS:g}]")
 
 
 TRACK = TrackParams()

@@ -27,8 +27,8 @@ from visloc.geometry import CameraModel
 from visloc.localizer import Localizer, StepResult
 from visloc.matching import MatchCancelled
 from visloc.methods import REFINED_FAST_METHOD, REFINED_METHOD, build_localizer
-from visloc.params import (PAPER_FILTER, PAPER_MATCH, REFINED, FilterParams, RefinedParams, RetrievalParams,
-                           SiftParams, TrackParams)
+from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, REFINED, FilterParams, RefinedParams,
+                           RetrievalParams, SiftParams, TrackParams)
 from visloc.pose import StructureCache
 from visloc.queries import extract_queries
 from visloc.runs import latency_ms
@@ -43,7 +43,11 @@ def track_filter(seq: Sequence, params: TrackParams, base: FilterParams = PAPER_
     t = seq.timestamps_s
     if len(t) < 2:
         raise InputError(f"{seq.name}: a track needs at least 2 frames")
-    return base.replace(dt_s=float(np.median(np.diff(t))) * params.stride)
+    dt_s = float(np.median(np.diff(t))) * params.stride
+    if not MIN_DT_S <= dt_s <= MAX_DT_S:
+        raise InputError(f"{seq.name}: its median frame interval times --stride {params.stride} is {dt_s:g} s, the "
+                         f"filter's time step; it must be in [{MIN_DT_S:g}, {MAX_DT_S:g}] s (check the timestamps)")
+    return base.replace(dt_s=dt_s)
 
 
 def seeded_structure_cache(structures: dict) -> StructureCache:

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from visloc.errors import ParameterError
 from visloc.params import FilterParams
 
 STATE_DIM = 4
@@ -77,7 +78,12 @@ def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray) -> tuple[
     # S = H P H' + R
     S = H @ P @ H.T + R
     # K = P H' S^-1   (solve instead of inverting S)
-    K = np.linalg.solve(S.T, (P @ H.T).T).T
+    try:
+        K = np.linalg.solve(S.T, (P @ H.T).T).T
+    except np.linalg.LinAlgError:  # R = 0 where P = 0 on the position: FilterParams refuses the constant cases
+        raise ParameterError("the filter's innovation covariance S = P + R is singular: a measurement variance R of "
+                             "0 met a position variance P of 0 (for example --geotag-sigma-m 0 with --init-var 0); "
+                             "give R or the initial variance P0 a value > 0") from None
     # x = x + K y
     x = x + K @ y
     # P = (I - K H) P (I - K H)' + K R K'   (Joseph form)

@@ -17,8 +17,8 @@ from pathlib import Path
 import numpy as np
 
 from visloc.database import GeoDatabase, QuerySet
-from visloc.db import (EmptyStoreError, FeatureStore, ImageRecord, StoredImage, StoreError, StructureRecord, StructureTable,
-                       SkippedFrame, VectorTable)
+from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecord, SkippedFrame, StoredImage,
+                       StoreError, StructureRecord, StructureTable, VectorTable)
 from visloc.errors import InputError
 from visloc.geo import LocalFrame
 from visloc.imagesize import DEFAULT_MAX_IMAGE_MP
@@ -29,6 +29,8 @@ from visloc.pose import StructureCache
 from visloc.sources import Sequence
 from visloc.structure import VARIANTS, ViewStructure, structure_settings_json, view_structures
 from visloc.vlad import GlobalEncoder, GlobalIndex, train_encoder
+
+STORE_SCHEMA_VERSION = SCHEMA_VERSION  # the store schema this visloc reads and writes
 
 
 @dataclass(frozen=True)
@@ -59,6 +61,8 @@ class Workspace:
         self.read_only = read_only
         with self._store(create=create) as store:  # fail now, with the file's name, if it is no store
             self._sift = stored_sift_params(store)
+            # opening for writing migrates a store of an older schema version in place: from which, if it did
+            self.migrated_from: int | None = store.migrated_from
 
     @contextmanager
     def _store(self, *, create: bool = False) -> Iterator[FeatureStore]:
@@ -307,11 +311,9 @@ class Workspace:
 
     def save_pair_counts(self, cache: PairCountCache) -> int:
         """Persist the counts ``cache`` computed since the last save; returns how many. A read-only
-        workspace saves nothing (the counts stay in ``cache``) and returns 0."""
-        if self.read_only:
-            return 0
+        workspace writes nothing: the counts stay in ``cache`` only."""
         new = cache.take_new_entries()
-        if new:
+        if new and not self.read_only:
             with self._store() as store:
                 store.add_pair_counts(new, cache.match_params.tau1, cache.match_params.tau2)
         return len(new)
