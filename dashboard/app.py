@@ -161,7 +161,7 @@ class DashboardApp:
             self._show_error("Other store: type the path of a store file first")
             return
         try:
-            workspace = visloc.Workspace(path)
+            workspace = visloc.Workspace(path, read_only=True)  # the page never changes a store
             datasets = workspace.datasets()
             if not datasets:
                 raise visloc.InputError(f"{path}: holds no images yet (build it with 'visloc ingest')")
@@ -178,7 +178,7 @@ class DashboardApp:
         g.store.value = path
         g.db.options, g.queries.options = names, names
         g.db.value, g.queries.value = db_choice, q_choice
-        g.store_info.content = panels.store_markdown(path, datasets, workspace.sift_params)
+        g.store_info.content = panels.store_html(path, datasets, workspace.sift_params)
         self.request_apply()
 
     def _start_loading(self, data_key: tuple) -> None:
@@ -303,7 +303,7 @@ class DashboardApp:
             scene.draw_current(self.server.scene, rec)
         if follow:
             self._follow(rec.truth_m)
-        self.gui.numbers.content = panels.step_markdown(rec, len(run.records), visloc.record_geotags(rec, db.frame),
+        self.gui.numbers.content = panels.step_html(rec, len(run.records), visloc.record_geotags(rec, db.frame),
                                                         queries.camera, db.camera, t0_s)
         data, scales, title = panels.counts_plot(retrieval, db.timestamps_s, rec.query_timestamp_s, t0_s)
         self.gui.counts_plot.scales, self.gui.counts_plot.data, self.gui.counts_plot.title = scales, data, title

@@ -53,9 +53,9 @@ class Handles:
     open: viser.GuiButtonHandle
     db: viser.GuiDropdownHandle
     queries: viser.GuiDropdownHandle
-    store_info: viser.GuiMarkdownHandle
+    store_info: viser.GuiHtmlHandle  # store text: HTML, escaped by panels.text
     figure: viser.GuiImageHandle
-    numbers: viser.GuiMarkdownHandle
+    numbers: viser.GuiHtmlHandle  # the step table, with store text (cameras, reasons)
     counts_plot: viser.GuiUplotHandle
     error_plot: viser.GuiUplotHandle
     run_summary: viser.GuiMarkdownHandle
@@ -112,13 +112,13 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         open_button = gui.add_button("Open")
         db = gui.add_dropdown("Database", ["–"])
         queries = gui.add_dropdown("Queries", ["–"])
-        store_info = gui.add_markdown("")
+        store_info = gui.add_html("")
 
     panel = gui.add_panel()
     with panel.add_tab("Current step"):
         figure = gui.add_image(placeholder("No step yet"), label="query (top) and best match (bottom)",
                                format="jpeg", jpeg_quality=85)
-        numbers = gui.add_markdown("")
+        numbers = gui.add_html("")
         counts_plot = gui.add_uplot(
             (np.zeros(1), np.zeros(1), np.zeros(1), np.full(1, np.nan)),
             ({"label": "database time (s)"},

@@ -1,13 +1,17 @@
 """What the control panel shows, as pure functions: status lines, the step table, the run summary,
 the store's description, the two plots' data, and the step's pictures.
 
-Text that comes from a store or a file (names, paths, reasons) is escaped here, so it reaches
-the page as text.
+Text that comes from a store or a file (names, paths, cameras, reasons, error messages) goes
+through ``text`` here, so it reaches the page as text, never as markup. viser renders HTML
+inside markdown, and Markdown's own syntax (``*``, ``_``, ``[..](..)``, ``![..](..)``) would
+turn a name into formatting, a link or an image; ``text`` writes every such character as a
+character reference, which neither HTML nor Markdown reads as syntax. Markdown still turns
+a bare ``www.``, ``http://`` or e-mail address in plain text into a link (GitHub's autolinks,
+whatever the escaping), so the panels that show store text (status, store, step table) are
+HTML, not markdown.
 """
 
 from __future__ import annotations
-
-import html
 
 import cv2
 import numpy as np
@@ -24,20 +28,28 @@ LEGEND = (
 )
 
 
-def _swatch(rgb: tuple[int, int, int], text: str) -> str:
+def text(value: object) -> str:
+    """``value`` as literal text for viser's HTML and markdown alike: every character but letters,
+    digits and spaces becomes a numeric character reference (``<`` is ``&#60;``, ``*`` is ``&#42;``),
+    which HTML and Markdown both show as the character itself and neither reads as syntax. Line
+    breaks and control characters too, so a name cannot start a new Markdown block."""
+    return "".join(c if c == " " or (c.isalnum() and c.isprintable()) else f"&#{ord(c)};" for c in str(value))
+
+
+def _swatch(rgb: tuple[int, int, int], label: str) -> str:
     return (f'<span style="display:inline-block;width:11px;height:11px;border-radius:2px;margin:0 5px 0 2px;'
-            f'background:{css(rgb)};vertical-align:-1px"></span>{html.escape(text)}')
+            f'background:{css(rgb)};vertical-align:-1px"></span>{text(label)}')
 
 
 def legend_html() -> str:
-    items = "".join(f"<div>{_swatch(rgb, text)}</div>" for rgb, text in LEGEND)
+    items = "".join(f"<div>{_swatch(rgb, label)}</div>" for rgb, label in LEGEND)
     return f'<div style="font-size:12px;line-height:1.7;display:grid;grid-template-columns:1fr 1fr">{items}</div>'
 
 
-def status_html(text: str, *, error: bool = False) -> str:
+def status_html(message: str, *, error: bool = False) -> str:
     color, weight = ("#b00020", "600") if error else ("#333", "400")
     return (f'<div style="font-size:13px;color:{color};font-weight:{weight};padding:2px 0;overflow-wrap:anywhere">'
-            f'{html.escape(("⚠ " if error else "") + text)}</div>')
+            f'{text(("⚠ " if error else "") + message)}</div>')
 
 
 def _fmt(value: float | None, fmt: str = ".2f", unit: str = " m") -> str:
@@ -59,8 +71,11 @@ def source_text(rec: visloc.StepRecord) -> str:
     return "nothing" + (f" ({rec.fallback_reason})" if rec.fallback_reason else "")
 
 
-def step_markdown(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotags, query_camera: str,
-                  db_camera: str, t0_s: float) -> str:
+_CELL = "padding:3px 12px 3px 0;border-bottom:1px solid #e9ecef;vertical-align:top"
+
+
+def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotags, query_camera: str,
+              db_camera: str, t0_s: float) -> str:
     """The current step's table: query, best match, measurement and estimate with their errors."""
     best = ("none" if rec.best_db_frame is None else
             f"{db_camera} frame {rec.best_db_frame} ({rec.best_offset_s:+.2f} s), {rec.best_count} correspondences, "
@@ -80,15 +95,18 @@ def step_markdown(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGe
         ("nearest allowed image", _fmt(rec.nearest_candidate_error_m)),
         ("truth", _geotag(geotags.truth)),
     ]
-    body = "\n".join(f"| {a} | {html.escape(b)} |" for a, b in rows)
-    return f"**Step {rec.step + 1} of {n_steps}**\n\n| | |\n|---|---|\n{body}"
+    body = "".join(f'<tr><td style="{_CELL};white-space:nowrap;font-weight:500">{text(a)}</td>'
+                   f'<td style="{_CELL};overflow-wrap:anywhere">{text(b)}</td></tr>' for a, b in rows)
+    return (f'<div style="font-size:13px;line-height:1.45;padding:4px 12px 10px">'
+            f'<div style="font-weight:700;margin-bottom:4px">{text(f"Step {rec.step + 1} of {n_steps}")}</div>'
+            f'<table style="border-collapse:collapse;width:100%">{body}</table></div>')
 
 
 def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.DriveMatches) -> str:
     summary = visloc.drive_summary(records)
     refined = (f"geometry on {100 * summary['geometry_fraction']:.0f}% of steps, {summary['gated_steps']} gated; "
                if matches.method.measures_pose else "")
-    return (f"**This run** ({html.escape(matches.method.name)} mode, {summary['n_steps']} queries, "
+    return (f"**This run** ({text(matches.method.name)} mode, {summary['n_steps']} queries, "
             f"{matches.retrieval_params.exclusion_s:g} s exclusion): {refined}"
             f"mean measurement error {_fmt(summary['mean_measurement_error_m'])}, "
             f"mean estimate error {_fmt(summary['mean_estimate_error_m'])}, "
@@ -99,13 +117,16 @@ def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.Drive
                             "at three quarters of its size, as a vehicle would." if matches.method.camera_rate else ""))
 
 
-def store_markdown(path: str, datasets: list[visloc.Dataset], sift: visloc.SiftParams | None) -> str:
-    lines = [f"**{html.escape(path)}**", ""]
-    lines += [f"- {html.escape(d.name)}: {d.n_images} images over {d.duration_s:.1f} s, "
-              f"{d.mean_keypoints:.0f} keypoints/image" + ("" if d.has_calibration else ", no calibration")
-              for d in datasets]
-    lines += ["", "SIFT settings: " + (", ".join(f"{k}={v}" for k, v in sift.as_dict().items()) if sift else "none yet")]
-    return "\n".join(lines)
+def store_html(path: str, datasets: list[visloc.Dataset], sift: visloc.SiftParams | None) -> str:
+    """The store panel: the file, its datasets (``source/camera``) and its SIFT settings."""
+    items = "".join(f"<li>{text(d.name)}: {d.n_images} images over {d.duration_s:.1f} s, "
+                    f"{d.mean_keypoints:.0f} keypoints/image{'' if d.has_calibration else ', no calibration'}</li>"
+                    for d in datasets)
+    settings = ", ".join(f"{k}={v}" for k, v in sift.as_dict().items()) if sift else "none yet"
+    return (f'<div style="font-size:13px;line-height:1.5;overflow-wrap:anywhere;padding:2px 12px 10px">'
+            f'<div style="font-weight:700">{text(path)}</div>'
+            f'<ul style="margin:4px 0;padding-left:18px">{items}</ul>'
+            f'<div>SIFT settings: {text(settings)}</div></div>')
 
 
 def counts_plot(retrieval: visloc.Retrieval, db_timestamps_s: np.ndarray, query_timestamp_s: float,

@@ -16,14 +16,16 @@ def serve(store_path: Path, *, host: str = "127.0.0.1", port: int = 8080, db_cam
     """Serve the dashboard until ``stop`` is set (or forever). viser moves to the next free
     port when ``port`` is taken, so the URL announced is the one actually served."""
     server = viser.ViserServer(host=host, port=port, label="visloc", verbose=False)
-    app = DashboardApp(server, store_path, db_camera=db_camera, query_camera=query_camera)
-    announce(f"visloc dashboard: http://{host}:{server.get_port()}  (store {store_path}; Ctrl-C stops it)")
-    if ready is not None:
-        ready.set()
-    try:
-        stop = stop or threading.Event()
-        while not stop.wait(0.5):  # short waits keep Ctrl-C responsive
-            pass
+    try:  # Ctrl-C or kill -INT at any moment from here on stops every thread, so the process can end
+        app = DashboardApp(server, store_path, db_camera=db_camera, query_camera=query_camera)
+        try:
+            announce(f"visloc dashboard: http://{host}:{server.get_port()}  (store {store_path}; Ctrl-C stops it)")
+            if ready is not None:
+                ready.set()
+            stop = stop or threading.Event()
+            while not stop.wait(0.5):  # short waits keep Ctrl-C responsive
+                pass
+        finally:
+            app.close()
     finally:
-        app.close()
         server.stop()

@@ -1,0 +1,190 @@
+"""Text from files and stores in the dashboard: a drive folder, a store file or a path typed into
+"Other store" named like HTML or Markdown reaches the page as text, never as markup or script.
+
+One dashboard (``visloc dashboard`` in a subprocess) serves every case, on a store holding two
+CSV drives with hostile folder names and itself named like markup; one headless Chromium page
+looks at it. Screenshots go to ``out/screenshots/faults_*.png``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import re
+import sqlite3
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+from fault_table import Fault, params
+from test_dashboard import (  # noqa: F401 (browser: the shared Chromium fixture)
+    SERVER_WORK_S,
+    DashboardProcess,
+    browser,
+    control,
+    dismiss_webgl_notice,
+    open_page,
+    screenshot,
+    status_text,
+    wait_for,
+)
+
+from conftest import run_cli, write_csv_drive
+
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
+
+# Folder and file names: valid on Linux (no '/'), each a different way in. Whatever runs sets
+# window.__xss; what Markdown would make of a name is an element inside the panel showing it.
+HTML_DRIVE = '<iframe srcdoc="<img src=x onerror=parent.__xss=1>">'
+MARKDOWN_DRIVE = "a_b_c *bold* [link](javascript:window.__xss=3) ![pic](x) www.example.com"
+STORE_FILE = "<img src=x onerror=window.__xss=4> __store__.sqlite"
+MISSING_HTML = "<img src=x onerror=window.__xss=2>.sqlite"
+MISSING_MARKDOWN = "*not* a [store](javascript:window.__xss=5) ![pic](x).sqlite"
+
+FAULTS = [
+    Fault(id="dashboard-drive-folder-html", area="dashboard",
+          tried="A drive whose folder is named like an HTML frame with a script in it",
+          gets="The store panel and the dataset lists show the folder name as text; nothing runs"),
+    Fault(id="dashboard-drive-folder-markdown", area="dashboard",
+          tried="A drive whose folder name holds Markdown: underscores, stars, a link, an image and a web address",
+          gets="The name shows character for character; no emphasis, link or image is made of it"),
+    Fault(id="dashboard-store-file-name", area="dashboard",
+          tried="A store file named like an HTML image with a script, and with Markdown underscores",
+          gets="The store panel and the store list show its path as text; nothing runs"),
+    Fault(id="dashboard-other-store-html", area="dashboard",
+          tried="Opening another store at a missing path named like an HTML image with a script",
+          gets="The error message shows the path as text and nothing runs; the data shown stays"),
+    Fault(id="dashboard-other-store-markdown", area="dashboard",
+          tried="Opening another store at a missing path whose name holds Markdown stars, a link and an image",
+          gets="The error message shows the path character for character; the data shown stays"),
+    Fault(id="dashboard-writes-nothing", area="store file",
+          tried="The dashboard on a store: matching every query of the first run",
+          gets="The store file stays byte for byte the same: counts are kept in memory, never saved into the store"),
+]
+
+
+@dataclass(frozen=True)
+class Case:
+    where: str  # "dataset" or "store path" (shown from the start), or "other store" (typed in, then Open)
+    name: str  # the injected text: a folder name, or a file name in the store's folder
+    marker: str  # what its script would set: tells this case's injected elements from the others'
+
+
+CASES = {
+    "dashboard-drive-folder-html": Case("dataset", HTML_DRIVE, "__xss=1"),
+    "dashboard-drive-folder-markdown": Case("dataset", MARKDOWN_DRIVE, "__xss=3"),
+    "dashboard-store-file-name": Case("store path", STORE_FILE, "__xss=4"),
+    "dashboard-other-store-html": Case("other store", MISSING_HTML, "__xss=2"),
+    "dashboard-other-store-markdown": Case("other store", MISSING_MARKDOWN, "__xss=5"),
+}
+
+# markup made of a name anywhere in the page: a frame or embedded document, a handler attribute
+# (the page has none of its own), a link, source or script carrying the name's marker
+INJECTED = """(marker) => {
+  const found = [];
+  for (const el of document.querySelectorAll('iframe, frame, object, embed')) found.push(el.outerHTML.slice(0, 300));
+  for (const el of document.querySelectorAll('script')) {
+    if (el.textContent.includes(marker)) found.push(el.outerHTML.slice(0, 300));
+  }
+  const urls = ['href', 'src', 'srcdoc', 'srcset', 'action', 'formaction', 'data', 'xlink:href', 'poster'];
+  for (const el of document.querySelectorAll('*')) {
+    for (const a of el.attributes) {
+      if (a.name.startsWith('on') || (urls.includes(a.name) && a.value.includes(marker))) {
+        found.push(a.name + ' of ' + el.outerHTML.slice(0, 300));
+      }
+    }
+  }
+  return found;
+}"""
+# elements Markdown would make of a name, inside the element that shows it
+MARKUP = "a, img, iframe, em, strong, code, script, del"
+
+
+class Served:
+    def __init__(self, folder: Path, store: Path, proc: DashboardProcess, digest_before: str):
+        self.folder, self.store, self.proc, self.digest_before = folder, store, proc, digest_before
+
+
+def digest(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """Two CSV drives in hostile folders, ingested into a hostile store file, served once."""
+    folder = tmp_path_factory.mktemp("hostile")
+    store = folder / STORE_FILE
+    for name in (HTML_DRIVE, MARKDOWN_DRIVE):
+        csv = write_csv_drive(folder / name, n_frames=6)
+        result = run_cli("ingest", csv, "--db", store, "--workers", "1")
+        assert result.returncode == 0, result.stderr
+    before = digest(store)
+    proc = DashboardProcess("--db", str(store), "--port", "8380")
+    yield Served(folder, store, proc, before)
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def hostile_page(served, browser):  # noqa: F811 (the fixture imported above)
+    page = open_page(browser, served.proc.url)  # waits for the first run to be ready
+    dismiss_webgl_notice(page)
+    page.get_by_text("Data", exact=True).click()  # the store panel's folder opens
+    page.get_by_text(re.compile("^SIFT settings:")).wait_for()
+    yield page
+    page.close()
+
+
+def store_panel(page):
+    return page.get_by_text(re.compile("^SIFT settings:")).locator("xpath=..")
+
+
+def status_line(page):
+    return page.locator("text=/^(⚠|Ready|Matching|Loading|Starting)/").first
+
+
+@pytest.mark.parametrize("fault", params([f for f in FAULTS if f.id in CASES]))
+def test_file_and_store_text_reaches_the_page_as_text(fault, served, hostile_page):
+    case, page = CASES[fault.id], hostile_page
+    panel = store_panel(page)
+    if case.where == "other store":
+        path = str(served.folder / case.name)
+        box = control(page, "Other store").locator("input, textarea").first
+        box.fill(path)
+        page.get_by_role("button", name="Open", exact=True).click()
+        message = wait_for(lambda: path in status_text(page) and status_text(page), SERVER_WORK_S,
+                           "the error message naming the path as written")
+        assert message.startswith("⚠") and "does not exist" in message
+        shown = status_line(page)
+        # the data already shown stays
+        assert control(page, "Store file").locator("input").first.input_value() == str(served.store)
+        assert "6 images over 2.5 s" in panel.inner_text()
+    elif case.where == "dataset":
+        dataset = f"{case.name}/camera"  # source/camera; a CSV drive's source is its folder's name
+        assert dataset in panel.inner_text(), "the dataset's name does not show as written"
+        shown = panel.locator("li").filter(has_text=dataset)
+        assert shown.count() == 1
+        control(page, "Database").locator("input").first.click()  # the list offers it by its name
+        option = page.get_by_role("option", name=dataset, exact=True)
+        option.wait_for()
+        page.keyboard.press("Escape")
+        option.wait_for(state="hidden")
+    else:
+        shown = panel.locator("xpath=./*[1]")  # the panel's first line names the store file
+        assert shown.inner_text() == str(served.store), "the store's path does not show as written"
+        assert control(page, "Store file").locator("input").first.input_value() == str(served.store)
+    assert shown.locator(MARKUP).count() == 0, shown.inner_html()[:2000]
+    assert page.evaluate("window.__xss") is None, "a script from a name ran in the page"
+    assert page.evaluate(INJECTED, case.marker) == [], "an element was made from a name"
+    shown.scroll_into_view_if_needed()
+    screenshot(page, f"faults_{fault.id}.png")
+    assert served.proc.alive()
+
+
+@pytest.mark.parametrize("fault", params([f for f in FAULTS if f.id == "dashboard-writes-nothing"]))
+def test_the_dashboard_never_writes_into_the_store(fault, served, hostile_page):
+    # hostile_page waited for the first run to be ready: every query of it was matched
+    assert digest(served.store) == served.digest_before
+    conn = sqlite3.connect(served.store.as_uri() + "?mode=ro", uri=True)
+    try:
+        assert conn.execute("SELECT count(*) FROM pair_counts").fetchone()[0] == 0
+    finally:
+        conn.close()
