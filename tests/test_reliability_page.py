@@ -1,0 +1,29 @@
+"""docs/reliability.md is exactly what the fault tables render, and every case in them is a test."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+from fault_table import FAULT_MODULES, all_faults
+from conftest import REPO
+
+sys.path.insert(0, str(REPO / "scripts"))
+import reliability  # noqa: E402
+
+
+def test_the_reliability_page_is_the_fault_tables_rendered():
+    assert (REPO / "docs" / "reliability.md").read_text() == reliability.render(all_faults()), \
+        "docs/reliability.md is out of date: run python scripts/reliability.py"
+
+
+def test_every_fault_in_the_tables_is_collected_as_a_test():
+    files = [f"tests/{name}.py" for name in FAULT_MODULES]
+    collected = subprocess.run([sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider",
+                                *files], cwd=REPO, capture_output=True, text=True, timeout=600)
+    assert collected.returncode == 0, collected.stdout + collected.stderr
+    names = collected.stdout  # test ids: name[fault-id] or, with other parameters, name[...-fault-id-...]
+    missing = sorted(f.id for f in all_faults()
+                     if not (f"[{f.id}]" in names or f"-{f.id}]" in names or f"[{f.id}-" in names
+                             or f"-{f.id}-" in names))
+    assert not missing, f"faults listed but not tested: {missing}"
