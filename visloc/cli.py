@@ -17,8 +17,8 @@ from visloc import commands
 from visloc.db import StoreError
 from visloc.errors import VislocError
 from visloc.imagesize import DEFAULT_MAX_IMAGE_MP
-from visloc.params import (PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK,
-                           RetrievalParams)
+from visloc.params import (MAX_DT_S, MAX_VARIANCE, MIN_DT_S, MIN_VARIANCE, PAPER_EVAL_RETRIEVAL, PAPER_FILTER,
+                           PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, RetrievalParams)
 
 DEFAULT_DB = "visloc.sqlite"
 
@@ -46,10 +46,13 @@ def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
     g.add_argument("--exclusion-s", type=float, default=retrieval.exclusion_s,
                    help="ignore database images closer in time to the query than this, s (default %(default)s)")
     f = PAPER_FILTER
-    g.add_argument("--dt-s", type=float, default=f.dt_s, help="time between queries, s (default %(default)s)")
-    g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2, help="R: measurement variance, m^2 (default %(default).1f = (0.0001 deg)^2)")
-    g.add_argument("--accel-var-m2-s4", type=float, default=f.accel_var_m2_s4, help="Q: white acceleration variance, m^2/s^4 (default %(default)s)")
-    g.add_argument("--init-var", type=float, default=f.init_var, help="P0 = this * I, m^2 and m^2/s^2 (default %(default)s)")
+    g.add_argument("--dt-s", type=float, default=f.dt_s, help=f"time between queries, s, in [{MIN_DT_S:g}, {MAX_DT_S:g}] (default %(default)s)")
+    g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2, help=f"R: measurement variance, m^2, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] "
+                        "(default %(default).1f = (0.0001 deg)^2)")
+    g.add_argument("--accel-var-m2-s4", type=float, default=f.accel_var_m2_s4, help=f"Q: white acceleration variance, m^2/s^4, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] "
+                        "(default %(default)s)")
+    g.add_argument("--init-var", type=float, default=f.init_var, help=f"P0 = this * I, m^2 and m^2/s^2, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}]; R = 0 needs P0 "
+                        "and Q > 0 (default %(default)s)")
 
 
 def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True) -> None:
@@ -256,7 +259,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2,
                    help="R for a frame whose pose fails and falls back to a geotag, m^2 (default %(default).1f)")
     g.add_argument("--accel-var-m2-s4", type=float, default=f.accel_var_m2_s4,
-                   help="Q: white acceleration variance, m^2/s^4 (default %(default)s)")
+                   help=f"Q: white acceleration variance, m^2/s^4, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] "
+                        "(default %(default)s)")
     g.add_argument("--init-var", type=float, default=f.init_var, help="P0 = this * I (default %(default)s)")
     g.add_argument("--geotag-sigma-m", type=float, default=REFINED.geotag_sigma_m,
                    help="accuracy assumed for database geotags whose source states none, m (default %(default)s)")
