@@ -135,6 +135,28 @@ def make_fake_kitti(root: Path, n_frames: int = 3, *, cameras=("image_00", "imag
     return drive
 
 
+CHROMIUM = Path("/usr/bin/chromium")
+
+
+@pytest.fixture(scope="session")
+def browser():
+    """One headless Debian chromium for the whole session, driven through playwright (its sync API
+    allows one instance per thread, so every browser test shares this one)."""
+    if not CHROMIUM.exists():
+        if os.environ.get("CI"):
+            pytest.fail(f"{CHROMIUM} missing: scripts/test.sh installs it (scripts/install_chromium.sh)")
+        pytest.skip(f"{CHROMIUM} not installed (bash scripts/install_chromium.sh)")
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True,
+                              args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+                                    "--disable-background-networking", "--disable-component-update",
+                                    "--no-first-run"])
+        yield b
+        b.close()
+
+
 def run_cli(*args: str, timeout: float = 600, cwd: Path | None = None) -> subprocess.CompletedProcess:
     """Run the visloc command as a user would, in a fresh process."""
     return subprocess.run([sys.executable, "-m", "visloc", *map(str, args)], capture_output=True, text=True,

@@ -26,7 +26,6 @@ from conftest import REPO, run_cli
 
 pytestmark = [pytest.mark.browser, pytest.mark.kitti, pytest.mark.slow]
 
-CHROMIUM = Path("/usr/bin/chromium")
 SCREENSHOTS = REPO / "out" / "screenshots"
 URL_LINE = re.compile(r"visloc dashboard: (http://\S+)")
 SERVER_WORK_S = 120  # a wait for the server to do something (apply controls, draw a step, open a store)
@@ -73,23 +72,6 @@ class DashboardProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait()
-
-
-@pytest.fixture(scope="session")
-def browser():
-    if not CHROMIUM.exists():
-        if os.environ.get("CI"):
-            pytest.fail(f"{CHROMIUM} missing: scripts/test.sh installs it (scripts/install_chromium.sh)")
-        pytest.skip(f"{CHROMIUM} not installed (bash scripts/install_chromium.sh)")
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), headless=True,
-                              args=["--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                                    "--disable-background-networking", "--disable-component-update",
-                                    "--no-first-run"])
-        yield b
-        b.close()
 
 
 @pytest.fixture(scope="module")

@@ -16,10 +16,9 @@ from pathlib import Path
 
 import pytest
 from fault_table import Fault, params
-from test_dashboard import (  # noqa: F401 (browser: the shared Chromium fixture)
+from test_dashboard import (
     SERVER_WORK_S,
     DashboardProcess,
-    browser,
     control,
     dismiss_webgl_notice,
     open_page,
@@ -124,7 +123,7 @@ def served(tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def hostile_page(served, browser):  # noqa: F811 (the fixture imported above)
+def hostile_page(served, browser):
     page = open_page(browser, served.proc.url)  # waits for the first run to be ready
     dismiss_webgl_notice(page)
     page.get_by_text("Data", exact=True).click()  # the store panel's folder opens
