@@ -10,7 +10,6 @@ import sqlite3
 import struct
 import subprocess
 import sys
-import time
 import zlib
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import pytest
 from fault_table import Fault, params
 from conftest import REPO, run_cli, write_csv_drive
 from test_cli import one_line_error
-from test_ingest import assert_no_half_images, snapshot
+from test_ingest import assert_no_half_images, snapshot, wait_for_rows
 
 FAULTS = [
     Fault("killed-sift-worker", "ingest",
@@ -63,23 +62,6 @@ def ingest_process(csv_path: Path, db_path: Path, workers: int, *, background: b
                             text=True, preexec_fn=ignore_sigint if background else None)
 
 
-def wait_for_rows(db_path: Path, at_least: int, proc: subprocess.Popen, timeout_s: float = 600) -> int:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if db_path.exists():
-            try:
-                conn = sqlite3.connect(db_path, timeout=0.1)
-                n = conn.execute("SELECT count(*) FROM images").fetchone()[0]
-                conn.close()
-                if n >= at_least:
-                    return n
-            except sqlite3.OperationalError:
-                pass  # schema not created yet, or locked for a moment
-        assert proc.poll() is None, "ingest ended before the fault could be injected"
-        time.sleep(0.01)
-    raise AssertionError("ingest made no progress")
-
-
 def sift_workers(pid: int) -> list[int]:
     """Process ids of the worker processes ``pid`` spawned (not its resource tracker)."""
     out = []
@@ -103,7 +85,7 @@ def test_a_killed_worker_ends_the_ingest_keeping_what_was_committed(tmp_path, fa
     db_path = tmp_path / "store.sqlite"
     proc = ingest_process(csv_path, db_path, workers=2)
     try:
-        wait_for_rows(db_path, 8, proc)
+        wait_for_rows(db_path, 8, proc, timeout_s=600)
         workers = sift_workers(proc.pid)
         assert workers, "no worker process found"
         os.kill(workers[0], signal.SIGKILL)
@@ -213,7 +195,7 @@ def test_sigint_stops_an_ingest_started_in_the_background(tmp_path, fault, worke
     db_path = tmp_path / "store.sqlite"
     proc = ingest_process(csv_path, db_path, workers, background=True)
     try:
-        wait_for_rows(db_path, 8, proc)
+        wait_for_rows(db_path, 8, proc, timeout_s=600)
         os.kill(proc.pid, signal.SIGINT)
         _, err = proc.communicate(timeout=600)
     finally:

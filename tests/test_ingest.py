@@ -75,7 +75,7 @@ def _ingest_process(csv_path, db_path):
                              "--workers", "1"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
-def _wait_for_rows(db_path, at_least, proc, timeout_s=120):
+def wait_for_rows(db_path, at_least, proc, timeout_s=120):
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if db_path.exists():
@@ -98,7 +98,7 @@ def test_killed_ingest_process_resumes_to_the_same_store(tmp_path, sig):
     csv_path = write_csv_drive(tmp_path / "long", n_frames=n_frames, step_px=60)
     db_path = tmp_path / "killed.sqlite"
     proc = _ingest_process(csv_path, db_path)
-    _wait_for_rows(db_path, 8, proc)
+    wait_for_rows(db_path, 8, proc)
     os.kill(proc.pid, sig)
     _, err = proc.communicate(timeout=60)
     interrupted = snapshot(db_path)

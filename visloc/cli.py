@@ -16,7 +16,7 @@ from pathlib import Path
 from visloc import commands
 from visloc.db import StoreError
 from visloc.errors import VislocError
-from visloc.imagesize import DEFAULT_MAX_IMAGE_MP
+from visloc.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
 from visloc.params import (MAX_DT_S, MAX_VARIANCE, MIN_DT_S, MIN_VARIANCE, PAPER_EVAL_RETRIEVAL, PAPER_FILTER,
                            PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, RetrievalParams)
 
@@ -290,16 +290,14 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "max_image_mp", None) is not None and not 0 < args.max_image_mp < float("inf"):
-        print(f"visloc: error: --max-image-mp {args.max_image_mp}: must be a finite number of megapixels > 0",
-              file=sys.stderr)
-        return 2
     for name in ("steps", "workers", "limit", "frames"):
         value = getattr(args, name, None)
         if value is not None and value < 1:
             print(f"visloc: error: --{name} {value}: must be >= 1", file=sys.stderr)
             return 2
     try:
+        if getattr(args, "max_image_mp", None) is not None:
+            require_max_image_mp(args.max_image_mp)  # before a command creates any file
         return args.func(args)
     except (VislocError, StoreError) as exc:
         print(f"visloc: error: {exc}", file=sys.stderr)
