@@ -74,6 +74,7 @@ class DashboardApp:
         ):
             records(handle, field, convert)
         g.store.on_update(lambda _: self._ask_for_store(g.store.value, only_if_new=True))
+        g.store_path.on_update(lambda _: self._store_typed(g.store_path.value.strip()))
         g.open.on_click(lambda _: self._ask_for_store(g.store_path.value.strip()))
         g.prev_next.on_click(lambda _: self._move_step(-1 if "Previous" in g.prev_next.value else 1))
         g.reset.on_click(lambda _: self._reset_to_paper())
@@ -85,6 +86,10 @@ class DashboardApp:
                 return
             self.controls.store_request = (count + 1, path)
         self.request_apply()
+
+    def _store_typed(self, path: str) -> None:
+        """Say which path Open will read: the page's answer to typing, before anything is opened."""
+        self.gui.store_message.content = panels.status_html(f"Open reads {path}" if path else "")
 
     def _move_step(self, delta: int) -> None:
         with self._lock:
@@ -158,7 +163,7 @@ class DashboardApp:
     def _open_store(self, path: str) -> None:
         """Open a store file; a bad file is reported in the page and the previous data stays."""
         if not path or path == ".":
-            self._show_error("Other store: type the path of a store file first")
+            self._store_error("Other store: type the path of a store file first")
             return
         try:
             workspace = visloc.Workspace(path, read_only=True)  # the page never changes a store
@@ -166,9 +171,10 @@ class DashboardApp:
             if not datasets:
                 raise visloc.InputError(f"{path}: holds no images yet (build it with 'visloc ingest')")
         except visloc.VislocError as exc:
-            self._show_error(str(exc))
+            self._store_error(str(exc))
             return
         s = self.shown
+        self.gui.store_message.content = panels.status_html(f"Opened {path}: {len(datasets)} image series")
         s.workspace, s.datasets, s.store_path, s.caches = workspace, datasets, path, {}
         names = [d.name for d in datasets]
         db_choice = next((d.name for d in datasets if d.camera == self.preferred_cameras[0]), names[0])
@@ -359,6 +365,11 @@ class DashboardApp:
 
     def _show_status(self, text: str) -> None:
         self.gui.status.content = panels.status_html(text)
+
+    def _store_error(self, text: str) -> None:
+        """A store that cannot be opened: said in the status line and, until the next open, under Open."""
+        self.gui.store_message.content = panels.status_html(text, error=True)
+        self._show_error(text)
 
     def _show_error(self, text: str) -> None:
         self.gui.progress.visible = False

@@ -51,6 +51,7 @@ class Handles:
     store: viser.GuiDropdownHandle
     store_path: viser.GuiTextHandle
     open: viser.GuiButtonHandle
+    store_message: viser.GuiHtmlHandle  # store text: HTML, escaped by panels.text
     db: viser.GuiDropdownHandle
     queries: viser.GuiDropdownHandle
     store_info: viser.GuiHtmlHandle  # store text: HTML, escaped by panels.text
@@ -110,6 +111,7 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         store = gui.add_dropdown("Store file", [store_path], initial_value=store_path)
         store_path_box = gui.add_text("Other store", "", hint="Path of another store file")
         open_button = gui.add_button("Open")
+        store_message = gui.add_html("")  # the path typed, then what opening it gave; stays until the next
         db = gui.add_dropdown("Database", ["–"])
         queries = gui.add_dropdown("Queries", ["–"])
         store_info = gui.add_html("")
@@ -140,5 +142,6 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
     panel.dock_left()
     panel.set_width(PANEL_WIDTH_PX)
     return Handles(status, progress, step, prev_next, play, speed, follow, mode, tau1, tau2, r, q, p0, gate, rate,
-                   start, exclusion, window, reset, store, store_path_box, open_button, db, queries, store_info,
+                   start, exclusion, window, reset, store, store_path_box, open_button, store_message, db, queries,
+                   store_info,
                    figure, numbers, counts_plot, error_plot, run_summary)
