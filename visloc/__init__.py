@@ -24,7 +24,7 @@ the small classes that hold a stage's state):
 
 Around it: ``sources`` (KITTI drives, CSV drives), ``ingest`` and ``workspace`` (the store,
 ``visloc.db``, and the only door to it), ``database`` (what is loaded from it), ``evaluation``
-(the paper's protocol), ``drive`` (whole-drive runs), ``track`` (every frame at camera rate), ``records`` and ``report`` (results and
+(the paper's protocol), ``drive`` (whole-drive runs), ``track`` (every frame at camera rate), ``records``, ``report`` and ``export`` (results and
 their tables, JSON and plots), ``cli`` and ``commands`` (the ``visloc`` command), and the
 browser dashboard ``visloc.dashboard``.
 
@@ -35,6 +35,8 @@ from visloc.database import GeoDatabase, QuerySet
 from visloc.drive import DriveMatches, drive_query_indices, drive_summary, filter_measurements, match_drive, track_drive
 from visloc.errors import InputError, ParameterError, VislocError
 from visloc.evaluation import Evaluation, evaluate, series_schedule, step_labels
+from visloc.export import (TrajectoryPoint, trajectory_csv, trajectory_format, trajectory_geojson,
+                           trajectory_points, write_trajectory)
 from visloc.features import Features, Query, extract_sift, make_sift
 from visloc.figures import correspondence_figure
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
@@ -107,7 +109,8 @@ __all__ = [
     # runs and results
     "DriveMatches", "Evaluation", "RecordGeotags", "StepRecord", "drive_query_indices", "drive_summary", "evaluate",
     "filter_measurements", "match_drive", "record_geotags", "series_schedule", "step_labels", "step_record",
-    "track_drive", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
+    "track_drive", "TrajectoryPoint", "trajectory_csv", "trajectory_format", "trajectory_geojson",
+    "trajectory_points", "write_trajectory", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
     # geodesy, figures, errors
     "LocalFrame", "geodesic_distance_m", "haversine_distance_m", "correspondence_figure",
     "InputError", "ParameterError", "VislocError",

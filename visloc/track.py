@@ -109,6 +109,8 @@ class TrackFrame:
     geometry_ms: float
     filter_ms: float
     latency_ms: float
+    estimate_cov_m2: list[list[float]] | None = None  # 2x2 east/north position covariance, m^2
+    measurement_cov_m2: list[list[float]] | None = None  # the R the filter used, m^2
 
 
 def _stats(values: list[float]) -> dict:
@@ -177,7 +179,9 @@ def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoD
         measurement_source=m.source, fallback_reason=m.fallback_reason, gated=bool(r.filter.gated),
         restarted=bool(r.filter.restarted), view_frames=tuple(int(db.images[v].frame) for v in m.view_indices),
         n_pnp_inliers=int(m.n_pnp_inliers), sift_ms=float(r.query.sift_ms), retrieval_ms=float(r.timings.retrieval_ms),
-        geometry_ms=float(m.query_side_ms), filter_ms=float(r.timings.filter_ms), latency_ms=float(latency))
+        geometry_ms=float(m.query_side_ms), filter_ms=float(r.timings.filter_ms), latency_ms=float(latency),
+        estimate_cov_m2=P.tolist(),
+        measurement_cov_m2=None if m_sigma is None else np.asarray(r.filter.R, float).tolist())
 
 
 def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
