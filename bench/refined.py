@@ -14,6 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from visloc.params import PAPER_FILTER, TrackParams
+from visloc.progress import progress_reporter
 from visloc.sources import Sequence
 from visloc.track import TrackRun, run_track, track_filter, track_localizer
 from visloc.workspace import Workspace
@@ -42,7 +43,8 @@ def refined_fast(ws: Workspace, queries: Sequence, db_camera: str, stride: int, 
         params = TrackParams(fast=fast, exclusion_s=EXCLUSION_S, stride=stride)
         filt = track_filter(queries, params, PAPER_FILTER)
         localizer, sift = track_localizer(ws, db, queries.camera_model, filt, params, query_what=queries.name)
-        runs[name] = run_track(localizer, queries, sift, db, params)
+        runs[name] = run_track(localizer, queries, sift, db, params,
+                               progress=progress_reporter(f"bench refined {name} path {queries.name}", "frames"))
         out[name] = _path_summary(runs[name])
         out[name]["params"] = runs[name].params
         lat, err = out[name]["latency_ms"], out[name]["final_error_m"]

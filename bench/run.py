@@ -43,6 +43,7 @@ from visloc.errors import InputError, ParameterError
 from visloc.geo import geodesic_distance_m
 from visloc.matching import backend_counter
 from visloc.methods import PAPER_METHOD, build_localizer
+from visloc.progress import progress_reporter
 from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_SIFT, FastParams, SiftParams
 from visloc.queries import extract_queries
 from visloc.retrieval import build_global_index
@@ -123,10 +124,13 @@ def _ensure_store(path: Path, sequences: dict, sift: SiftParams, workers: int, s
     for seq in {s.name: s for s in sequences.values()}.values():
         if ws.stored_frame_count(seq.source, seq.camera) < len(seq):
             say(f"building {path} ({seq.name}, SIFT {sift.as_dict()})")
-            ws.ingest(seq, sift, workers=workers)
+            ws.ingest(seq, sift, workers=workers, progress=progress_reporter(f"ingest {seq.name}", "images"),
+                      vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
+                      structure_progress=progress_reporter(f"structure {seq.name}", "images"))
         else:  # a store from before structure was kept: add what ingest now stores
-            ws.build_global_vectors(seq.source, seq.camera)
-            ws.build_structure(seq.source, seq.camera)
+            ws.build_global_vectors(seq.source, seq.camera,
+                                    progress=progress_reporter(f"global vectors {seq.name}", "images"))
+            ws.build_structure(seq.source, seq.camera, progress=progress_reporter(f"structure {seq.name}", "images"))
 
 
 def _load_store(path: Path, sequences: dict):
@@ -148,7 +152,8 @@ def _accuracy(datasets: dict, indexes: dict, say) -> dict:
         t0 = time.perf_counter()
         try:
             ev = evaluate(queries, db, PAPER_MATCH, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, method=method, cache=cache,
-                          shortlist_index=None if fast_key is None else indexes[fast_key][1])
+                          shortlist_index=None if fast_key is None else indexes[fast_key][1],
+                          progress=progress_reporter(f"bench accuracy {lever}", "series"))
         finally:
             ws.save_pair_counts(cache)
         s = ev.summary()
@@ -210,8 +215,11 @@ def _latency(datasets: dict, indexes: dict, seq_by_key: dict, n_series: int, say
     picks = np.unique(np.linspace(0, len(schedule) - 1, n_series).round().astype(int))
     starts = [schedule[p] for p in picks]
     out = {"start_frames": [seq.frames[s[0]].frame for s in starts], "levers": {}}
-    for lever in LEVERS:
+    progress = progress_reporter("bench latency", "levers")
+    progress(0, len(LEVERS))
+    for n, lever in enumerate(LEVERS, 1):
         rows = _live(lever, datasets, indexes, seq_by_key, starts)
+        progress(n, len(LEVERS))
         stages = {k: _pct(r[k] for r in rows) for k in ("sift_ms", "retrieval_ms", "geometry_ms", "filter_ms",
                                                         "total_ms")}
         out["levers"][lever] = {"stages_ms": stages, "queries": rows,

@@ -2,6 +2,7 @@
 
 import hashlib
 import json
+import re
 import sqlite3
 
 import cv2
@@ -13,9 +14,18 @@ from visloc.cli import build_parser
 from conftest import run_cli, write_csv_drive
 
 
+# a progress line of a long command off a terminal (visloc.progress), printed before an error may stop it
+PROGRESS_LINE = re.compile(r"^[^:]+: \d+/\d+ [a-z ]+( \(\d+%\))?, (started|done in .+|.+ elapsed, about .+ left)$")
+
+
+def error_lines(stderr: str) -> list[str]:
+    """stderr without progress lines."""
+    return [line for line in stderr.strip().splitlines() if not PROGRESS_LINE.match(line)]
+
+
 def one_line_error(result, *fragments):
     assert result.returncode == 2, result.stderr
-    lines = result.stderr.strip().splitlines()
+    lines = error_lines(result.stderr)
     assert len(lines) == 1, result.stderr
     assert lines[0].startswith("visloc: error: ")
     for fragment in fragments:

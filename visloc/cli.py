@@ -16,11 +16,21 @@ from pathlib import Path
 from visloc import commands
 from visloc.db import StoreError
 from visloc.errors import VislocError
+from visloc.help_text import DEFAULT_DB, DEFAULT_FAST_DB, examples
 from visloc.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
+from visloc.methods import METHODS
 from visloc.params import (MAX_DT_S, MAX_VARIANCE, MIN_DT_S, MIN_VARIANCE, PAPER_EVAL_RETRIEVAL, PAPER_FILTER,
                            PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, RetrievalParams)
 
-DEFAULT_DB = "visloc.sqlite"
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("visloc")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
 
 
 # -- argument groups --------------------------------------------------------------
@@ -29,10 +39,12 @@ def _add_sift(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("SIFT (must equal the store's settings)")
     d = PAPER_SIFT
     g.add_argument("--sift-features", type=int, default=d.n_features, help="keypoints kept per image, 0 = all (default %(default)s)")
-    g.add_argument("--sift-octave-layers", type=int, default=d.n_octave_layers, help="default %(default)s")
+    g.add_argument("--sift-octave-layers", type=int, default=d.n_octave_layers,
+                   help="layers per octave of SIFT's scale space (default %(default)s)")
     g.add_argument("--sift-contrast", type=float, default=d.contrast_threshold, help="contrast threshold (default %(default)s)")
     g.add_argument("--sift-edge", type=float, default=d.edge_threshold, help="edge threshold (default %(default)s)")
-    g.add_argument("--sift-sigma", type=float, default=d.sigma, help="default %(default)s")
+    g.add_argument("--sift-sigma", type=float, default=d.sigma,
+                   help="Gaussian blur of the first octave's image, pixels (default %(default)s)")
     g.add_argument("--sift-scale", type=float, default=d.image_scale,
                    help="run SIFT on the image resized by this factor in [0.1, 1]; keypoints stay in full-resolution "
                         "pixels (default %(default)s)")
@@ -58,8 +70,9 @@ def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
 def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True) -> None:
     g = p.add_argument_group("method (paper: the paper's; refined: a metric pose from the database, see the README)")
     if choose_mode:  # a plain string checked by commands.method_of, so a bad value is a one-line error naming --mode
-        g.add_argument("--mode", default="paper",
-                       help="paper, refined or refined-fast (the camera-rate refined path on the store's structure) "
+        g.add_argument("--mode", default="paper", metavar="{" + ",".join(METHODS) + "}",
+                       help="paper: the best match's geotag; refined: a metric pose from the database's geometry; "
+                            "refined-fast: the refined pose on the store's stored structure, at camera rate "
                             "(default %(default)s)")
     r = REFINED
     g.add_argument("--top-k", type=int, default=r.top_k,
@@ -73,13 +86,13 @@ def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True) -> None:
 
 
 def _add_source(p: argparse.ArgumentParser, camera_help: str, camera_default: str, *, multiple: bool = False) -> None:
+    # --camera defaults to None, resolved by the command: given for a CSV drive it is an error
     p.add_argument("source", nargs="?", type=Path, default=None,
                    help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
     p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001 (needed if the root holds several)")
-    if multiple:
-        p.add_argument("--camera", action="append", default=None, help=camera_help + f" (repeatable; default {camera_default})")
-    else:
-        p.add_argument("--camera", default=camera_default, help=camera_help + " (default %(default)s)")
+    p.add_argument("--camera", action="append" if multiple else "store", default=None,
+                   help=camera_help + f"{' (repeatable)' if multiple else ''}; KITTI only, a CSV drive has one "
+                        f"camera (default {camera_default})")
 
 
 def _add_sampling(p: argparse.ArgumentParser) -> None:
@@ -102,19 +115,49 @@ def _add_db(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
 
 
+def _add_database_choice(p: argparse.ArgumentParser, camera_default: str) -> None:
+    p.add_argument("--db-camera", default=None,
+                   help=f"database camera in the store (default: the database drive's only camera; {camera_default})")
+    p.add_argument("--db-source", default=None,
+                   help="database drive/dataset in the store (default: the store's only one, else the queries' own)")
+
+
+def _add_exports(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("trajectory files (truth, measurements, estimates with covariance)")
+    g.add_argument("--geojson", type=Path, default=None, metavar="FILE",
+                   help="write them as GeoJSON for GIS tools (FILE ends in .geojson or .json)")
+    g.add_argument("--csv", type=Path, default=None, metavar="FILE", help="write them as CSV, one row per step")
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Descriptions wrapped to the terminal as usual; the examples (text with line breaks) kept as written."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if "\n" in text:
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help, description=description, epilog=examples(name),
+                          formatter_class=_HelpFormatter)
+
+
 
 # -- parser ----------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="visloc",
-        description="Localize a vehicle from one camera against a database of geotagged images (SIFT + Kalman filter).")
+        description="Localize a vehicle from one camera against a database of geotagged images (SIFT + Kalman filter).",
+        epilog=examples(), formatter_class=_HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"visloc {_version()}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    p = sub.add_parser("ingest", help="build or extend a store: SIFT features and geotags of every image",
+    p = _command(sub, "ingest", help="build or extend a store: SIFT features and geotags of every image",
                        description="Extract SIFT from every image of a drive (or CSV) and store features and geotags. "
                                    "Re-running skips what is stored; an interruption loses nothing committed.")
-    _add_source(p, "KITTI camera to store", "image_01", multiple=True)
+    _add_source(p, "KITTI camera to store", "image_01, or image_00 on a drive without it", multiple=True)
     _add_db(p)
     p.add_argument("--workers", type=int, default=None, help="SIFT processes (default: number of cores)")
     p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
@@ -122,36 +165,43 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sift(p)
     p.set_defaults(func=commands.cmd_ingest)
 
-    p = sub.add_parser("localize", help="localize one query series against a store; print the paper's Tables 2 and 3",
+    p = _command(sub, "localize", help="localize one query series against a store; print the paper's Tables 2 and 3",
                        description="Run one series of queries (one every --dt-s seconds) against the database and "
                                    "print the paper's Tables 2 and 3 for it.")
     _add_source(p, "query camera", "image_00")
     _add_db(p)
-    p.add_argument("--db-camera", default="image_01", help="database camera in the store (default %(default)s)")
-    p.add_argument("--db-source", default=None, help="database drive/dataset in the store (default: the query's drive)")
+    _add_database_choice(p, "with several, image_01 for image_00 queries, as the paper")
     p.add_argument("--start-frame", type=int, default=0, help="query frame of the first step, t-5 (default %(default)s)")
     p.add_argument("--steps", type=int, default=6, help="number of queries (default %(default)s)")
     _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
+    _add_exports(p)
     _add_method(p, PAPER_RETRIEVAL)
     _add_mode(p)
     _add_sift(p)
     p.set_defaults(func=commands.cmd_localize)
 
-    p = sub.add_parser("evaluate", help="the paper's evaluation protocol on a KITTI drive",
+    p = _command(sub, "evaluate", help="the paper's evaluation protocol on a drive (KITTI or CSV)",
                        description="Every series of --steps queries one --dt-s apart that fits in the drive; "
                                    "per-step mean measurement and estimate errors (Figure 4), final error, latency. "
                                    "Ingests both cameras into --db first (skipping what is stored).")
-    p.add_argument("root", nargs="?", type=Path, default=None, help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
+    p.add_argument("root", nargs="?", type=Path, default=None,
+                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
     p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001")
     _add_db(p)
-    p.add_argument("--query-camera", default="image_00", help="queries (default %(default)s, left gray)")
-    p.add_argument("--db-camera", default="image_01", help="database (default %(default)s, right gray)")
+    p.add_argument("--query-camera", default=None, help="KITTI camera of the queries (default image_00, left gray)")
+    p.add_argument("--db-camera", default=None,
+                   help="KITTI camera of the database (default image_01, right gray; the query camera on a drive "
+                        "without image_01); with --db-source, a camera in the store")
+    p.add_argument("--db-source", default=None,
+                   help="evaluate against this drive/dataset already in the store (e.g. another CSV drive "
+                        "ingested before) instead of the query drive's own cameras")
     p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
     p.add_argument("--start-frames", default=None, help="only series starting at these query frames, e.g. 0,20,40")
     _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
+    _add_exports(p)
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
     p.add_argument("--smooth", action="store_true",
                    help="also run the RTS smoother over each series and report its per-step errors")
@@ -164,7 +214,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bad_frames(p)
     p.set_defaults(func=commands.cmd_evaluate)
 
-    p = sub.add_parser("evaluate-drives", help="the evaluation on every drive of a data root, every protocol and mode",
+    p = _command(sub, "evaluate-drives", help="the evaluation on every drive of a data root, every protocol and mode",
                        description="Every KITTI drive under ROOT (a drive dropped into the folder is picked up), "
                                    "with each protocol it supports: a stereo drive's left queries against its right "
                                    "camera's database, and every drive's queries against its own camera's database "
@@ -185,18 +235,20 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bad_frames(p)
     p.set_defaults(func=commands.cmd_evaluate_drives)
 
-    p = sub.add_parser("dashboard", help="browser dashboard: scrub through a drive, tune the method live",
+    p = _command(sub, "dashboard", help="browser dashboard: scrub through a drive, tune the method live",
                        description="Serve the viser dashboard for a store built by 'visloc ingest' or 'visloc "
                                    "evaluate'. Prints the URL actually served (viser moves to the next free port "
                                    "when --port is taken). A missing or bad store is reported in the page.")
     _add_db(p)
     p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port to try first (default %(default)s)")
-    p.add_argument("--db-camera", default="image_01", help="database camera to show first (default %(default)s)")
-    p.add_argument("--query-camera", default="image_00", help="query camera to show first (default %(default)s)")
+    p.add_argument("--db-camera", default=None,
+                   help="database camera to show first (default: the store's only camera, else image_01)")
+    p.add_argument("--query-camera", default=None,
+                   help="query camera to show first (default: the store's only camera, else image_00)")
     p.set_defaults(func=commands.cmd_dashboard)
 
-    p = sub.add_parser("bench", help="time the paper's brute-force path against the fast path",
+    p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",
                        description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "
                                    "SIFT at a smaller image scale) on the same queries of a KITTI drive: accuracy, "
                                    "latency per stage, ingest throughput against bare SIFT, and a synthetic "
@@ -204,8 +256,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("root", nargs="?", type=Path, default=None,
                    help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
     p.add_argument("--drive", default="2011_09_26_drive_0001", help="KITTI drive (default %(default)s)")
-    p.add_argument("--db", default="out/visloc.sqlite", help="store of the paper's path (default %(default)s)")
-    p.add_argument("--fast-db", default="out/visloc_s05.sqlite",
+    p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store of the paper's path (default %(default)s)")
+    p.add_argument("--fast-db", type=Path, default=Path(DEFAULT_FAST_DB),
                    help="store of the fast path, SIFT at --fast-scale (default %(default)s)")
     p.add_argument("--series", type=int, default=2, help="live series of 6 queries timed per lever (default %(default)s)")
     p.add_argument("--shortlist", type=int, default=8, help="images matched exactly per query (default %(default)s)")
@@ -225,19 +277,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=commands.cmd_bench)
 
     t = TRACK
-    p = sub.add_parser("track", help="localize every frame of a drive in order, at the camera's rate",
+    p = _command(sub, "track", help="localize every frame of a drive in order, at the camera's rate",
                        description="Localize every frame of a drive in order, as a vehicle would: SIFT, retrieval, "
                                    "the refined measurement and the filter (its time step the frame interval). By "
                                    "default the camera-rate path: the database's stored structure and global "
                                    "vectors, the filter's gate, matching against 3D points only. Ingests the "
                                    "database camera into --db first when the store lacks it. Prints latency per "
-                                   "frame, sustained rate and errors against the frames' geotags.",
-                       epilog="example: visloc track ../shared/data/kitti --drive 2011_09_26_drive_0005 "
-                              "--camera image_00 --db out/visloc.sqlite --exclusion-s 1 --json out/track.json")
+                                   "frame, sustained rate and errors against the frames' geotags.")
     _add_source(p, "camera of the frames", "image_00")
     _add_db(p)
-    p.add_argument("--db-camera", default=None, help="database camera in the store (default: --camera)")
-    p.add_argument("--db-source", default=None, help="database drive/dataset in the store (default: the frames' drive)")
+    p.add_argument("--db-camera", default=None,
+                   help="database camera (default: --camera; with --db-source, that source's only camera in the store)")
+    p.add_argument("--db-source", default=None,
+                   help="database drive/dataset in the store (default: the frames' own drive, ingested first)")
     p.add_argument("--exact", action="store_true",
                    help="the exact refined path (the paper's retrieval, every candidate verified; seconds per frame)")
     p.add_argument("--exclusion-s", type=float, default=t.exclusion_s,
@@ -254,6 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="camera-rate path: candidates matched per frame (default %(default)s)")
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
     p.add_argument("--json", type=Path, default=None, help="write the summary and every frame as JSON")
+    _add_exports(p)
     f = PAPER_FILTER
     g = p.add_argument_group("filter and refined method")
     g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2,
@@ -271,14 +324,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bad_frames(p)
     p.set_defaults(func=commands.cmd_track)
 
-    p = sub.add_parser("upgrade", help="migrate a store of an older schema version in place",
+    p = _command(sub, "upgrade", help="migrate a store of an older schema version in place",
                        description="Bring a store written by an older visloc to this version's schema, keeping every "
                                    "image and cached count. Reading commands (info, dashboard) never migrate; ingest "
                                    "and the other commands that write do it on their own.")
     _add_db(p)
     p.set_defaults(func=commands.cmd_upgrade)
 
-    p = sub.add_parser("info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
+    p = _command(sub, "info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)
     p.set_defaults(func=commands.cmd_info)
     return parser

@@ -8,21 +8,24 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from tqdm import tqdm
-
 from visloc.bench.run import BenchParams, run_bench
+from visloc.choices import (PAPER_DATABASE_CAMERA, choose_database, kitti_camera, kitti_only_camera, make_folder_of,
+                            only_camera, refuse_camera_for_csv, require_output, store_for_writing)
 from visloc.errors import InputError, ParameterError
+from visloc.export_flags import require_exports, write_exports
 from visloc.evaluation import evaluate, series_schedule
 from visloc.methods import METHODS, Method, build_localizer, method_named
 from visloc.outputs import require_output_folder, require_writable_output
 from visloc.params import FAST, REFINED, FilterParams, MatchParams, RetrievalParams, SiftParams, TrackParams
 from visloc.queries import extract_queries
+from visloc.progress import progress_reporter
 from visloc.records import step_record
-from visloc.report import evaluation_json, record_json, save_error_plot, series_tables, summary_text, write_json
+from visloc.report import (evaluation_json, is_paper_protocol, record_json, save_error_plot, series_tables,
+                           summary_text, track_text, write_json)
 from visloc.runs import run_queries
 from visloc.sources import Sequence, default_data_root, open_source
 from visloc.suite import drive_protocols, drives_of, pooled_rows, protocol_row, table_text
@@ -104,24 +107,11 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
             "shortlist_index": ws.load_database_index(db, method.shortlist)}
 
 
-def progress_bar(desc: str, unit: str) -> Callable[[int, int], None]:
-    """A ``progress(done, total)`` callback drawing a tqdm bar on stderr (silent when stderr is no terminal)."""
-    bar: dict[str, tqdm] = {}
-
-    def progress(done: int, total: int) -> None:
-        if "bar" not in bar:
-            bar["bar"] = tqdm(total=total, desc=desc, unit=unit, disable=None, file=sys.stderr, leave=False)
-        b = bar["bar"]
-        b.update(done - b.n)
-        if done >= total:
-            b.close()
-
-    return progress
-
-
 def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None):
-    return ws.ingest(seq, sift, workers=a.workers, limit=limit, progress=progress_bar(f"SIFT {seq.name}", "img"),
-                     structure_progress=progress_bar(f"structure {seq.name}", "img"),
+    return ws.ingest(seq, sift, workers=a.workers, limit=limit,
+                     progress=progress_reporter(f"ingest {seq.name}", "images"),
+                     vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
+                     structure_progress=progress_reporter(f"structure {seq.name}", "images"),
                      skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp)
 
 
@@ -129,21 +119,30 @@ def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespac
 
 def cmd_ingest(a: argparse.Namespace) -> int:
     sift = sift_params(a)
-    sequences = [open_source(a.source, drive=a.drive, camera=camera) for camera in a.camera or ["image_01"]]
-    ws = Workspace(a.db, create=True)  # only once every source opened: a bad source creates no store file
-    for seq in sequences:
-        try:
-            report = _ingest(ws, seq, sift, a, a.limit)
-        except KeyboardInterrupt:
-            n = ws.stored_frame_count(seq.source, seq.camera)
-            print(f"visloc: interrupted; {a.db} keeps {n} images of {seq.name}", file=sys.stderr)
-            return 130
-        filled = f", attitude filled in for {report.n_attitudes_filled}" if report.n_attitudes_filled else ""
-        bad = report.n_bad_skipped
-        bad = f", {bad} bad frame{'s' if bad > 1 else ''} skipped (visloc info lists them)" if bad else ""
-        print(f"{a.db}: {seq.name}: {report.n_added} added, {report.n_skipped} already stored, "
-              f"{len(seq)} frames{bad} ({report.images_per_s:.1f} images/s){filled}")
+    refuse_camera_for_csv(a.source, "--camera", a.camera)
+    cameras = a.camera or [kitti_camera(a.source, a.drive, None)]
+    sequences = [open_source(a.source, drive=a.drive, camera=camera) for camera in cameras]
+    seq, ws = sequences[0], None
+    try:
+        # only once every source opened: a bad source creates no store file; a store this command
+        # created is removed again if it fails before storing any image
+        with store_for_writing(a.db):
+            ws = Workspace(a.db, create=True)
+            for seq in sequences:
+                _print_ingest(a, seq, _ingest(ws, seq, sift, a, a.limit))
+    except KeyboardInterrupt:
+        n = ws.stored_frame_count(seq.source, seq.camera) if ws is not None and Path(a.db).exists() else 0
+        print(f"visloc: interrupted; {a.db} keeps {n} images of {seq.name}", file=sys.stderr)
+        return 130
     return 0
+
+
+def _print_ingest(a: argparse.Namespace, seq: Sequence, report) -> None:
+    filled = f", attitude filled in for {report.n_attitudes_filled}" if report.n_attitudes_filled else ""
+    bad = report.n_bad_skipped
+    bad = f", {bad} bad frame{'s' if bad > 1 else ''} skipped (visloc info lists them)" if bad else ""
+    print(f"{a.db}: {seq.name}: {report.n_added} added, {report.n_skipped} already stored, "
+          f"{len(seq)} frames{bad} ({report.images_per_s:.1f} images/s){filled}")
 
 
 def cmd_localize(a: argparse.Namespace) -> int:
@@ -151,9 +150,11 @@ def cmd_localize(a: argparse.Namespace) -> int:
     match, retrieval, filt = method_params(a)
     method = method_of(a)
     require_writable_output(a.json, "--json")
-    seq = open_source(a.source, drive=a.drive, camera=a.camera)
-    ws = Workspace(a.db)
-    db = ws.load_database(ws.database_source(seq.source, a.db_camera, a.db_source), a.db_camera, sift)
+    require_exports(a)
+    seq = open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
+    ws = Workspace(a.db)  # reading: a missing store is an error, never created
+    db = ws.load_database(*choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
+                                           prefer=PAPER_DATABASE_CAMERA.get(seq.camera, ())), sift)
     times = seq.timestamps_s
     start = next((i for i, f in enumerate(seq.frames) if f.frame == a.start_frame), None)
     if start is None:
@@ -166,14 +167,21 @@ def cmd_localize(a: argparse.Namespace) -> int:
     indices = [start + i for i in schedule[0]]
     localizer = build_localizer(method, db, match, retrieval, filt, query_camera=seq.camera_model, query_what=seq.name,
                                 **stored_for(ws, db, method))
-    steps = run_queries(localizer, extract_queries(seq, indices, sift))
+    progress = progress_reporter(f"localize {seq.name}", "queries")
+    progress(0, len(indices))
+    steps = run_queries(localizer, extract_queries(seq, indices, sift),
+                        progress=lambda done: progress(done, len(indices)))
     records = [step_record(k, s.result, db, query_frame=seq.frames[i].frame, truth_lat_deg=seq.frames[i].lat_deg,
                            truth_lon_deg=seq.frames[i].lon_deg, latency_ms=s.latency_ms, keep_counts=True,
                            truth_sigma_m=seq.frames[i].position_accuracy_m)
                for k, (i, s) in enumerate(zip(indices, steps))]
     print(f"queries: {seq.name} frames {[seq.frames[i].frame for i in indices]}   "
           f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s   "
-          f"mode {method.name}\n")
+          f"mode {method.name}")
+    if (db.source, db.camera) == (seq.source, seq.camera) and retrieval.exclusion_s == 0:
+        print("note: the database is the queries' own camera; with --exclusion-s 0 each query may find its own "
+              "image (try --exclusion-s 1)")
+    print()
     print(series_tables(records, db.frame))
     if a.json:
         write_json(a.json, {"queries": seq.name, "database": f"{db.source}/{db.camera}", "mode": method.name,
@@ -182,6 +190,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
                                        "filter": filt.as_dict(), "sift": sift.as_dict(), "mode": method.name,
                                        "refined": None if method.pose is None else method.pose.as_dict()}})
         print(f"\nwrote {a.json}")
+    write_exports(a, [records], db.frame, f"{seq.name} against {db.source}/{db.camera}, mode {method.name}")
     return 0
 
 
@@ -200,23 +209,25 @@ def _start_indices(a: argparse.Namespace, query_seq: Sequence, schedule: list[li
     return wanted
 
 
-def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence, query_seq: Sequence,
-                      methods: list[Method], sift: SiftParams, *, wanted: set[int] | None = None, label: str = ""):
+def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence | None, query_seq: Sequence,
+                      methods: list[Method], sift: SiftParams, *, wanted: set[int] | None = None, label: str = "",
+                      db_key: tuple[str, str] | None = None):
     """Ingest both sources (skipping what is stored), evaluate each method on them, keep the counts.
 
     Returns ([evaluation per method], database, queries). Counts are saved after every series: a stop
-    loses one at most. ``wanted``: only series starting at these query frames.
+    loses one at most. ``wanted``: only series starting at these query frames. ``db_key``: (source,
+    camera) of a database the store already holds, in place of ``db_seq``.
     """
     match, retrieval, filt = method_params(a)
-    for seq in {s.name: s for s in (db_seq, query_seq)}.values():
+    for seq in {s.name: s for s in (db_seq, query_seq) if s is not None}.values():
         _ingest(ws, seq, sift, a)
-    db = ws.load_database(db_seq.source, db_seq.camera, sift)
+    db = ws.load_database(*(db_key or (db_seq.source, db_seq.camera)), sift)
     queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
     starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
     cache = ws.pair_cache(db, queries, match)  # counts earlier runs computed with the same tau1, tau2
     results = []
     for method in methods:
-        bar = progress_bar(f"{label}{method.name} series", "series")
+        bar = progress_reporter(f"evaluate {label}{method.name}", "series")
 
         def progress(done: int, total: int, bar=bar) -> None:
             bar(done, total)
@@ -242,17 +253,29 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     match, retrieval, filt = method_params(a)
     method = method_of(a)
     plot = a.plot or (Path(a.json).with_suffix(".png") if a.json else None)
-    require_writable_output(a.json, "--json")
-    require_writable_output(plot, "--plot" if a.plot else "--json (its plot, .png)")
-    db_seq = open_source(a.root, drive=a.drive, camera=a.db_camera)
-    query_seq = open_source(a.root, drive=a.drive, camera=a.query_camera)
+    require_output(a.json, "--json", a.db)  # a file in the store's folder: made with it
+    require_output(plot, "--plot" if a.plot else "--json (its plot, .png)", a.db)
+    require_exports(a, a.db)
+    query_camera = kitti_only_camera(a.root, "--query-camera", a.query_camera, "image_00")
+    db_seq = None  # with --db-source, the database is one the store holds
+    if a.db_source is None:
+        refuse_camera_for_csv(a.root, "--db-camera", a.db_camera)
+        # the paper's protocol (right database for left queries) where the drive has both, else the query camera
+        db_camera = kitti_camera(a.root, a.drive, a.db_camera, (*PAPER_DATABASE_CAMERA.get(query_camera, ()),
+                                                               query_camera))
+        db_seq = open_source(a.root, drive=a.drive, camera=db_camera)
+    query_seq = open_source(a.root, drive=a.drive, camera=query_camera)
     # check the series before any slow work
     schedule = series_schedule(query_seq.timestamps_s, filt.dt_s, a.steps, a.sampling)
     if not schedule:
         raise InputError(f"{query_seq.name}: too short for {a.steps} queries {filt.dt_s} s apart")
     wanted = _start_indices(a, query_seq, schedule)
-    ws = Workspace(a.db, create=True)
-    [result], db, queries = _evaluate_sources(a, ws, db_seq, query_seq, [method], sift, wanted=wanted)
+    with store_for_writing(a.db):
+        ws = Workspace(a.db, create=True)
+        db_key = None if db_seq else choose_database(ws, query_seq.source, db_source=a.db_source,
+                                                     db_camera=a.db_camera)
+        [result], db, queries = _evaluate_sources(a, ws, db_seq, query_seq, [method], sift, wanted=wanted,
+                                                  db_key=db_key)
     summary = _summary(result, sift)
     print(summary_text(summary))
     if a.json:
@@ -261,8 +284,10 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     if plot:
         title = (f"{db.source}: queries {queries.camera}, database {db.camera}, exclusion "
                  f"{retrieval.exclusion_s:g} s, {summary['n_series']} series, mode {method.name}")
-        save_error_plot(summary, plot, title)
+        save_error_plot(summary, plot, title, paper=is_paper_protocol(summary))
         print(f"wrote {plot}")
+    write_exports(a, result.series, result.frame, f"{queries.source}/{queries.camera} against "
+                                                   f"{db.source}/{db.camera}, mode {method.name}")
     return 0
 
 
@@ -280,6 +305,7 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
     if not folders:
         raise InputError(f"{root}: no KITTI drives (folders named *_drive_*_sync under a date folder)")
     out_dir.mkdir(exist_ok=True)
+    make_folder_of(a.db, "--db")
     ws = Workspace(a.db, create=True)
     everything, report = [], {"root": str(root), "drives": {}, "params": {
         "match": match.as_dict(), "retrieval": retrieval.as_dict(), "filter": filt.as_dict(), "sift": sift.as_dict(),
@@ -315,7 +341,9 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
         raise InputError(f"--port {a.port}: must be in 1..65535")
     from visloc.dashboard import serve  # on demand: the browser app (viser) is only needed here
 
-    serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera, query_camera=a.query_camera,
+    only = only_camera(a.db)  # a store of one camera shows it first; a missing or bad store is reported in the page
+    serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera or only or "image_01",
+          query_camera=a.query_camera or only or "image_00",
           announce=lambda text: print(text, flush=True))
     return 0
 
@@ -326,10 +354,12 @@ def cmd_bench(a: argparse.Namespace) -> int:
                          synthetic_descriptors=a.synthetic_descriptors, synthetic_queries=a.synthetic_queries,
                          skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy,
                          refined_stride=a.refined_stride, skip_refined=a.skip_refined)
-    require_writable_output(a.json, "--json")
+    require_output(a.json, "--json", a.db)
     for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
-        require_writable_output(path, flag)
+        require_output(path, flag, path)  # its missing folder (as out/) is made
     open_source(a.root, drive=a.drive, camera="image_00")  # a missing drive fails here, before any slow work
+    for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
+        make_folder_of(path, flag)
     result = run_bench(a.root, a.drive, Path(a.db), Path(a.fast_db), params, say=lambda t: print(t, flush=True))
     if a.json:
         write_json(a.json, result)
@@ -345,43 +375,33 @@ def cmd_track(a: argparse.Namespace) -> int:
                              exclusion_s=a.exclusion_s, stride=a.stride)
         base = FilterParams(meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var)
     pose = refined_params(a)
-    require_writable_output(a.json, "--json")
-    seq = open_source(a.source, drive=a.drive, camera=a.camera)
-    db_camera = a.db_camera or seq.camera  # a CSV drive names its own camera
+    require_output(a.json, "--json", a.db)
+    require_exports(a, a.db)
+    seq = open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
     filt = track_filter(seq, params, base)
     indices = list(range(0, len(seq), params.stride))
     if a.frames is not None:
         indices = indices[: a.frames]
-    ws = Workspace(a.db, create=True)
-    if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
-        _ingest(ws, open_source(a.source, drive=a.drive, camera=db_camera), sift, a)
-    db = ws.load_database(ws.database_source(seq.source, db_camera, a.db_source), db_camera, sift)
+    with store_for_writing(a.db):
+        ws = Workspace(a.db, create=True)
+        if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
+            db_camera = kitti_only_camera(a.source, "--db-camera", a.db_camera, seq.camera)
+            _ingest(ws, open_source(a.source, drive=a.drive, camera=db_camera), sift, a)
+            source = seq.source
+        else:
+            source, db_camera = choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
+                                                prefer=(seq.camera,))
+    db = ws.load_database(source, db_camera, sift)
     localizer, query_sift = track_localizer(ws, db, seq.camera_model, filt, params, pose, query_what=seq.name)
-    run = run_track(localizer, seq, query_sift, db, params, indices=indices,
-                    progress=progress_bar(f"track {seq.name}", "frame"))
+    progress = progress_reporter(f"track {seq.name}", "frames")
+    progress(0, len(indices))
+    run = run_track(localizer, seq, query_sift, db, params, indices=indices, progress=progress)
     print(track_text(run.summary()))
     if a.json:
         write_json(a.json, run.as_json())
         print(f"wrote {a.json}")
+    write_exports(a, run.frames, db.frame, f"{seq.name} against {db.source}/{db.camera}, track")
     return 0
-
-
-def track_text(s: dict) -> str:
-    """The summary of a track run, for the terminal."""
-    lat, st, e, m, g = s["latency_ms"], s["stages_ms"], s["error_m"], s["measurement_error_m"], \
-        s["geometry_measurement_error_m"]
-    geometry = f"{100 * s['geometry_fraction']:.0f}% of frames measured by geometry"
-    return "\n".join([
-        f"{s['queries']} against {s['database']}: {s['frames']} frames, refined {s['path']} path, exclusion "
-        f"{s['params']['track']['exclusion_s']:g} s",
-        f"latency per frame (ms): p50 {lat['p50']:.0f}, p95 {lat['p95']:.0f}, max {lat['max']:.0f}   (median SIFT "
-        f"{st['sift_ms']:.0f}, retrieval {st['retrieval_ms']:.0f}, geometry {st['geometry_ms']:.0f}, filter "
-        f"{st['filter_ms']:.1f})",
-        f"sustained {s['sustained_hz']:.1f} frames/s over {s['wall_s']:.1f} s of wall time",
-        f"estimate error (m): mean {e['mean']:.3f}, median {e['median']:.3f}, p90 {e['p90']:.3f}, max {e['max']:.3f}",
-        f"measurement error (m): mean {m['mean']:.3f}, median {m['median']:.3f}, p90 {m['p90']:.3f}, "
-        f"max {m['max']:.3f}; {geometry}" + (f" (their mean {g['mean']:.3f})" if g["n"] else ""),
-    ])
 
 
 def cmd_upgrade(a: argparse.Namespace) -> int:

@@ -137,7 +137,8 @@ class Workspace:
     def ingest(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None, limit: int | None = None,
                progress: Callable[[int, int], None] | None = None,
                structure_progress: Callable[[int, int], None] | None = None, structure: bool = True,
-               skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP) -> IngestReport:
+               skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
+               vectors_progress: Callable[[int, int], None] | None = None) -> IngestReport:
         """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``, also for
         ``skip_bad_frames`` and ``max_image_mp``), then its global vectors and its structure
         (``build_global_vectors``, ``build_structure``; ``structure=False``: SIFT only); resumable."""
@@ -146,7 +147,7 @@ class Workspace:
                             skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp)
             self._sift = stored_sift_params(store)
         if structure and self.stored_frame_count(sequence.source, sequence.camera):
-            self.build_global_vectors(sequence.source, sequence.camera)
+            self.build_global_vectors(sequence.source, sequence.camera, progress=vectors_progress)
             self.build_structure(sequence.source, sequence.camera, progress=structure_progress)
         return report
 
@@ -168,6 +169,8 @@ class Workspace:
             return 0
         ids_of = [im.image_id for im in db.images]
         todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
+        if progress:
+            progress(0, len(todo))
         for n, k in enumerate(todo, 1):
             records = [StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
                                        s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
@@ -206,7 +209,8 @@ class Workspace:
         with self._store() as store:
             return StructureTable(store).get(image_ids, settings_json)
 
-    def build_global_vectors(self, source: str, camera: str, params: FastParams = FAST) -> int:
+    def build_global_vectors(self, source: str, camera: str, params: FastParams = FAST,
+                             progress: Callable[[int, int], None] | None = None) -> int:
         """Train the global-vector encoder of (source, camera) if the store has none, and encode every image
         that lacks a vector; returns how many were encoded. Images added later are encoded with the
         encoder trained first."""
@@ -217,6 +221,8 @@ class Workspace:
         todo = [int(i) for i in ids if int(i) not in have]
         if not todo:
             return 0
+        if progress:  # training the encoder comes first: the count moves once encoding starts
+            progress(0, len(todo))
         if self.has_global_index(name):
             encoder = self.load_global_encoder(name)
         else:
@@ -227,6 +233,8 @@ class Workspace:
         for start in range(0, len(todo), 256):
             chunk = todo[start : start + 256]
             self.add_global_vectors(name, chunk, np.stack([encoder.encode(d) for _, d in self.iter_descriptors(chunk)]))
+            if progress:
+                progress(start + len(chunk), len(todo))
         return len(todo)
 
     def load_database_index(self, db: GeoDatabase, params: FastParams = FAST) -> GlobalIndex | None:
