@@ -54,13 +54,14 @@ def export(root: Path, drive: str | None, camera: str, out_dir: Path, n_frames: 
         raise InputError(f"{out_dir}: exists and is not a folder")
     if (out_dir / CSV_NAME).exists():
         raise InputError(f"{out_dir / CSV_NAME}: already exists (choose a new OUT_DIR or delete it)")
-    if not out_dir.resolve().parent.is_dir():
-        raise InputError(f"{out_dir}: its parent folder does not exist")
     width_px = height_px = None
     if sequence.P_rect is not None and sequence.T_camera_imu is not None:
         height_px, width_px = load_gray(frames[0].image_path).shape
     images = out_dir / IMAGE_FOLDER
-    images.mkdir(parents=True, exist_ok=True)
+    try:
+        images.mkdir(parents=True, exist_ok=True)  # missing folders on the way are made, as out/ on a fresh clone
+    except OSError as exc:
+        raise InputError(f"{out_dir}: cannot make the folder ({exc.strerror})") from None
     rows = []
     for frame in frames:
         link = images / frame.image_path.name
