@@ -125,7 +125,8 @@ def test_the_results_page_is_the_digest_rendered():
     assert (REPO / "docs" / "results.md").read_text() == results.render_page(digest)
 
 
-@pytest.mark.parametrize("path", ["README.md", "docs/method.md", "docs/architecture.md", "docs/results.md"])
+@pytest.mark.parametrize("path", ["README.md", "docs/method.md", "docs/architecture.md", "docs/results.md",
+                                  "docs/formats.md"])
 def test_user_facing_text_names_no_issue(path):
     text = (REPO / path).read_text()
     assert not re.search(r"\bissue\s*#?\d", text, re.IGNORECASE), path
