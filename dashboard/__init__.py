@@ -2,8 +2,10 @@
 uncertainty in 3D, tune tau1, tau2, R, Q and P0 live. Start it with ``visloc dashboard``.
 
 Layout, in viser's own style: ``state`` (what the controls ask for, what the page shows),
-``gui`` (the control panel, built once), ``scene`` and ``panels`` (pure drawing: the 3D
-scene, the step table, the plots and pictures), ``app`` (callbacks record, one apply path
+``gui`` (the control panel, built once), ``explain`` (hints, the terms, the help fold),
+``scene``, ``panels`` and ``mapview`` (pure drawing: the 3D scene, the step table, the plots
+and pictures, the top-down map), ``page`` (puts a run and a step on the page), ``session``
+(the tabs sharing the page and the last change), ``app`` (callbacks record, one apply path
 redraws), ``jobs`` (the background worker), ``server`` (``serve``). It calls only the
 engine's public API (``import visloc``).
 """

@@ -10,8 +10,11 @@ results back and ask for an apply in turn. A control moved by the program calls 
 callback like a user's move does; that only records the same value again, so no guard is
 needed.
 
-Everything shown comes from the engine's public API (``import visloc``). All browser tabs
-share one state: what one tab changes, every tab sees.
+Everything shown comes from the engine's public API (``import visloc``); ``page`` draws it.
+All browser tabs share one state: what one tab changes, every tab sees, and a line says how
+many tabs are open and which one made the last change (``session``). The first run is shown
+as it is matched (the queries matched so far, filtered); a later run replaces the one shown
+only when it is complete, and until then the page marks its numbers as the previous run's.
 """
 
 from __future__ import annotations
@@ -25,17 +28,22 @@ import numpy as np
 import viser
 
 import visloc
-from visloc.dashboard import panels, scene
+from visloc.dashboard import panels
 from visloc.dashboard.gui import Handles, build_gui, paper_values
 from visloc.dashboard.jobs import LatestJobRunner
-from visloc.dashboard.state import Controls, Run, Shown, discover_stores
+from visloc.dashboard.page import Page, run_file_name, run_files
+from visloc.dashboard.session import SessionLog
+from visloc.dashboard.state import Controls, Run, Shown, discover_stores, first_choices
+
+PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
 
 
 class DashboardApp:
-    def __init__(self, server: viser.ViserServer, store_path: Path, *, db_camera: str = "image_01",
-                 query_camera: str = "image_00"):
+    def __init__(self, server: viser.ViserServer, store_path: Path, *, db_camera: str | None = "image_01",
+                 query_camera: str | None = "image_00", db_source: str | None = None,
+                 query_source: str | None = None):
         self.server = server
-        self.preferred_cameras = (db_camera, query_camera)
+        self.preferred = ((db_source, db_camera), (query_source, query_camera))  # None: any
         self.controls = Controls(store_request=(1, str(store_path)))
         self.shown = Shown()
         self._lock = threading.RLock()  # guards controls and shown; callbacks re-enter it from apply
@@ -46,6 +54,11 @@ class DashboardApp:
         self._image_jobs = LatestJobRunner(on_error=lambda name, exc: self._show_error(f"{name}: {exc}"))
         server.scene.set_up_direction("+z")
         self.gui = build_gui(server, str(store_path))
+        self.page = Page(server, self.gui)
+        self.session = SessionLog()
+        self._tab_lines: dict[int, viser.GuiHtmlHandle] = {}  # each tab's own "(this is tab N)"
+        server.on_client_connect(self._tab_opened)
+        server.on_client_disconnect(self._tab_closed)
         self._connect(self.gui)
         self._threads = [threading.Thread(target=loop, name=f"visloc-dashboard-{name}", daemon=True)
                          for name, loop in (("apply", self._apply_loop), ("play", self._play_loop))]
@@ -57,9 +70,11 @@ class DashboardApp:
 
     def _connect(self, g: Handles) -> None:
         def records(handle, field: str, convert=lambda v: v) -> None:
-            def on_update(_event) -> None:
+            def on_update(event) -> None:
                 with self._lock:
                     setattr(self.controls, field, convert(handle.value))
+                if field not in ("play",):  # playback moves the step by itself: the move that counts is Play
+                    self._changed(event, handle.label, handle.value)
                 self.request_apply()
 
             handle.on_update(on_update)
@@ -70,14 +85,52 @@ class DashboardApp:
             (g.r, "r_sigma_m", float), (g.q, "q_sigma_m_s2", float), (g.p0, "p0_sigma", float),
             (g.gate, "gate_chi2", float), (g.step, "step", int), (g.play, "play", bool),
             (g.speed, "speed", lambda v: float(v.rstrip("x"))), (g.follow, "follow", bool),
-            (g.db, "db_name", str), (g.queries, "query_name", str),
+            (g.latlon, "latlon", bool), (g.db, "db_name", str), (g.queries, "query_name", str),
         ):
             records(handle, field, convert)
+        g.play.on_update(lambda e: self._changed(e, "Play", "on" if g.play.value else "off"))
         g.store.on_update(lambda _: self._ask_for_store(g.store.value, only_if_new=True))
         g.store_path.on_update(lambda _: self._store_typed(g.store_path.value.strip()))
-        g.open.on_click(lambda _: self._ask_for_store(g.store_path.value.strip()))
-        g.prev_next.on_click(lambda _: self._move_step(-1 if "Previous" in g.prev_next.value else 1))
-        g.reset.on_click(lambda _: self._reset_to_paper())
+        g.open.on_click(lambda e: (self._changed(e, "Open", Path(g.store_path.value.strip()).name),
+                                   self._ask_for_store(g.store_path.value.strip())))
+        g.prev_next.on_click(lambda e: (self._changed(e, "Move", g.prev_next.value),
+                                        self._move_step(-1 if "Previous" in g.prev_next.value else 1)))
+        g.reset.on_click(lambda e: (self._changed(e, "Paper's parameters", "pressed"), self._reset_to_paper()))
+        g.geojson.on_click(lambda e: self._download(e.client, "geojson"))
+        g.csv.on_click(lambda e: self._download(e.client, "csv"))
+
+    # -- the shared session: tabs and who changed what -----------------------------------------------
+
+    def _tab_opened(self, client: viser.ClientHandle) -> None:
+        tab = self.session.connected(client.client_id)
+        self._tab_lines[client.client_id] = client.gui.add_html(
+            panels.session_html(f"This is tab {tab}"), order=self.gui.session.order + 0.001)
+        self._show_session()
+
+    def _tab_closed(self, client: viser.ClientHandle) -> None:
+        self.session.disconnected(client.client_id)
+        self._tab_lines.pop(client.client_id, None)
+        self._show_session()
+
+    def _changed(self, event, label: str, value) -> None:
+        """A tab changed a control: every tab is told which and from where (the page's own moves are not)."""
+        shown = ("on" if value else "off") if isinstance(value, bool) else \
+            f"{value:g}" if isinstance(value, float) else str(value)
+        if self.session.changed(event.client_id, label, shown):
+            self._show_session()
+
+    def _show_session(self) -> None:
+        self.gui.session.content = panels.session_html(self.session.line())
+
+    def _download(self, client: viser.ClientHandle | None, kind: str) -> None:
+        """Send the run shown to the tab that asked, as GeoJSON or CSV."""
+        with self._lock:
+            run, db = self.shown.run, self.shown.db
+            if client is None or run is None or not run.records or db is None:
+                return
+            name = run_file_name(run)
+            files = run_files(run, db.frame, name)
+        client.send_file_download(f"{name}.{kind}", files[kind], save_immediately=True)
 
     def _ask_for_store(self, path: str, *, only_if_new: bool = False) -> None:
         with self._lock:
@@ -95,7 +148,7 @@ class DashboardApp:
         with self._lock:
             run = self.shown.run
             if run is not None and run.records:
-                self.gui.step.value = int(np.clip(self.controls.step + delta, 0, len(run.records) - 1))
+                self.gui.step.value = int(np.clip(self.controls.step + delta, 1, len(run.records)))
 
     def _reset_to_paper(self) -> None:
         with self._lock:  # every control moves before the next apply looks
@@ -113,7 +166,7 @@ class DashboardApp:
             with self._lock:
                 run = self.shown.run
                 if self.controls.play and run is not None and run.records:
-                    self.gui.step.value = (self.controls.step + 1) % len(run.records)
+                    self.gui.step.value = self.controls.step % len(run.records) + 1  # 1..N, then 1 again
 
     # -- applying: bring the page up to what is asked ------------------------------------------------
 
@@ -147,18 +200,37 @@ class DashboardApp:
                 self._start_loading(data_key)
             return
         match_key = c.match_key(data_key)
+        self._enable_for_mode(c.method)
         run = s.run
-        if (run is None or run.match_key != match_key) and match_key not in (s.matching_key, s.failed_key):
+        if (run is None or run.match_key != match_key or run.partial) and \
+                match_key not in (s.matching_key, s.failed_key):
             self._start_matching(c, match_key)
-        if run is None:
+        if run is None or not run.matches.retrievals:
             return
-        track_key = (run.match_key, c.r_sigma_m, c.q_sigma_m_s2, c.p0_sigma, c.gate_chi2)
+        track_key = (run.match_key, len(run.matches), run.partial, c.r_sigma_m, c.q_sigma_m_s2, c.p0_sigma,
+                     c.gate_chi2)
         if track_key != run.track_key:
             self._track(run, c, track_key)
-        k = int(np.clip(c.step, 0, len(run.records) - 1))
-        if (track_key, k, c.follow) != s.step_key:
-            s.step_key = (track_key, k, c.follow)
-            self._draw_step(run, k, c.follow)
+        k = int(np.clip(c.step - 1, 0, len(run.records) - 1))  # the slider says 1..N
+        note = (panels.stale_note(run.match_key, s.matching_key)
+                if s.matching_key is not None and s.matching_key != run.match_key and not run.partial else None)
+        if (track_key, k, c.follow, c.latlon, note) != s.step_key:
+            s.step_key = (track_key, k, c.follow, c.latlon, note)
+            self.page.draw_step(run, k, s.db, s.queries, follow=c.follow, latlon=c.latlon, note=note)
+            if (track_key, k) != s.image_key:
+                s.image_key = (track_key, k)
+                self._show_pictures(run, k, s.image_key)
+
+    def _enable_for_mode(self, method_name: str) -> None:
+        """Controls the chosen mode does not use are disabled (their hints say why)."""
+        method = visloc.METHODS.get(method_name)
+        if method is None:
+            return
+        g = self.gui
+        for handle, unused in ((g.gate, not method.measures_pose), (g.tau1, method.camera_rate),
+                               (g.tau2, method.camera_rate), (g.window, method.camera_rate)):
+            if handle.disabled != unused:
+                handle.disabled = unused
 
     def _open_store(self, path: str) -> None:
         """Open a store file; a bad file is reported in the page and the previous data stays."""
@@ -177,8 +249,7 @@ class DashboardApp:
         self.gui.store_message.content = panels.status_html(f"Opened {path}: {len(datasets)} image series")
         s.workspace, s.datasets, s.store_path, s.caches = workspace, datasets, path, {}
         names = [d.name for d in datasets]
-        db_choice = next((d.name for d in datasets if d.camera == self.preferred_cameras[0]), names[0])
-        q_choice = next((d.name for d in datasets if d.camera == self.preferred_cameras[1]), db_choice)
+        db_choice, q_choice = first_choices(datasets, *self.preferred)
         g = self.gui
         g.store.options = discover_stores(Path(path))
         g.store.value = path
@@ -207,18 +278,13 @@ class DashboardApp:
                     return
                 s.db, s.queries, s.data_key, s.loading_key = db, queries, data_key, None
                 s.caches, s.structures, s.run, s.matching_key, s.step_key = {}, visloc.StructureCache(), None, None, None
+                s.image_key = None
                 s.stored, s.index = stored, index
                 duration_s = float(queries.timestamps_s[-1] - queries.timestamps_s[0])
                 self.gui.start.max = max(0.1, round(duration_s, 1))
                 if self.gui.start.value > self.gui.start.max:
                     self.gui.start.value = 0.0
-                truth_m = db.frame.to_local(queries.lat_deg, queries.lon_deg)
-                scene.draw_static(self.server.scene, truth_m, db.east_north_m)
-                look_at, position = scene.initial_view(truth_m, db.east_north_m)
-                self.server.initial_camera.look_at, self.server.initial_camera.position = look_at, position
-                self.server.initial_camera.up = (0.0, 0.0, 1.0)
-                for client in self.server.get_clients().values():
-                    client.camera.look_at, client.camera.position = look_at, position
+                self.page.draw_static(db.frame.to_local(queries.lat_deg, queries.lon_deg), db.east_north_m)
             self.request_apply()
 
         self._jobs.submit("loading", load)
@@ -242,11 +308,24 @@ class DashboardApp:
         label = f"Matching {len(indices)} queries ({method.name}, τ1 {match.tau1:g}, τ2 {match.tau2:g})"
         self._show_status(label + "…")
         self.gui.progress.value, self.gui.progress.visible = 0.0, True
+        self.request_apply()  # the run shown is now the previous one: say so
+        last_partial = [0.0]
 
         def progress(done: int, total: int) -> None:
             if s.matching_key == match_key:
                 self.gui.progress.value = 100.0 * done / max(total, 1)
-                self._show_status(f"{label}: {done}/{total}")
+                self._show_status(f"{label}: {done} of {total} queries matched")
+
+        def partial(matches: visloc.DriveMatches) -> None:
+            """The queries matched so far, shown while no complete run is (the first run fills in)."""
+            now = time.monotonic()
+            if now - last_partial[0] < PARTIAL_EVERY_S and len(matches) < len(indices):
+                return
+            last_partial[0] = now
+            with self._lock:
+                if s.matching_key == match_key and (s.run is None or s.run.partial):
+                    s.run = Run(matches, match_key, s.runs_done + 1, c.rate_hz, len(indices), partial=True)
+                    self.request_apply()
 
         def match_all(cancelled) -> None:
             started = time.perf_counter()
@@ -255,7 +334,8 @@ class DashboardApp:
                 matches = visloc.match_drive(queries, db, match, retrieval, indices, method=method, cache=cache,
                                              progress=progress, cancelled=cancelled, structures=structures,
                                              stored=s.stored, shortlist_index=s.index,
-                                             filter_params=visloc.PAPER_FILTER.replace(dt_s=1.0 / c.rate_hz))
+                                             filter_params=visloc.PAPER_FILTER.replace(dt_s=1.0 / c.rate_hz),
+                                             on_step=partial)
             except visloc.MatchCancelled:
                 return
             except visloc.VislocError as exc:
@@ -263,6 +343,7 @@ class DashboardApp:
                     if s.matching_key == match_key:
                         s.matching_key, s.failed_key = None, match_key
                         self._show_error(str(exc))
+                self.request_apply()
                 return
             finally:
                 n_new = workspace.save_pair_counts(cache)  # work done is kept, even when superseded
@@ -270,7 +351,8 @@ class DashboardApp:
                 if cancelled() or s.matching_key != match_key:
                     return
                 s.runs_done += 1
-                s.run, s.matching_key, s.step_key = Run(matches, match_key, s.runs_done, c.rate_hz), None, None
+                s.run = Run(matches, match_key, s.runs_done, c.rate_hz, len(indices))
+                s.matching_key, s.step_key = None, None
                 self.gui.progress.visible = False
                 work = (f"{n_new} new image pairs matched in {time.perf_counter() - started:.1f} s" if n_new
                         else "all image pairs cached")
@@ -292,88 +374,35 @@ class DashboardApp:
         gate = c.gate_chi2 if run.matches.method.measures_pose else 0.0
         run.records = visloc.track_drive(run.matches, s.queries, s.db, filter_params, gate_chi2=gate)
         run.track_key = track_key
-        n = len(run.records)
-        self.gui.step.max = max(1, n - 1)
-        if self.gui.step.value > n - 1:
-            self.gui.step.value = n - 1
-        with self.server.atomic():
-            scene.draw_run(self.server.scene, run.records)
-        self.gui.run_summary.content = panels.run_summary_markdown(run.records, run.matches)
+        self.page.draw_run(run)
 
-    def _draw_step(self, run: Run, k: int, follow: bool) -> None:
+    def _show_pictures(self, run: Run, k: int, image_key: tuple) -> None:
+        """Read the step's images and draw Figure 3 in the background; show them if the step is still on."""
         s = self.shown
-        rec, retrieval = run.records[k], run.matches.retrievals[k]
         db, queries = s.db, s.queries
-        t0_s = float(queries.timestamps_s[0])
-        with self.server.atomic():
-            scene.draw_current(self.server.scene, rec)
-        if follow:
-            self._follow(rec.truth_m)
-        self.gui.numbers.content = panels.step_html(rec, len(run.records), visloc.record_geotags(rec, db.frame),
-                                                        queries.camera, db.camera, t0_s)
-        data, scales, title = panels.counts_plot(retrieval, db.timestamps_s, rec.query_timestamp_s, t0_s)
-        self.gui.counts_plot.scales, self.gui.counts_plot.data, self.gui.counts_plot.title = scales, data, title
-        data, scales = panels.error_plot(run.records, k, t0_s)
-        self.gui.error_plot.scales, self.gui.error_plot.data = scales, data
-        step_key = s.step_key
-        self._image_jobs.submit("drawing the step's images",
-                                lambda cancelled: self._draw_step_images(run, k, step_key, cancelled))
 
-    def _follow(self, target_xy: tuple[float, float]) -> None:
-        """Move every tab's view so it looks at the current step, keeping its viewing angle."""
-        target = np.array([target_xy[0], target_xy[1], 0.0])
-        for client in self.server.get_clients().values():
-            offset = np.asarray(client.camera.position) - np.asarray(client.camera.look_at)
-            with client.atomic():
-                client.camera.look_at = target
-                client.camera.position = target + offset
+        def job(cancelled) -> None:
+            show = self.page.step_pictures(run, k, db, queries)
+            with self._lock:
+                if not cancelled() and s.image_key == image_key:
+                    show()
 
-    def _draw_step_images(self, run: Run, k: int, step_key: tuple, cancelled) -> None:
-        """Background: read the query's and best match's images, draw Figure 3 and the two camera
-        frustums, and show them if step ``k`` is still the one on screen."""
-        db, queries = self.shown.db, self.shown.queries
-        q_index = int(run.matches.query_indices[k])
-        best = run.matches.retrievals[k].best_index
-        q_gray = panels.read_gray(queries.paths[q_index] if queries.paths else None)
-        d_gray = panels.read_gray(db.images[best].path if best is not None else None)
-        if cancelled():
-            return
-        figure = panels.step_figure(queries, db, q_index, best, run.matches.match_params, q_gray, d_gray)
-        with self._lock:
-            if cancelled() or self.shown.step_key != step_key:
-                return
-            self.gui.figure.image = figure
-            rec = run.records[k]
-            heading = float(queries.heading_deg[q_index]) if queries.heading_deg is not None else 0.0
-            match_heading = heading if best is None or db.images[best].heading_deg is None else \
-                db.images[best].heading_deg
-            with self.server.atomic():
-                scene.draw_cameras(self.server.scene, *self._fov_aspect(), rec.truth_m, heading,
-                                   panels.frustum_image(q_gray),
-                                   None if best is None else tuple(db.east_north_m[best]), match_heading,
-                                   panels.frustum_image(d_gray))
-
-    def _fov_aspect(self) -> tuple[float, float]:
-        db = self.shown.db
-        cal = db.calibration
-        if cal is not None and cal.P_rect is not None and cal.height_px:
-            return 2.0 * float(np.arctan(cal.height_px / (2.0 * cal.P_rect[1, 1]))), cal.width_px / cal.height_px
-        im = db.images[0]
-        return np.radians(50.0), (im.width_px / im.height_px if im.height_px else 4 / 3)
+        self._image_jobs.submit("drawing the step's images", job)
 
     # -- messages ------------------------------------------------------------------------------------
 
     def _show_status(self, text: str) -> None:
-        self.gui.status.content = panels.status_html(text)
+        self.page.status(text)
 
     def _store_error(self, text: str) -> None:
-        """A store that cannot be opened: said in the status line and, until the next open, under Open."""
-        self.gui.store_message.content = panels.status_html(text, error=True)
+        """A store that cannot be opened: said in the status line and, when the page asked for it (not the
+        store it started on), under Open too until the next open, where the user is looking."""
+        if self.shown.store_request is not None and self.shown.store_request[0] > 1:
+            self.gui.store_message.content = panels.status_html(text, error=True)
         self._show_error(text)
 
     def _show_error(self, text: str) -> None:
-        self.gui.progress.visible = False
-        self.gui.status.content = panels.status_html(text, error=True)
+        self.page.error(text)
 
     def close(self) -> None:
         self._stop.set()

@@ -8,7 +8,8 @@ import numpy as np
 import viser
 
 import visloc
-from visloc.dashboard.panels import legend_html, placeholder, status_html
+from visloc.dashboard.explain import HINTS, help_html
+from visloc.dashboard.panels import legend_html, map_legend_html, placeholder, status_html
 from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, css
 
 RATES_HZ = ("0.5", "1", "2", "5", "10")
@@ -31,11 +32,13 @@ def paper_values() -> dict[str, object]:
 class Handles:
     status: viser.GuiHtmlHandle
     progress: viser.GuiInputHandle  # a progress bar (0-100)
-    step: viser.GuiSliderHandle
+    session: viser.GuiHtmlHandle  # how many tabs share the page, the last change and from which tab
+    step: viser.GuiSliderHandle  # 1..N: "Step k of N"
     prev_next: viser.GuiButtonGroupHandle
     play: viser.GuiCheckboxHandle
     speed: viser.GuiDropdownHandle
     follow: viser.GuiCheckboxHandle
+    latlon: viser.GuiCheckboxHandle
     mode: viser.GuiDropdownHandle
     tau1: viser.GuiSliderHandle
     tau2: viser.GuiSliderHandle
@@ -48,6 +51,8 @@ class Handles:
     exclusion: viser.GuiSliderHandle
     window: viser.GuiSliderHandle
     reset: viser.GuiButtonHandle
+    geojson: viser.GuiButtonHandle
+    csv: viser.GuiButtonHandle
     store: viser.GuiDropdownHandle
     store_path: viser.GuiTextHandle
     open: viser.GuiButtonHandle
@@ -55,11 +60,42 @@ class Handles:
     db: viser.GuiDropdownHandle
     queries: viser.GuiDropdownHandle
     store_info: viser.GuiHtmlHandle  # store text: HTML, escaped by panels.text
+    step_badge: viser.GuiHtmlHandle  # "previous run … re-matching" above the step's numbers, or empty
     figure: viser.GuiImageHandle
     numbers: viser.GuiHtmlHandle  # the step table, with store text (cameras, reasons)
     counts_plot: viser.GuiUplotHandle
     error_plot: viser.GuiUplotHandle
     run_summary: viser.GuiMarkdownHandle
+    map_badge: viser.GuiHtmlHandle
+    map: viser.GuiImageHandle
+
+
+def _plots(gui) -> tuple[viser.GuiUplotHandle, viser.GuiUplotHandle]:
+    """The two plots. Their legends are static (no values until hovered: uPlot's live legend reads
+    "--" before the cursor is on the plot, which looks like missing data)."""
+    static = {"live": False}
+    counts_plot = gui.add_uplot(
+        (np.zeros(1), np.zeros(1), np.zeros(1), np.full(1, np.nan)),
+        ({"label": "database image time (s)"},
+         {"label": "images before the query", "stroke": "rgb(120,120,120)", "width": 1.5,
+          "points": {"show": True, "size": 4}},
+         {"label": "images after it", "stroke": "rgb(150,90,200)", "width": 1.5, "points": {"show": True, "size": 4}},
+         {"label": "best match", "stroke": css(CURRENT_RGB), "width": 0,
+          "points": {"show": True, "size": 9, "fill": css(CURRENT_RGB)}}),
+        title="Correspondences per candidate", aspect=1.6, scales={"x": {"time": False}}, legend=static,
+        axes=({"label": "database image time (s)"}, {"label": "correspondences"}))
+    error_plot = gui.add_uplot(
+        (np.zeros(1),) + tuple(np.full(1, np.nan) for _ in range(4)),
+        ({"label": "query time (s)"},
+         {"label": "measurement error", "stroke": css(MEASUREMENT_RGB), "width": 2,
+          "points": {"show": True, "size": 5}},
+         {"label": "estimate error", "stroke": css(ESTIMATE_RGB), "width": 2, "points": {"show": True, "size": 5}},
+         {"label": "estimate 2σ", "stroke": css(ELLIPSE_RGB), "width": 1.5, "dash": (5.0, 4.0)},
+         {"label": "current step", "stroke": css(CURRENT_RGB), "width": 0,
+          "points": {"show": True, "size": 10, "fill": css(CURRENT_RGB)}}),
+        title="Error per step (m), the paper's Figure 4", aspect=1.6, scales={"x": {"time": False}}, legend=static,
+        axes=({"label": "query time (s)"}, {"label": "error (m)"}))
+    return counts_plot, error_plot
 
 
 def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
@@ -67,81 +103,73 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
     gui.configure_theme(control_layout="fixed", control_width="medium", show_share_button=False,
                         titlebar_content=None, show_logo=False)
     gui.set_panel_label("visloc")
-    paper = paper_values()
-    gui.add_html(legend_html())
+    paper, h = paper_values(), HINTS
     status = gui.add_html(status_html("Starting…"))
     progress = gui.add_progress_bar(0.0, visible=False, animated=True)
+    session = gui.add_html("")
+    with gui.add_folder("What am I looking at?", expand_by_default=False):
+        gui.add_html(help_html())
+    gui.add_html(legend_html())
     with gui.add_folder("Time"):
-        step = gui.add_slider("Step", min=0, max=1, step=1, initial_value=0,
-                              hint="Query step of the drive run; everything follows it")
-        prev_next = gui.add_button_group("Move", ["◀ Previous", "Next ▶"])
-        play = gui.add_checkbox("Play", False, hint="Step through the drive")
-        speed = gui.add_dropdown("Speed", SPEEDS, initial_value="1x",
-                                 hint="1x: one step per query interval, as the car drove")
-        follow = gui.add_checkbox("Camera follows", False, hint="Keep the 3D view centred on the current step")
+        step = gui.add_slider("Step", min=1, max=2, step=1, initial_value=1, hint=h["step"])
+        prev_next = gui.add_button_group("Move", ["◀ Previous", "Next ▶"], hint=h["prev_next"])
+        play = gui.add_checkbox("Play", False, hint=h["play"])
+        speed = gui.add_dropdown("Speed", SPEEDS, initial_value="1x", hint=h["speed"])
+        follow = gui.add_checkbox("Camera follows", False, hint=h["follow"])
+        latlon = gui.add_checkbox("Show lat/lon", False, hint=h["latlon"])
     with gui.add_folder("Matching (re-matches in the background)"):
-        mode = gui.add_dropdown("Mode", tuple(visloc.METHODS), initial_value=paper["mode"],
-                                hint="paper: the best match's geotag; refined: a metric pose from the "
-                                     "database's geometry (PnP), geotag as fallback; refined-fast: the same pose "
-                                     "at camera rate, on the structure stored at ingest (choose 10 Hz and Play)")
+        mode = gui.add_dropdown("Mode", tuple(visloc.METHODS), initial_value=paper["mode"], hint=h["mode"])
         tau1 = gui.add_slider("τ1 (Lowe ratio)", min=0.5, max=1.0, step=0.01, initial_value=paper["tau1"],
-                              hint="Equation (1): d1²/d2² < τ1²")
+                              hint=h["tau1"])
         tau2 = gui.add_slider("τ2 (cosine)", min=0.8, max=1.0, step=0.005, initial_value=paper["tau2"],
-                              hint="Equation (2): cosine similarity > τ2")
+                              hint=h["tau2"])
     with gui.add_folder("Filter (instant)"):
-        r = gui.add_slider("R: meas. σ (m)", min=0.1, max=40.0, step=0.01, initial_value=paper["r"],
-                           hint="R = σ² I for geotag measurements (the paper's 0.0001° is 11.12 m); "
-                                "refined poses bring their own R")
-        q = gui.add_slider("Q: accel. σ (m/s²)", min=0.0, max=5.0, step=0.05, initial_value=paper["q"],
-                           hint="White-acceleration process noise")
-        p0 = gui.add_slider("P0: initial σ", min=1.0, max=100.0, step=0.1, initial_value=paper["p0"],
-                            hint="P0 = σ² I (m, m/s); the paper's 1000·I is σ = 31.6")
+        r = gui.add_slider("R: meas. σ (m)", min=0.1, max=40.0, step=0.01, initial_value=paper["r"], hint=h["r"])
+        q = gui.add_slider("Q: accel. σ (m/s²)", min=0.0, max=5.0, step=0.05, initial_value=paper["q"], hint=h["q"])
+        p0 = gui.add_slider("P0: initial σ (m, m/s)", min=1.0, max=100.0, step=0.1, initial_value=paper["p0"],
+                            hint=h["p0"])
         gate = gui.add_slider("Gate χ² (refined)", min=0.0, max=50.0, step=0.01, initial_value=paper["gate"],
-                              hint="Refined mode: skip a measurement whose squared Mahalanobis distance "
-                                   "to the prediction exceeds this (13.82 = 99.9 %); 0 = off")
+                              hint=h["gate"], disabled=True)  # the paper's mode has no gate
     with gui.add_folder("Queries"):
-        rate = gui.add_dropdown("Query rate (Hz)", RATES_HZ, initial_value=paper["rate"],
-                                hint="One query every 1/rate s; also the filter's Δt")
-        start = gui.add_slider("Start time (s)", min=0.0, max=1.0, step=0.1, initial_value=paper["start"])
+        rate = gui.add_dropdown("Query rate (Hz)", RATES_HZ, initial_value=paper["rate"], hint=h["rate"])
+        start = gui.add_slider("Start time (s)", min=0.0, max=1.0, step=0.1, initial_value=paper["start"],
+                               hint=h["start"])
         exclusion = gui.add_slider("Exclusion (s)", min=0.0, max=3.0, step=0.1, initial_value=paper["exclusion"],
-                                   hint="Ignore database images closer in time to the query")
-        window = gui.add_slider("Search window ± (s)", min=1.0, max=60.0, step=1.0, initial_value=paper["window"])
-    reset = gui.add_button("Paper's parameters", hint="τ1 0.8, τ2 0.97, R 0.0001°, P0 1000·I, 1 Hz")
+                                   hint=h["exclusion"])
+        window = gui.add_slider("Search window ± (s)", min=1.0, max=60.0, step=1.0, initial_value=paper["window"],
+                                hint=h["window"])
+    reset = gui.add_button("Paper's parameters", hint=h["reset"])
+    with gui.add_folder("Export this run"):
+        geojson = gui.add_button("Download GeoJSON", hint=h["geojson"], disabled=True)
+        csv = gui.add_button("Download CSV", hint=h["csv"], disabled=True)
     with gui.add_folder("Data", expand_by_default=False):
-        store = gui.add_dropdown("Store file", [store_path], initial_value=store_path)
-        store_path_box = gui.add_text("Other store", "", hint="Path of another store file")
-        open_button = gui.add_button("Open")
-        store_message = gui.add_html("")  # the path typed, then what opening it gave; stays until the next
-        db = gui.add_dropdown("Database", ["–"])
-        queries = gui.add_dropdown("Queries", ["–"])
+        store = gui.add_dropdown("Store file", [store_path], initial_value=store_path, hint=h["store"])
+        store_path_box = gui.add_text("Other store", "", hint=h["store_path"])
+        # the path typed, then what opening it gave (stays until the next open): above Open, so it is in
+        # view where the user clicks
+        store_message = gui.add_html("")
+        open_button = gui.add_button("Open", hint="Open the store file typed above (read only)")
+        db = gui.add_dropdown("Database", ["–"], hint=h["db"])
+        queries = gui.add_dropdown("Queries", ["–"], hint=h["queries"])
         store_info = gui.add_html("")
 
     panel = gui.add_panel()
     with panel.add_tab("Current step"):
+        step_badge = gui.add_html("")
         figure = gui.add_image(placeholder("No step yet"), label="query (top) and best match (bottom)",
                                format="jpeg", jpeg_quality=85)
         numbers = gui.add_html("")
-        counts_plot = gui.add_uplot(
-            (np.zeros(1), np.zeros(1), np.zeros(1), np.full(1, np.nan)),
-            ({"label": "database time (s)"},
-             {"label": "earlier images", "stroke": "rgb(120,120,120)", "width": 1.5, "points": {"show": True, "size": 4}},
-             {"label": "later images", "stroke": "rgb(150,90,200)", "width": 1.5, "points": {"show": True, "size": 4}},
-             {"label": "best match", "stroke": css(CURRENT_RGB), "width": 0,
-              "points": {"show": True, "size": 9, "fill": css(CURRENT_RGB)}}),
-            title="Correspondences per candidate", aspect=2.0, scales={"x": {"time": False}})
-        error_plot = gui.add_uplot(
-            (np.zeros(1),) + tuple(np.full(1, np.nan) for _ in range(4)),
-            ({"label": "query time (s)"},
-             {"label": "measurement", "stroke": css(MEASUREMENT_RGB), "width": 2, "points": {"show": True, "size": 5}},
-             {"label": "estimate", "stroke": css(ESTIMATE_RGB), "width": 2, "points": {"show": True, "size": 5}},
-             {"label": "2σ", "stroke": css(ELLIPSE_RGB), "width": 1.5, "dash": (5.0, 4.0)},
-             {"label": "current", "stroke": css(CURRENT_RGB), "width": 0,
-              "points": {"show": True, "size": 10, "fill": css(CURRENT_RGB)}}),
-            title="Error per step (m), the paper's Figure 4", aspect=2.0, scales={"x": {"time": False}})
+        counts_plot, error_plot = _plots(gui)
         run_summary = gui.add_markdown("")
+        gui.add_html('<div style="height:48px"></div>')  # room below the last plot: nothing ends at the edge
+    with panel.add_tab("Map"):
+        map_badge = gui.add_html("")
+        map_image = gui.add_image(placeholder("No run yet"), label="top-down map (north up, east right)",
+                                  format="png")
+        gui.add_html(map_legend_html())
     panel.dock_left()
     panel.set_width(PANEL_WIDTH_PX)
-    return Handles(status, progress, step, prev_next, play, speed, follow, mode, tau1, tau2, r, q, p0, gate, rate,
-                   start, exclusion, window, reset, store, store_path_box, open_button, store_message, db, queries,
-                   store_info,
-                   figure, numbers, counts_plot, error_plot, run_summary)
+    return Handles(status, progress, session, step, prev_next, play, speed, follow, latlon, mode, tau1, tau2, r, q,
+                   p0, gate, rate, start, exclusion, window, reset, geojson, csv, store, store_path_box, open_button,
+                   store_message, db, queries, store_info, step_badge, figure, numbers, counts_plot, error_plot,
+                   run_summary, map_badge, map_image)

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 import visloc
+from visloc.dashboard.explain import TERMS
 from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, TRUTH_RGB, css
 
 FIGURE_WIDTH_PX = 620
@@ -46,26 +47,67 @@ def legend_html() -> str:
     return f'<div style="font-size:12px;line-height:1.7;display:grid;grid-template-columns:1fr 1fr">{items}</div>'
 
 
+def map_legend_html() -> str:
+    items = "".join(f"<div>{_swatch(rgb, label)}</div>" for rgb, label in LEGEND)
+    return (f'<div style="font-size:12px;line-height:1.7;display:grid;grid-template-columns:1fr 1fr 1fr;'
+            f'padding:0 12px">{items}</div><div style="font-size:12px;color:#555;padding:2px 12px 12px">'
+            f'Lines from each truth point to its measurement; ellipses are the estimates&#39; 2σ. The lower '
+            f'view is centred on the current step (magenta ring: its truth, magenta ellipse: its estimate).</div>')
+
+
 def status_html(message: str, *, error: bool = False) -> str:
+    """A status line: wraps anywhere (long paths included), never clipped or scrolled sideways."""
     color, weight = ("#b00020", "600") if error else ("#333", "400")
-    return (f'<div style="font-size:13px;color:{color};font-weight:{weight};padding:2px 0;overflow-wrap:anywhere">'
+    return (f'<div style="font-size:13px;color:{color};font-weight:{weight};padding:2px 0;white-space:normal;'
+            f'overflow-wrap:anywhere;word-break:break-word;max-width:100%">'
             f'{text(("⚠ " if error else "") + message)}</div>')
+
+
+def session_html(line: str, tab: int | None = None) -> str:
+    """The shared-session line (tab count, the last change and the tab it came from)."""
+    own = f" (this is tab {tab})" if tab is not None else ""
+    return (f'<div style="font-size:12px;color:#555;padding:0 0 4px;overflow-wrap:anywhere">'
+            f'{text(line + own)}</div>')
+
+
+def stale_badge_html(note: str | None) -> str:
+    """A grey badge saying the numbers below belong to the previous run ("" when they are current)."""
+    if not note:
+        return ""
+    return (f'<div style="margin:6px 12px 2px;padding:4px 8px;border-radius:4px;background:#e9ecef;color:#555;'
+            f'font-size:12.5px;font-weight:600;overflow-wrap:anywhere">{text(note)}</div>')
+
+
+def stale_note(shown_key: tuple, asked_key: tuple) -> str:
+    """What the shown run was made with where it differs from the run being matched, e.g.
+    "previous run (τ1 0.8) — re-matching for τ1 0.85…". Keys: ``Controls.match_key``."""
+    names = ("data", "mode", "τ1", "τ2", "rate (Hz)", "start (s)", "exclusion (s)", "window (s)", "rerun")
+    old = [(n, a) for n, a, b in zip(names, shown_key, asked_key) if a != b and n not in ("data", "rerun")]
+    new = [(n, b) for n, a, b in zip(names, shown_key, asked_key) if a != b and n not in ("data", "rerun")]
+    if not old:
+        return "previous run — re-matching…"
+    say = lambda pairs: ", ".join(f"{n} {v:g}" if isinstance(v, float) else f"{n} {v}" for n, v in pairs)
+    return f"previous run ({say(old)}) — re-matching for {say(new)}…"
 
 
 def _fmt(value: float | None, fmt: str = ".2f", unit: str = " m") -> str:
     return "–" if value is None else f"{value:{fmt}}{unit}"
 
 
-def _geotag(value: tuple[float, float] | None) -> str:
-    return "–" if value is None else f"{value[0]:.7f}°, {value[1]:.7f}°"
+def _position(xy: tuple[float, float] | None, geotag: tuple[float, float] | None, latlon: bool) -> str:
+    """East and north in metres from the database's origin; latitude and longitude too when asked."""
+    if xy is None:
+        return "–"
+    local = f"E {xy[0]:.2f} m, N {xy[1]:.2f} m"
+    return local + (f" ({geotag[0]:.7f}°, {geotag[1]:.7f}°)" if latlon and geotag is not None else "")
 
 
 def source_text(rec: visloc.StepRecord) -> str:
     """What measured the step, in words."""
     if rec.measurement_source == visloc.GEOMETRY:
-        return (f"geometry: PnP against frames {', '.join(map(str, rec.view_db_frames))} "
-                f"(triangulated with {', '.join(map(str, rec.neighbour_db_frames))}), "
-                f"{rec.n_pnp_inliers} inliers")
+        return (f"geometry: PnP against frames {', '.join(map(str, rec.view_db_frames))} (database views whose "
+                f"3D points were triangulated with frames {', '.join(map(str, rec.neighbour_db_frames))}); "
+                f"{rec.n_pnp_inliers} inliers (correspondences that agree with the pose)")
     if rec.measurement_source == visloc.GEOTAG:
         return "geotag of the best match" + (f" (fallback: {rec.fallback_reason})" if rec.fallback_reason else "")
     return "nothing" + (f" ({rec.fallback_reason})" if rec.fallback_reason else "")
@@ -75,31 +117,47 @@ _CELL = "padding:3px 12px 3px 0;border-bottom:1px solid #e9ecef;vertical-align:t
 
 
 def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotags, query_camera: str,
-              db_camera: str, t0_s: float) -> str:
-    """The current step's table: query, best match, measurement and estimate with their errors."""
+              db_camera: str, t0_s: float, *, latlon: bool = False, n_queries: int | None = None,
+              stale: bool = False) -> str:
+    """The current step's table: query, best match, measurement and estimate with their errors.
+    Positions in local metres (lat/lon too with ``latlon``); every row explains itself on hover.
+    ``n_queries``: the run's size while it is still being matched (``n_steps`` matched so far).
+    ``stale``: the run shown is the previous one (a new one is being matched): the numbers are dimmed."""
     best = ("none" if rec.best_db_frame is None else
             f"{db_camera} frame {rec.best_db_frame} ({rec.best_offset_s:+.2f} s), {rec.best_count} correspondences, "
             f"{rec.n_candidates} candidates")
     rows = [
         ("query", f"{query_camera} frame {rec.query_frame}, t = {rec.query_timestamp_s - t0_s:.2f} s"),
         ("best match", best),
-        ("measurement", _geotag(geotags.measurement)),
+        ("measurement", _position(rec.measurement_m, geotags.measurement, latlon)),
         ("measured by", source_text(rec)),
         ("measurement error", _fmt(rec.measurement_error_m)),
         ("measurement σ", _fmt(rec.measurement_sigma_m) + ("" if rec.measurement_source != visloc.GEOTAG
                                                           else " (the filter's R)")),
-        ("estimate", _geotag(geotags.estimate)),
+        ("estimate", _position(rec.estimate_m, geotags.estimate, latlon)),
         ("estimate error", _fmt(rec.estimate_error_m) + ("  (measurement gated: prediction only)"
                                                           if rec.gated else "")),
         ("estimate 2σ", _fmt(None if rec.estimate_sigma_m is None else 2.0 * rec.estimate_sigma_m)),
         ("nearest allowed image", _fmt(rec.nearest_candidate_error_m)),
-        ("truth", _geotag(geotags.truth)),
+        ("truth", _position(rec.truth_m, geotags.truth, latlon)),
     ]
-    body = "".join(f'<tr><td style="{_CELL};white-space:nowrap;font-weight:500">{text(a)}</td>'
+    hint = "border-bottom:1px dotted #999;cursor:help"
+    body = "".join(f'<tr><td style="{_CELL};white-space:nowrap;font-weight:500">'
+                   f'<span title="{text(TERMS.get(a, ""))}" style="{hint}">{text(a)}</span></td>'
                    f'<td style="{_CELL};overflow-wrap:anywhere">{text(b)}</td></tr>' for a, b in rows)
+    title = f"Step {rec.step + 1} of {n_steps}"
+    partial = ("" if n_queries is None or n_queries == n_steps else
+               f'<div style="color:#555;font-size:12px">{text(f"{n_steps} of {n_queries} queries matched so far")}'
+               f"</div>")
+    frame = "positions: east, north in metres from the database&#39;s origin" + (", then lat, lon" if latlon else "")
+    if stale:
+        partial += '<div style="color:#666;font-size:12px">numbers of the previous run, shown until the new one is ready</div>'
+    dim = "opacity:0.5;" if stale else ""
     return (f'<div style="font-size:13px;line-height:1.45;padding:4px 12px 10px">'
-            f'<div style="font-weight:700;margin-bottom:4px">{text(f"Step {rec.step + 1} of {n_steps}")}</div>'
-            f'<table style="border-collapse:collapse;width:100%">{body}</table></div>')
+            f'<div style="font-weight:700;margin-bottom:4px">{text(title)}</div>{partial}'
+            f'<table style="border-collapse:collapse;width:100%;{dim}">{body}</table>'
+            f'<div style="color:#666;font-size:11.5px;margin-top:3px">{frame}; hover a name for its meaning</div>'
+            f'</div>')
 
 
 def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.DriveMatches) -> str:

@@ -36,10 +36,11 @@ class Controls:
     q_sigma_m_s2: float = float(np.sqrt(visloc.PAPER_FILTER.accel_var_m2_s4))
     p0_sigma: float = float(np.sqrt(visloc.PAPER_FILTER.init_var))
     gate_chi2: float = visloc.REFINED.gate_chi2
-    step: int = 0
+    step: int = 1  # the Step slider: 1..N
     play: bool = False
     speed: float = 1.0
     follow: bool = False
+    latlon: bool = False  # show latitude and longitude beside the local metres
     rerun: int = 0  # "Paper's parameters" asks for a fresh run even when nothing else changed
 
     def match_key(self, data_key: tuple) -> tuple:
@@ -60,6 +61,8 @@ class Run:
     match_key: tuple
     number: int  # completed runs so far, shown in the status line
     rate_hz: float  # the query rate it was matched at: the filter's time step
+    n_queries: int = 0  # queries the run will have once matched
+    partial: bool = False  # still being matched: the queries matched so far
     records: list[visloc.StepRecord] = field(default_factory=list)
     track_key: tuple | None = None
 
@@ -84,6 +87,7 @@ class Shown:
     matching_key: tuple | None = None  # a match running in the background for these controls
     failed_key: tuple | None = None  # controls whose match failed: not tried again until they change
     step_key: tuple | None = None
+    image_key: tuple | None = None  # the step whose pictures are shown or being read
     runs_done: int = 0
 
 
@@ -96,3 +100,23 @@ def discover_stores(*paths: Path) -> list[str]:
             if (c == p or c.suffix in STORE_SUFFIXES) and str(c) not in found and not c.is_dir():
                 found.append(str(c))
     return found
+
+
+def first_choices(datasets, db: tuple[str | None, str | None],
+                  queries: tuple[str | None, str | None]) -> tuple[str, str]:
+    """The database and queries a store opens on, as dataset names: the first that fits each
+    (source, camera) asked for (None: any). Queries no camera or source was asked for, and none
+    fits, are another series than the database's when the store has one (a store of two CSV
+    drives opens on one against the other, not on one against itself)."""
+    def fits(d, want) -> bool:
+        return (want[0] is None or d.source == want[0]) and (want[1] is None or d.camera == want[1])
+
+    names = [d.name for d in datasets]
+    db_choice = next((d.name for d in datasets if fits(d, db)), names[0])
+    q_choice = next((d.name for d in datasets if fits(d, queries) and d.name != db_choice), None)
+    if q_choice is None:
+        q_choice = next((d.name for d in datasets if fits(d, queries)), None)
+    if q_choice is None:
+        q_choice = next((n for n in names if n != db_choice), db_choice)
+    return db_choice, q_choice
+

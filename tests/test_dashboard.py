@@ -178,9 +178,10 @@ def reset(page) -> None:
 
 
 def go_to_step(page, step: int) -> None:
-    """Type a step into the slider's number box, as a user may."""
+    """Type a step into the slider's number box, as a user may; ``step`` counts from 0, the slider
+    and the panel ("Step k of N") from 1."""
     box = control(page, "Step").locator("input:not([type=hidden])")
-    box.fill(str(step))
+    box.fill(str(step + 1))
     box.press("Enter")
     page.get_by_text(re.compile(rf"^Step {step + 1} of \d+$")).wait_for()
 
@@ -190,7 +191,7 @@ def test_page_loads_with_its_controls_and_panels(dashboard, browser):
     try:
         dismiss_webgl_notice(page)
         for label in ("Step", "Play", "Speed", "τ1 (Lowe ratio)", "τ2 (cosine)", "R: meas. σ (m)",
-                      "Q: accel. σ (m/s²)", "P0: initial σ", "Query rate (Hz)", "Start time (s)", "Exclusion (s)"):
+                      "Q: accel. σ (m/s²)", "P0: initial σ (m, m/s)", "Query rate (Hz)", "Start time (s)", "Exclusion (s)"):
             assert page.get_by_text(label, exact=True).count() >= 1, label
         assert page.get_by_text("Step 1 of 11", exact=True).is_visible()  # 1 Hz over the 11 s drive
         assert "image_00 frame 0" in row(page, "query")

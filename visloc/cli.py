@@ -246,6 +246,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="database camera to show first (default: the store's only camera, else image_01)")
     p.add_argument("--query-camera", default=None,
                    help="query camera to show first (default: the store's only camera, else image_00)")
+    p.add_argument("--db-source", default=None,
+                   help="database drive/dataset to show first, e.g. a CSV drive's folder name (default: the first)")
+    p.add_argument("--query-source", default=None,
+                   help="query drive/dataset to show first (default: the database's drive, or another drive "
+                        "when the store holds several and the cameras do not tell)")
     p.set_defaults(func=commands.cmd_dashboard)
 
     p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",

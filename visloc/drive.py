@@ -75,7 +75,8 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
                 cache: PairCountCache | None = None, progress: Callable[[int, int], None] | None = None,
                 cancelled: Callable[[], bool] | None = None, structures: StructureCache | None = None,
                 filter_params: FilterParams = FilterParams(), stored: dict | None = None,
-                shortlist_index: GlobalIndex | None = None) -> DriveMatches:
+                shortlist_index: GlobalIndex | None = None,
+                on_step: Callable[[DriveMatches], None] | None = None) -> DriveMatches:
     """Retrieve and measure every query in ``query_indices``, in order, with ``method``.
 
     ``progress(done, total)`` is called after each query; ``cancelled()`` is polled between
@@ -84,6 +85,8 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
     ``structures``. ``filter_params`` only matter to a retrieval the filter gates (the fast ones).
     ``stored`` and ``shortlist_index``: the database's stored structure and global vectors, which the
     camera-rate method uses (``Workspace.load_structure``, ``Workspace.load_database_index``).
+    ``on_step(partial)`` is handed the run so far (the queries matched up to now, in order) after
+    each query, so a caller can show a run as it is matched.
     """
     cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
     cache.check_thresholds(match_params)
@@ -93,12 +96,23 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
                                 counter=cancellable(cache, cancelled), structures=structures, stored=stored,
                                 shortlist_index=shortlist_index)
     indices = np.asarray(query_indices, np.int64)
+
+    def matches_of(steps: Sequence) -> DriveMatches:
+        return DriveMatches(indices[:len(steps)], tuple(s.result.retrieval for s in steps),
+                            tuple(s.result.measurement for s in steps), match_params, retrieval_params, method,
+                            np.array([s.latency_ms for s in steps], float))
+
+    done: list = []
+
+    def step_done(step) -> None:
+        done.append(step)
+        on_step(matches_of(done))
+
     steps = run_queries(localizer, (queries.query(int(q)) for q in indices),
                         cache=None if method.camera_rate else cache, cancelled=cancelled,
-                        progress=(lambda done: progress(done, len(indices))) if progress else None)
-    return DriveMatches(indices, tuple(s.result.retrieval for s in steps),
-                        tuple(s.result.measurement for s in steps), match_params, retrieval_params, method,
-                        np.array([s.latency_ms for s in steps], float))
+                        progress=(lambda n: progress(n, len(indices))) if progress else None,
+                        on_step=step_done if on_step else None)
+    return matches_of(steps)
 
 
 def filter_measurements(measurements: Sequence[Measurement], filter_params: FilterParams, *,

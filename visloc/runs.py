@@ -37,13 +37,14 @@ def latency_ms(result: StepResult, cache: PairCountCache | None = None) -> float
 
 def run_queries(localizer: Localizer, queries: Iterable, *, cache: PairCountCache | None = None,
                 cancelled: Callable[[], bool] | None = None,
-                progress: Callable[[int], None] | None = None) -> list[TimedStep]:
+                progress: Callable[[int], None] | None = None,
+                on_step: Callable[[TimedStep], None] | None = None) -> list[TimedStep]:
     """Step ``localizer`` through ``queries`` (``visloc.Query``) in order, from its current state.
 
     ``cache``: the ``PairCountCache`` the localizer's retrieval counts with, if any (for latency).
     ``cancelled()`` is asked after each query and raises ``MatchCancelled`` when true (wrap the
     counter with ``visloc.matching.cancellable`` to stop inside a query too); ``progress(done)``
-    is told of each query done.
+    is told of each query done; ``on_step(step)`` is handed each step as soon as it is done.
     """
     out: list[TimedStep] = []
     for query in queries:
@@ -51,6 +52,8 @@ def run_queries(localizer: Localizer, queries: Iterable, *, cache: PairCountCach
         if cancelled is not None and cancelled():
             raise MatchCancelled()
         out.append(TimedStep(result, latency_ms(result, cache)))
+        if on_step:
+            on_step(out[-1])
         if progress:
             progress(len(out))
     return out

@@ -1,0 +1,98 @@
+"""Words for a first-time user: the controls' hover hints, what each row of the step table means,
+and the help fold ("What am I looking at?"). Plain strings and one pure function; no viser here.
+"""
+
+from __future__ import annotations
+
+# hover hints of the controls, by handle name (see visloc.dashboard.gui)
+HINTS = {
+    "step": "Which query of the drive run is shown (1 = the first). The table, plots, map, 3D view and images "
+            "all follow it",
+    "prev_next": "One query back or forward",
+    "play": "Step through the run by itself",
+    "speed": "1x: one step per query interval, as the car drove",
+    "follow": "Keep the 3D view centred on the current step",
+    "latlon": "Also show latitude and longitude (WGS84, degrees) beside the local east/north metres",
+    "mode": "paper: the measurement is the best-matching database image's geotag. refined: a metric pose "
+            "solved from the database's own geometry (PnP), the geotag only as fallback. refined-fast: the same "
+            "pose at camera rate, on the 3D points stored at ingest (choose 10 Hz and Play)",
+    "tau1": "Lowe's ratio test, equation (1): a query feature's nearest database feature counts only if "
+            "d1²/d2² < τ1² (d1, d2: distances to the nearest and second-nearest). Lower = stricter, fewer "
+            "correspondences. Not used by refined-fast",
+    "tau2": "Cosine test, equation (2): the pair also needs cosine similarity > τ2. Higher = stricter. "
+            "Not used by refined-fast",
+    "r": "R = σ² I: how far (m) the filter expects a geotag measurement to be off. The paper's 0.0001° is "
+         "11.12 m. Refined poses bring their own R",
+    "q": "Process noise Q: how hard (m/s²) the filter expects the car to accelerate between queries "
+         "(constant-velocity model, white acceleration)",
+    "p0": "P0 = σ² I: the filter's initial uncertainty, σ in m for the position and m/s for the velocity. "
+          "The paper's 1000·I is σ = 31.6",
+    "gate": "Refined modes only: a measurement whose squared Mahalanobis distance to the filter's prediction "
+            "exceeds this is skipped (the step only predicts). 13.82 = 99.9 % for 2 degrees of freedom; "
+            "0 = off. Unitless",
+    "rate": "One query every 1/rate s; also the filter's time step Δt",
+    "start": "Time after the first frame (s) where the run starts",
+    "exclusion": "Database images closer in time to the query than this (s) are not allowed as matches, so "
+                 "the query cannot match a picture taken from the same place at the same moment",
+    "window": "Paper and refined modes: search database images within ± this many seconds of the previous "
+              "best match. refined-fast searches a shortlist instead",
+    "reset": "τ1 0.8, τ2 0.97, R 0.0001° (11.12 m), P0 1000·I, 1 Hz, paper mode",
+    "store": "The store file (built by 'visloc ingest') the page reads; it is never changed",
+    "store_path": "Path of another store file, then press Open",
+    "db": "The image series searched (its geotags are the database)",
+    "queries": "The image series localized, one query at a time",
+    "geojson": "The current run's ground truth, measurements and estimates (with 2σ ellipses) as a GeoJSON "
+               "file for GIS tools",
+    "csv": "The current run, one row per step: truth, measurement, estimate, covariance (m²), errors (m)",
+}
+
+# the step table's rows: what each means (shown on hover and in the help fold)
+TERMS = {
+    "query": "The camera image being localized at this step, and its time since the first frame",
+    "best match": "The allowed database image with the most correspondences to the query",
+    "correspondences": "Query features whose nearest database feature passes both tests (τ1 and τ2)",
+    "candidates": "Database images compared with the query at this step (the search window, minus the "
+                  "exclusion)",
+    "measurement": "Where this step's measurement puts the car (east, north in metres from the database's "
+                   "origin)",
+    "measured by": "paper mode: the geotag of the best match. refined modes: PnP, the camera pose solved from "
+                   "3D points that the best database views were triangulated into with their neighbours; "
+                   "inliers are the correspondences that agree with that pose",
+    "measurement error": "Distance from the measurement to the ground truth (m)",
+    "measurement σ": "The measurement's own uncertainty (m): the filter's R for a geotag, the PnP covariance "
+                     "for a pose",
+    "estimate": "The Kalman filter's position after this step",
+    "estimate error": "Distance from the estimate to the ground truth (m)",
+    "estimate 2σ": "Twice the filter's standard deviation along its most uncertain direction (m): the truth "
+                   "should lie inside the 2σ ellipse about 86 % of the time",
+    "nearest allowed image": "The smallest error any allowed database image's geotag could give (m): the "
+                             "floor of the paper's method at this step",
+    "truth": "The query's recorded GPS/IMU position (ground truth)",
+    "τ1, τ2": "The two tests a feature pair must pass to count as a correspondence: Lowe's ratio (τ1, lower "
+              "is stricter) and cosine similarity (τ2, higher is stricter)",
+    "R, Q, P0": "The Kalman filter's measurement noise (m), acceleration noise (m/s²) and initial uncertainty "
+                "(m, m/s); changing them re-runs only the filter",
+    "gate": "Refined modes: a measurement whose squared Mahalanobis distance to the filter's prediction "
+            "exceeds the gate χ² is skipped, and that step only predicts",
+}
+
+
+def help_html() -> str:
+    """The help fold: what the page shows, the colours, and the terms."""
+    terms = "".join(f"<li><b>{name}</b>: {meaning}</li>" for name, meaning in TERMS.items())
+    return (
+        '<div style="font-size:12.5px;line-height:1.45;padding:0 4px">'
+        "<p style=\"margin:4px 0\">A car drove with a camera. Each <b>query</b> image is compared with a "
+        "<b>database</b> of geotagged images of the same road; the best-matching image gives a "
+        "<b>measurement</b> of where the car is, and a Kalman filter smooths the measurements into an "
+        "<b>estimate</b> with an uncertainty (the <b>2σ ellipse</b>). The <b>ground truth</b> is the car's "
+        "recorded GPS.</p>"
+        "<p style=\"margin:4px 0\"><b>3D view</b> (middle) and <b>Map</b> tab (top-down, north up): green = "
+        "truth, orange = measurements, blue = estimates and their ellipses, grey = database images, "
+        "magenta = the current step. <b>Current step</b> tab: the query above its best match with "
+        "correspondences joined, the step's numbers, the correspondences per database image, and the "
+        "error per step.</p>"
+        "<p style=\"margin:4px 0\">Positions are east and north in metres from the database's origin (its "
+        "first image's geotag). <b>Matching</b> controls re-match every query in the background; "
+        "<b>Filter</b> controls only re-run the filter (instant). All open tabs share one session.</p>"
+        f'<ul style="margin:4px 0;padding-left:16px">{terms}</ul></div>')

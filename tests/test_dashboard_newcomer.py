@@ -1,0 +1,322 @@
+"""The dashboard explains itself to a first-time user: page title, step numbering from 1, local
+metres with lat/lon on demand, hints and a help fold, controls of other modes disabled, a map,
+static plot legends, stale numbers marked while re-matching, wrapping messages, a visible shared
+session, downloads of the run, and a first run that fills in as it is matched.
+
+``visloc dashboard`` in a subprocess on the KITTI store, driven in the session's headless Chromium
+(see tests/test_dashboard.py). Screenshots go to ``out/screenshots/newcomer_*.png``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import re
+import shutil
+import sqlite3
+
+import pytest
+from test_dashboard import (
+    RUN_S,
+    SERVER_WORK_S,
+    DashboardProcess,
+    choose,
+    control,
+    dismiss_webgl_notice,
+    go_to_step,
+    new_page,
+    open_other_store,
+    open_page,
+    reset,
+    row,
+    run_number,
+    screenshot,
+    status_text,
+    wait_for,
+)
+
+pytestmark = [pytest.mark.browser, pytest.mark.kitti, pytest.mark.slow]
+
+
+@pytest.fixture(scope="module")
+def dashboard(kitti_evaluation):
+    tmp, _, _ = kitti_evaluation
+    proc = DashboardProcess("--db", str(tmp / "kitti.sqlite"), "--port", "8420")
+    yield proc
+    proc.stop()
+
+
+def open_on_current_step(browser, url: str):
+    """``open_page``, then the panel's "Current step" tab (the page remembers the tab last chosen)."""
+    page = open_page(browser, url)
+    page.get_by_role("tab", name="Current step").click()
+    page.get_by_text(re.compile(r"^Step \d+ of \d+$")).first.wait_for()
+    return page
+
+
+def number_box(page, label: str):
+    return control(page, label).locator("input:not([type=hidden])")
+
+
+def set_number(page, label: str, value: str) -> None:
+    box = number_box(page, label)
+    box.fill(value)
+    box.press("Enter")
+
+
+def map_src(page) -> str:
+    img = page.get_by_text("top-down map (north up, east right)", exact=True).locator("xpath=..").locator("img")
+    return img.first.evaluate("e => e.currentSrc || e.src")
+
+
+def test_match_drive_hands_over_the_run_so_far_after_each_query(tmp_path):
+    """The engine's ``on_step``: the partial runs the dashboard shows while the first run is matched."""
+    import numpy as np
+
+    import visloc
+    from conftest import write_csv_drive
+
+    ws = visloc.Workspace(tmp_path / "s.sqlite", create=True)
+    for name, offset in (("dbdrive", 0), ("querydrive", 30)):
+        ws.ingest(visloc.open_csv(write_csv_drive(tmp_path / name, n_frames=10, offset_px=offset)),
+                  visloc.SiftParams(), workers=1)
+    db, queries = ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
+    indices = visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0)
+    partials = []
+    full = visloc.match_drive(queries, db, visloc.MatchParams(), visloc.RetrievalParams(exclusion_s=0.5), indices,
+                              on_step=partials.append)
+    assert [len(p) for p in partials] == list(range(1, len(indices) + 1))
+    for p in partials:  # each is the start of the whole run, and can be filtered as it stands
+        np.testing.assert_array_equal(p.query_indices, full.query_indices[:len(p)])
+        assert [m.east_north_m for m in p.measurements] == [m.east_north_m for m in full.measurements[:len(p)]]
+        assert len(visloc.track_drive(p, queries, db, visloc.PAPER_FILTER)) == len(p)
+
+
+def test_pure_parts_say_what_they_show():
+    from visloc.dashboard import mapview, panels
+    from visloc.dashboard.session import SessionLog
+
+    data = ("store", "x", "y")
+    assert panels.stale_note((data, "paper", 0.8, 0.97, 1.0, 0.0, 1.0, 20.0, 0),
+                             (data, "paper", 0.85, 0.97, 1.0, 0.0, 1.0, 20.0, 0)) == \
+        "previous run (τ1 0.8) — re-matching for τ1 0.85…"
+    assert panels.stale_note((data, "paper", 0.8, 0.97, 1.0, 0.0, 1.0, 20.0, 0),
+                             (data, "paper", 0.8, 0.97, 1.0, 0.0, 1.0, 20.0, 1)) == "previous run — re-matching…"
+    log = SessionLog()
+    one, two = log.connected(101), log.connected(102)
+    assert (one, two) == (1, 2) and log.line() == "Shared by 2 open tabs · no change made yet"
+    assert not log.changed(None, "τ1", "0.85")  # the page's own moves are not a tab's change
+    assert log.changed(102, "τ1", "0.85")
+    assert re.fullmatch(r"Shared by 2 open tabs · last change: τ1 → 0\.85 from tab 2 at \d\d:\d\d:\d\d", log.line())
+    log.disconnected(101)
+    assert log.line().startswith("Open in 1 tab · last change")
+    assert [mapview.nice_length_m(v) for v in (0.7, 3.0, 24.0, 180.0)] == [0.5, 2.0, 20.0, 100.0]
+    import numpy as np
+
+    track = np.c_[np.linspace(-97.0, 0.0, 50), np.linspace(-45.0, 0.0, 50)]
+    img = mapview.map_image(track, track, [], None)
+    assert img.shape == (mapview.VIEW_HEIGHT_PX + mapview.HEADER_PX + mapview.FOOTER_PX, mapview.MAP_WIDTH_PX, 3)
+
+
+def test_title_numbering_units_help_and_mode_controls(dashboard, browser):
+    page = open_on_current_step(browser, dashboard.url)
+    try:
+        dismiss_webgl_notice(page)
+        assert page.title() == "visloc"
+        # the slider counts as the panel does: 1..N
+        assert number_box(page, "Step").input_value() == "1"
+        page.get_by_text("Step 1 of 11", exact=True).wait_for()
+        thumb = control(page, "Step").locator("[role=slider]")
+        assert thumb.get_attribute("aria-valuemin") == "1" and thumb.get_attribute("aria-valuemax") == "11"
+        go_to_step(page, 10)  # the last step: the slider reads 11
+        assert number_box(page, "Step").input_value() == "11"
+        assert page.get_by_text("P0: initial σ (m, m/s)", exact=True).count() == 1
+        # positions in local metres; lat/lon on demand
+        assert re.fullmatch(r"E -?\d+\.\d\d m, N -?\d+\.\d\d m", row(page, "truth"))
+        assert "°" not in row(page, "estimate")
+        control(page, "Show lat/lon").locator("input").first.check()
+        wait_for(lambda: re.fullmatch(r"E -?\d+\.\d\d m, N -?\d+\.\d\d m \(49\.\d{7}°, 8\.\d{7}°\)",
+                                      row(page, "truth")), SERVER_WORK_S, "lat/lon beside the metres")
+        control(page, "Show lat/lon").locator("input").first.uncheck()
+        wait_for(lambda: "°" not in row(page, "truth"), SERVER_WORK_S, "lat/lon hidden again")
+        # every row explains itself on hover; the help fold explains the terms
+        label = page.locator("td span[title]").filter(has_text=re.compile("^nearest allowed image$"))
+        assert "floor" in label.get_attribute("title")
+        page.get_by_text("What am I looking at?", exact=True).click()
+        help_text = page.get_by_text(re.compile("^A car drove with a camera")).first
+        help_text.wait_for()
+        assert "inliers" in help_text.locator("xpath=..").inner_text()
+        screenshot(page, "newcomer_help.png")
+        page.get_by_text("What am I looking at?", exact=True).click()
+        # the gate belongs to the refined modes: disabled in the paper's
+        gate = control(page, "Gate χ² (refined)").locator("[role=slider]")
+        assert gate.get_attribute("aria-disabled") == "true"
+        runs = run_number(page)
+        choose(page, "Mode", "refined")
+        wait_for(lambda: gate.get_attribute("aria-disabled") != "true", SERVER_WORK_S,
+                 "the gate to be enabled in the refined mode")
+        wait_for(lambda: run_number(page) > runs, RUN_S, "the refined run")
+        go_to_step(page, 3)
+        measured_by = row(page, "measured by")
+        assert re.match(r"geometry: PnP against frames [\d, ]+ \(database views whose 3D points were "
+                        r"triangulated with frames [\d, ]+\); \d+ inliers \(correspondences that agree", measured_by)
+        screenshot(page, "newcomer_refined.png")
+    finally:
+        reset(page)
+        page.close()
+
+
+def test_the_map_follows_the_step_and_the_plots_read_as_data(dashboard, browser):
+    page = open_on_current_step(browser, dashboard.url)
+    try:
+        dismiss_webgl_notice(page)
+        # static legends: no "--" placeholders where values would be
+        legends = page.locator(".u-legend")
+        assert legends.count() >= 2
+        for text in legends.all_inner_texts():
+            assert "--" not in text, text
+        assert "estimate 2σ" in " ".join(legends.all_inner_texts())
+        # the last plot ends inside the panel once scrolled to
+        plots = page.locator(".uplot")
+        last = plots.nth(plots.count() - 1)
+        last.scroll_into_view_if_needed()
+        box, viewport = last.bounding_box(), page.viewport_size
+        assert box["y"] + box["height"] <= viewport["height"], (box, viewport)
+        screenshot(page, "newcomer_plots.png")
+        go_to_step(page, 2)
+        page.get_by_role("tab", name="Map").click()
+        before = wait_for(lambda: map_src(page), SERVER_WORK_S, "the map")
+        set_number(page, "Step", "8")  # the step table is in the other tab: the map alone answers
+        wait_for(lambda: map_src(page) != before, SERVER_WORK_S, "the map to follow the step")
+        screenshot(page, "newcomer_map.png")
+    finally:
+        page.get_by_role("tab", name="Current step").click()
+        page.close()
+
+
+def test_numbers_of_the_previous_run_are_marked_while_rematching(dashboard, browser):
+    page = open_on_current_step(browser, dashboard.url)
+    try:
+        dismiss_webgl_notice(page)
+        runs = run_number(page)
+        set_number(page, "τ1 (Lowe ratio)", "0.74")  # counts not in the store: a real re-match
+        badge = page.get_by_text("previous run (τ1 0.8) — re-matching for τ1 0.74…", exact=True)
+        badge.first.wait_for()
+        title = page.locator(".uplot .u-title").first
+        wait_for(lambda: "previous run" in title.inner_text(), SERVER_WORK_S, "the plot to say it is the previous run")
+        page.get_by_role("tab", name="Map").click()
+        wait_for(lambda: any(badge.nth(i).is_visible() for i in range(badge.count())), SERVER_WORK_S,
+                 "the map's own badge")
+        screenshot(page, "newcomer_stale_map.png")
+        page.get_by_role("tab", name="Current step").click()
+        badge.first.wait_for()
+        screenshot(page, "newcomer_stale.png")
+        wait_for(lambda: run_number(page) > runs, RUN_S, "the run with τ1 0.74")
+        badge.first.wait_for(state="detached")
+        wait_for(lambda: "previous run" not in title.inner_text(), SERVER_WORK_S, "the plot to be current")
+    finally:
+        reset(page)
+        page.close()
+
+
+def test_every_tab_sees_the_shared_session_and_who_changed_what(dashboard, browser):
+    a = open_on_current_step(browser, dashboard.url)
+    b = open_on_current_step(browser, dashboard.url)
+    try:
+        for page in (a, b):
+            page.get_by_text(re.compile(r"^Shared by [2-9] open tabs")).first.wait_for()
+        tab_a = int(re.search(r"This is tab (\d+)", a.get_by_text(re.compile(r"^This is tab \d+$")).first
+                              .inner_text()).group(1))
+        tab_b = int(re.search(r"This is tab (\d+)", b.get_by_text(re.compile(r"^This is tab \d+$")).first
+                              .inner_text()).group(1))
+        assert tab_a != tab_b
+        set_number(a, "R: meas. σ (m)", "5")
+        said = re.compile(rf"last change: R: meas\. σ \(m\) → 5 from tab {tab_a} at \d\d:\d\d:\d\d$")
+        for page in (a, b):
+            page.get_by_text(said).first.wait_for()
+        wait_for(lambda: number_box(b, "R: meas. σ (m)").input_value() == "5", SERVER_WORK_S, "b to follow")
+        set_number(b, "R: meas. σ (m)", "11.12")
+        said = re.compile(rf"last change: R: meas\. σ \(m\) → 11\.12 from tab {tab_b} at")
+        for page in (a, b):
+            page.get_by_text(said).first.wait_for()
+        screenshot(a, "newcomer_two_tabs.png")
+    finally:
+        a.close()
+        b.close()
+
+
+def test_the_run_downloads_as_geojson_and_csv(dashboard, browser, tmp_path):
+    page = open_on_current_step(browser, dashboard.url)
+    try:
+        with page.expect_download() as got:
+            page.get_by_role("button", name="Download GeoJSON").click()
+        download = got.value
+        assert re.fullmatch(r"visloc_run\d+_paper_tau1-0\.8_tau2-0\.97_1Hz\.geojson", download.suggested_filename)
+        download.save_as(tmp_path / "run.geojson")
+        geojson = json.loads((tmp_path / "run.geojson").read_text())
+        assert geojson["type"] == "FeatureCollection"
+        kinds = {f["properties"]["kind"] for f in geojson["features"]}
+        assert {"truth track", "estimate track", "truth"} <= kinds
+        with page.expect_download() as got:
+            page.get_by_role("button", name="Download CSV").click()
+        download = got.value
+        assert download.suggested_filename.endswith(".csv")
+        download.save_as(tmp_path / "run.csv")
+        rows = list(csv.DictReader(io.StringIO((tmp_path / "run.csv").read_text())))
+        assert len(rows) == 11
+        assert rows[0]["truth_east_m"] and rows[0]["estimate_cov_ee_m2"]
+    finally:
+        page.close()
+
+
+def test_a_long_error_wraps_inside_the_panel(dashboard, browser, tmp_path):
+    page = open_on_current_step(browser, dashboard.url)
+    try:
+        page.get_by_text("Data", exact=True).click()
+        deep = tmp_path.joinpath(*[f"a_rather_long_folder_name_{i}" for i in range(6)]) / "not_a_store.sqlite"
+        deep.parent.mkdir(parents=True)
+        deep.write_text("not a database")
+        message = open_other_store(page, deep)
+        assert "not a SQLite database" in message.inner_text()
+        message.scroll_into_view_if_needed()
+        fits = message.evaluate("e => [e.scrollWidth <= e.clientWidth + 1, e.getBoundingClientRect().right,"
+                                " e.parentElement.getBoundingClientRect().right]")
+        assert fits[0] and fits[1] <= fits[2] + 1, fits
+        status = page.get_by_text(re.compile("^⚠ " + re.escape(str(deep)))).nth(0)
+        assert str(deep) in status.inner_text()
+        screenshot(page, "newcomer_long_error.png")
+    finally:
+        reset(page)
+        page.close()
+
+
+def test_the_first_run_fills_in_as_it_is_matched(kitti_evaluation, browser, tmp_path):
+    """On a store without cached counts the first run takes a while: the page shows the steps matched
+    so far, with the progress, before it is ready."""
+    source, _, _ = kitti_evaluation
+    store = tmp_path / "fresh.sqlite"
+    shutil.copy(source / "kitti.sqlite", store)
+    conn = sqlite3.connect(store)
+    try:
+        conn.execute("DELETE FROM pair_counts")
+        conn.commit()
+    finally:
+        conn.close()
+    proc = DashboardProcess("--db", str(store), "--port", "8424")
+    try:
+        page = new_page(browser)
+        page.goto(proc.url)
+        page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()
+        seen = wait_for(lambda: (run_number(page) == 0 and re.search(r"\d+ of 11 queries matched so far",
+                                                                     page.locator("body").inner_text())),
+                        RUN_S, "steps shown while the first run is matched")
+        assert seen
+        wait_for(lambda: re.search(r"^Matching 11 queries .*: \d+ of 11 queries matched", status_text(page)),
+                 SERVER_WORK_S, "the progress in words")
+        screenshot(page, "newcomer_first_run_filling_in.png")
+        wait_for(lambda: run_number(page) == 1, 2 * RUN_S, "the first run to be ready")
+        page.get_by_text("Step 1 of 11", exact=True).wait_for()
+        page.close()
+    finally:
+        proc.stop()
