@@ -19,7 +19,7 @@ import pytest
 
 from fault_table import Fault, params
 from conftest import REPO, run_cli, write_csv_drive
-from test_cli import one_line_error
+from test_cli import error_lines, one_line_error
 from test_ingest import assert_no_half_images, snapshot, wait_for_rows
 
 FAULTS = [
@@ -95,7 +95,7 @@ def test_a_killed_worker_ends_the_ingest_keeping_what_was_committed(tmp_path, fa
             proc.kill()
             proc.communicate()
     assert proc.returncode == 2, err
-    lines = err.strip().splitlines()
+    lines = error_lines(err)  # progress lines aside
     assert len(lines) == 1 and lines[0].startswith("visloc: error: ") and "worker process died" in lines[0], err
     interrupted = snapshot(db_path)
     assert 8 <= len(interrupted) < n_frames
