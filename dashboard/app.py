@@ -31,7 +31,7 @@ import visloc
 from visloc.dashboard import panels
 from visloc.dashboard.gui import Handles, build_gui, paper_values
 from visloc.dashboard.jobs import LatestJobRunner
-from visloc.dashboard.page import Page, run_file_name, run_files
+from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionLog
 from visloc.dashboard.state import Controls, Run, Shown, discover_stores, first_choices
 
@@ -129,8 +129,8 @@ class DashboardApp:
             if client is None or run is None or not run.records or db is None:
                 return
             name = run_file_name(run)
-            files = run_files(run, db.frame, name)
-        client.send_file_download(f"{name}.{kind}", files[kind], save_immediately=True)
+            content = run_file(run, db.frame, name, kind)
+        client.send_file_download(f"{name}.{kind}", content, save_immediately=True)
 
     def _ask_for_store(self, path: str, *, only_if_new: bool = False) -> None:
         with self._lock:

@@ -7,7 +7,6 @@ calls it with the lock held (see ``visloc.dashboard.app``).
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import viser
@@ -18,11 +17,9 @@ from visloc.dashboard.gui import Handles
 from visloc.dashboard.state import Run
 
 
-def run_files(run: Run, frame: visloc.LocalFrame, name: str) -> dict[str, bytes]:
-    """The run's trajectories (truth, measurements, estimates with covariance) as files, by format."""
-    series = [run.records]
-    return {"geojson": json.dumps(visloc.trajectory_geojson(series, frame, name=name), indent=1).encode(),
-            "csv": visloc.trajectory_csv(series, frame).encode()}
+def run_file(run: Run, frame: visloc.LocalFrame, name: str, fmt: str) -> bytes:
+    """The run's trajectories (truth, measurements, estimates with covariance) as a "geojson" or "csv" file."""
+    return visloc.trajectory_text([run.records], frame, name=name, fmt=fmt).encode("utf-8")
 
 
 def run_file_name(run: Run) -> str:

@@ -36,7 +36,7 @@ from visloc.drive import DriveMatches, drive_query_indices, drive_summary, filte
 from visloc.errors import InputError, ParameterError, VislocError
 from visloc.evaluation import Evaluation, evaluate, series_schedule, step_labels
 from visloc.export import (TrajectoryPoint, trajectory_csv, trajectory_format, trajectory_geojson,
-                           trajectory_points, write_trajectory)
+                           trajectory_points, trajectory_text, write_trajectory)
 from visloc.features import Features, Query, extract_sift, make_sift
 from visloc.figures import correspondence_figure
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
@@ -110,7 +110,7 @@ __all__ = [
     "DriveMatches", "Evaluation", "RecordGeotags", "StepRecord", "drive_query_indices", "drive_summary", "evaluate",
     "filter_measurements", "match_drive", "record_geotags", "series_schedule", "step_labels", "step_record",
     "track_drive", "TrajectoryPoint", "trajectory_csv", "trajectory_format", "trajectory_geojson",
-    "trajectory_points", "write_trajectory", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
+    "trajectory_points", "trajectory_text", "write_trajectory", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
     # geodesy, figures, errors
     "LocalFrame", "geodesic_distance_m", "haversine_distance_m", "correspondence_figure",
     "InputError", "ParameterError", "VislocError",

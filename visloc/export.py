@@ -216,10 +216,13 @@ def trajectory_format(path: Path) -> str:
     raise ParameterError(f"{path}: a trajectory file ends in .geojson, .json or .csv")
 
 
+def trajectory_text(run, frame: LocalFrame, *, name: str, fmt: str) -> str:
+    """``run`` (series of StepRecord, or TrackFrame list) as the text of a "geojson" or "csv" file."""
+    if fmt == "geojson":
+        return json.dumps(trajectory_geojson(run, frame, name=name), ensure_ascii=False, allow_nan=False)
+    return trajectory_csv(run, frame)
+
+
 def write_trajectory(path: Path, run, frame: LocalFrame, *, name: str) -> None:
     """Write ``run`` (series of StepRecord, or TrackFrame list) as GeoJSON or CSV, by ``path``'s suffix."""
-    if trajectory_format(path) == "geojson":
-        text = json.dumps(trajectory_geojson(run, frame, name=name), ensure_ascii=False, allow_nan=False)
-    else:
-        text = trajectory_csv(run, frame)
-    Path(path).write_text(text, encoding="utf-8")
+    Path(path).write_text(trajectory_text(run, frame, name=name, fmt=trajectory_format(path)), encoding="utf-8")

@@ -8,13 +8,13 @@ from pathlib import Path
 
 from visloc.choices import require_output
 from visloc.errors import InputError
-from visloc.export import write_trajectory
+from visloc.export import GEOJSON_SUFFIXES, write_trajectory
 
 
 def require_exports(a: argparse.Namespace, store: Path | None = None) -> None:
     """``--geojson`` and ``--csv``: the right suffix and a writable place, before any work (``store``: of a
     command that makes the store's missing folder, where the files may go)."""
-    for flag, path, suffixes in (("--geojson", a.geojson, (".geojson", ".json")), ("--csv", a.csv, (".csv",))):
+    for flag, path, suffixes in (("--geojson", a.geojson, GEOJSON_SUFFIXES), ("--csv", a.csv, (".csv",))):
         if path is not None and Path(path).suffix.lower() not in suffixes:
             raise InputError(f"{flag} {path}: the file name must end in {' or '.join(suffixes)}")
         require_output(path, flag, store)
