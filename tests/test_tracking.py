@@ -204,3 +204,80 @@ def test_a_first_measurement_that_was_an_outlier_is_replaced_once_the_next_ones_
     # it do not, and the second of those restarts the track
     assert [s.restarted for s in steps] == [False, False, False, True, False, False]
     assert np.linalg.norm(steps[-1].position_m - truth[-1]) < 0.1
+
+
+def _turn(n=10, speed_m_s=6.0, yaw_rate_deg_s=40.0, dt_s=1.0):
+    """Positions of a car driving straight for 3 s, then turning at ``yaw_rate_deg_s`` (a 90-degree corner)."""
+    heading, p, out = 0.0, np.zeros(2), []
+    for k in range(n):
+        out.append(p.copy())
+        if k >= 2:
+            heading += np.radians(yaw_rate_deg_s) * dt_s
+        p = p + speed_m_s * dt_s * np.array([np.cos(heading), np.sin(heading)])
+    return out
+
+
+@pytest.mark.parametrize("kind", ["turn", "stop"])
+def test_a_turn_or_a_stop_is_followed_not_gated(kind):
+    """Precise measurements of a car that turns a corner or brakes to a stop: the constant-velocity
+    prediction is metres off, the measurements fit the maneuver prediction and are applied, so the
+    estimate stays with them; without the maneuver test the same gate drops them and the estimate
+    falls behind the car."""
+    if kind == "turn":
+        truth = _turn()
+    else:  # 10 m/s, brakes at 4 m/s^2 from the third second, then stands
+        speeds = [10.0, 10.0, 10.0, 6.0, 2.0, 0.0, 0.0, 0.0, 0.0]
+        truth = [np.array([x, 0.0]) for x in np.concatenate([[0.0], np.cumsum(speeds[:-1])])]
+    rng = np.random.default_rng(3)
+    R = 0.1**2 * np.eye(2)
+    measured = [t + rng.normal(scale=0.1, size=2) for t in truth]
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=13.82,
+                       reinit_after_gated=2)
+    assert not any(s.gated for s in steps) and any(s.maneuver for s in steps)
+    errors = [np.linalg.norm(s.position_m - t) for s, t in zip(steps, truth)]
+    measurement_errors = [np.linalg.norm(z - t) for z, t in zip(measured, truth)]
+    assert np.mean(errors) <= 1.5 * np.mean(measurement_errors) and max(errors) < 0.5
+    stiff = run_filter(measured, FilterParams(maneuver_accel_var_m2_s4=0.0), covariances_m2=[R] * len(truth),
+                       gate_chi2=13.82, reinit_after_gated=2)
+    assert any(s.gated for s in stiff) and max(np.linalg.norm(s.position_m - t) for s, t in zip(stiff, truth)) > 1.0
+
+
+def test_a_bad_measurement_that_got_in_does_not_lock_the_good_ones_out():
+    """A measurement 2.5 m off that claims centimetres gets in (nothing contradicts it yet); the good
+    ones after it differ from the prediction by its error and are not gated: the track is back on
+    the car within two steps, and the last estimate is no worse than the last measurement."""
+    truth = _drive(8)
+    measured = [z.copy() for z in truth]
+    measured[3] = measured[3] + np.array([0.0, 2.5])
+    R = 0.05**2 * np.eye(2)
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=13.82,
+                       reinit_after_gated=2)
+    assert not steps[3].gated  # it got in
+    assert steps[4].retracted_previous  # the next one contradicted it and took it out
+    assert not any(s.gated for s in steps[4:])
+    assert all(np.linalg.norm(s.position_m - t) < 0.3 for s, t in zip(steps[5:], truth[5:]))
+    assert np.linalg.norm(steps[-1].position_m - truth[-1]) <= np.linalg.norm(measured[-1] - truth[-1]) + 0.05
+    # the smoother counts the retracted step as its prediction: the whole smoothed track is on the car
+    from visloc.tracking import rts_smooth
+
+    smoothed = rts_smooth(steps, 1.0)
+    assert max(np.linalg.norm(s.position_m - t) for s, t in zip(smoothed, truth)) < 0.1
+
+
+def test_the_smoother_runs_on_each_segment_between_restarts_on_its_own():
+    from visloc.tracking import rts_smooth
+
+    truth = _drive(4) + _drive(4, start_m=40.0)
+    R = 0.01 * np.eye(2)
+    params = FilterParams()
+    steps = run_filter(truth, params, covariances_m2=[R] * len(truth), gate_chi2=13.82, reinit_after_gated=2)
+    restart = next(k for k, s in enumerate(steps) if s.restarted)
+    smoothed = rts_smooth(steps, params.dt_s)
+    # each segment smoothed alone gives the same numbers
+    before = rts_smooth(steps[:restart], params.dt_s)
+    after = rts_smooth(steps[restart:], params.dt_s)
+    for ours, alone in zip(smoothed, before + after):
+        np.testing.assert_allclose(ours.x, alone.x, atol=1e-12)
+        np.testing.assert_allclose(ours.P, alone.P, atol=1e-12)
+    # the last step of the first segment is its own filtered step, not pulled towards the new track
+    np.testing.assert_allclose(smoothed[restart - 1].x, steps[restart - 1].x)

@@ -137,6 +137,12 @@ class FilterParams(_Params):
     accel_var_m2_s4:     Q = accel_var_m2_s4 * G G^T with G = [dt^2/2, dt] per axis
                          (piecewise-constant white acceleration), m^2/s^4.
     init_var:            P0 = init_var * I4 (m^2 on position, m^2/s^2 on velocity).
+    maneuver_accel_var_m2_s4: with a Mahalanobis gate (the refined methods; the paper's filter has
+                         none), a measurement the gate would reject is tested once more against the
+                         prediction made with this process noise instead of Q: if the car turned or
+                         braked harder than Q allows, it fits that one and is applied with it, so the
+                         filter follows the car; 0 never does. m^2/s^4 (16: 4 m/s^2, a firm brake or
+                         a tight turn)
 
     See ``PAPER_FILTER`` for how Table 1's values map onto these.
 
@@ -151,9 +157,11 @@ class FilterParams(_Params):
     meas_var_m2: float = (1e-4 * METRES_PER_DEGREE) ** 2
     accel_var_m2_s4: float = 1.0
     init_var: float = 1000.0
+    maneuver_accel_var_m2_s4: float = 16.0
 
     def __post_init__(self) -> None:
         _check("dt_s", self.dt_s, MIN_DT_S <= self.dt_s <= MAX_DT_S, f"in [{MIN_DT_S:g}, {MAX_DT_S:g}] s")
+        _variance("maneuver_accel_var_m2_s4", self.maneuver_accel_var_m2_s4)
         _variance("meas_var_m2 (R)", self.meas_var_m2)
         _variance("accel_var_m2_s4 (Q)", self.accel_var_m2_s4)
         _variance("init_var (P0)", self.init_var)
@@ -208,6 +216,20 @@ class RefinedParams(_Params):
       triangulation_px:      largest reprojection error of a triangulated point, pixels
       min_parallax_deg:      smallest angle between the two rays of a triangulated point
       max_depth_m:           farthest triangulated point kept, metres
+      refine_poses:          before triangulating, refine the poses of the view and its neighbours by bundle
+                             adjustment (``visloc.bundle``), with priors that keep each pose near its geotag
+                             and attitude: a GNSS/INS attitude can be a degree off where the GPS is not fixed or
+                             the car turns, and a structure built on it is bent accordingly
+      relative_geotag_sigma_m: the position prior of a pose in that adjustment: how well neighbouring geotags
+                             agree with each other over a few metres, per axis (a GNSS/INS track is smooth to
+                             centimetres where its absolute error is decimetres: the structure lives in the
+                             track's frame, as the query's truth does); where the images move the poses much
+                             farther, the prior is loosened to what they moved, metres
+      attitude_prior_per_heading_spread: the attitude prior is this many times the database's heading
+                             spread (how far its headings stray from its course over ground,
+                             ``visloc.bundle.heading_spread_rad``): the spread sees the heading only, about
+                             the course, where roll, pitch and a turn's slip add to what a pose can be off
+      min_attitude_prior_deg: ... and never tighter than this, degrees
     Pose
       pnp_px:                PnP RANSAC inlier threshold, pixels
       pnp_iterations:        PnP RANSAC iterations
@@ -243,6 +265,10 @@ class RefinedParams(_Params):
     triangulation_px: float = 1.0
     min_parallax_deg: float = 0.5
     max_depth_m: float = 80.0
+    refine_poses: bool = True
+    relative_geotag_sigma_m: float = 0.05
+    attitude_prior_per_heading_spread: float = 2.0
+    min_attitude_prior_deg: float = 0.2
     pnp_px: float = 2.0
     pnp_iterations: int = 1000
     min_pnp_inliers: int = 15
@@ -275,6 +301,10 @@ class RefinedParams(_Params):
         _check("ratio", self.ratio, 0 < self.ratio <= 1, "in (0, 1]")
         for name in ("essential_px", "triangulation_px", "pnp_px", "max_depth_m", "max_offset_m",
                      "max_view_spread_m", "max_heading_diff_deg"):
+            _check(name, getattr(self, name), getattr(self, name) > 0, "> 0")
+        if not isinstance(self.refine_poses, bool):
+            raise ParameterError(f"refine_poses={self.refine_poses!r}: must be True or False")
+        for name in ("relative_geotag_sigma_m", "attitude_prior_per_heading_spread", "min_attitude_prior_deg"):
             _check(name, getattr(self, name), getattr(self, name) > 0, "> 0")
         for name in ("min_baseline_m", "min_parallax_deg", "gate_chi2"):
             _check(name, getattr(self, name), getattr(self, name) >= 0, ">= 0")

@@ -17,12 +17,20 @@ Beyond the paper (the refined mode): a step may bring its own measurement
 covariance ``R`` (``step(z, R)``; None = the filter's constant R), and with
 ``gate_chi2 > 0`` a measurement whose squared Mahalanobis distance to the prediction,
 y' S^-1 y, exceeds ``gate_chi2`` is not applied: the step only predicts and is marked
-``gated`` (its innovation is kept for diagnostics). With ``reinit_after_gated = n``, the
-n-th gated measurement in a row restarts the track at that measurement instead (its velocity
-from the previous gated one), marked ``restarted``: an outlier neither enters the track nor
-locks the measurements that follow out of it, and a first measurement that was an outlier is
-replaced as soon as the measurements after it agree with each other. ``rts_smooth`` is the
-Rauch-Tung-Striebel smoother over a finished run's steps.
+``gated`` (its innovation is kept for diagnostics). Before a measurement is gated it is tested
+once more against a *maneuver* prediction, made with the process noise of a firm brake or a
+tight turn (``FilterParams.maneuver_accel_var_m2_s4``) instead of Q: a measurement that fits
+that one is applied with it (marked ``maneuver``), since what was wrong was the constant-velocity
+prediction, not the measurement. Before that, it is tested against the track without the
+previous measurement (predicted from the state before it): a bad measurement that got into the
+state (one that claimed to be precise and was not) is taken out as soon as the next one
+contradicts it, marked ``retracted_previous``, and the good ones are never locked out. With
+``reinit_after_gated = n``, the n-th gated measurement in a row restarts the track at that
+measurement instead (its velocity from the previous gated one), marked ``restarted``: an
+outlier neither enters the track nor locks the measurements that follow out of it, and a first
+measurement that was an outlier is replaced as soon as the measurements after it agree with
+each other. ``rts_smooth`` is the Rauch-Tung-Striebel smoother over a finished run's steps,
+run on each segment between restarts on its own.
 """
 
 from __future__ import annotations
@@ -105,6 +113,9 @@ class FilterStep:
     gated: bool = False  # the measurement was rejected by the Mahalanobis gate (x, P are the prediction)
     R: np.ndarray | None = None  # the measurement covariance this step used, m^2 (None: no measurement)
     restarted: bool = False  # the track was lost and started again at this measurement
+    maneuver: bool = False  # the measurement fitted only the maneuver prediction, and was applied with it
+    retracted_previous: bool = False  # the previous step's measurement was taken out: this one fitted the track
+    #                                   without it (x_prior, P_prior predict from the step before it)
 
     @property
     def position_m(self) -> np.ndarray:
@@ -127,8 +138,11 @@ class ConstantVelocityKalman:
         self.gate_chi2 = float(gate_chi2)  # 0: no gating
         self.reinit_after_gated = int(reinit_after_gated)  # 0: never re-initialise
         self._gated: list[np.ndarray] = []  # consecutive gated measurements (east_m, north_m)
+        self._before: tuple[np.ndarray, np.ndarray] | None = None  # (x, P) before the last applied update
+        self._applied = 0  # measurements applied since the track (re)started
         self.F = transition_matrix(params.dt_s)
         self.Q = process_noise(params.dt_s, params.accel_var_m2_s4)
+        self.Q_maneuver = process_noise(params.dt_s, max(params.maneuver_accel_var_m2_s4, params.accel_var_m2_s4))
         self.R = params.meas_var_m2 * np.eye(MEAS_DIM)
         self.P0 = params.init_var * np.eye(STATE_DIM)
         self.x: np.ndarray | None = None
@@ -157,16 +171,63 @@ class ConstantVelocityKalman:
             return self._initialise(z, R)
         x_prior, P_prior = predict(self.x, self.P, self.F, self.Q)
         if z is None:
-            self.x, self.P = x_prior, P_prior
+            self.x, self.P, self._before = x_prior, P_prior, None
             return FilterStep(x_prior, P_prior, x_prior, P_prior, None)
         x, P, innovation = update(x_prior, P_prior, z, R)
         if self.gate_chi2 > 0 and innovation.mahalanobis**2 > self.gate_chi2:
-            self._gated.append(np.asarray(z, float).reshape(MEAS_DIM))
-            self.x, self.P = x_prior, P_prior
-            return FilterStep(x_prior, P_prior, x_prior.copy(), P_prior.copy(), innovation, gated=True, R=R)
+            fitted = self._other_hypothesis(z, R)
+            if fitted is None:  # nothing explains it: an outlier, predict only
+                self._gated.append(np.asarray(z, float).reshape(MEAS_DIM))
+                self.x, self.P, self._before = x_prior, P_prior, None
+                return FilterStep(x_prior, P_prior, x_prior.copy(), P_prior.copy(), innovation, gated=True, R=R)
+            kind, x_prior, P_prior = fitted
+            x, P, innovation = update(x_prior, P_prior, z, R)
+        else:
+            kind = None
         self._gated = []
+        self._applied += 1
+        # a measurement can be retracted once the track before it knew its velocity (two measurements)
+        self._before = (self.x, self.P) if kind != "retract" and self._applied >= 3 else None
+        self._last_z, self._last_R = np.asarray(z, float).reshape(MEAS_DIM), R
         self.x, self.P = x, P
-        return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation, R=R)
+        return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation, R=R,
+                          maneuver=kind == "maneuver", retracted_previous=kind == "retract")
+
+    def _other_hypothesis(self, z: np.ndarray, R: np.ndarray) -> tuple[str, np.ndarray, np.ndarray] | None:
+        """A prediction ``z`` fits when the constant-velocity one does not, as ("retract" or "maneuver",
+        x_prior, P_prior), else None: the previous measurement was the bad one (predict from the state
+        before it, twice, with Q; only when it contradicts that track and ``z``), or the car turned or
+        braked (predict with the maneuver process noise, ``maneuver_accel_var_m2_s4``, when that exceeds
+        Q). Where both fit, the one with the smaller Mahalanobis distance."""
+        candidates = []
+        if self._before is not None:
+            x1, P1 = predict(*self._before, self.F, self.Q)
+            x2, P2 = predict(x1, P1, self.F, self.Q)
+            if self._previous_contradicted(x1, P1, x2, P2, z, R):
+                candidates.append(("retract", x2, P2))
+        if self.params.maneuver_accel_var_m2_s4 > self.params.accel_var_m2_s4:
+            candidates.append(("maneuver", *predict(self.x, self.P, self.F, self.Q_maneuver)))
+        fits = [(update(x, P, z, R)[2].mahalanobis, kind, x, P) for kind, x, P in candidates]
+        fits = [f for f in fits if f[0] ** 2 <= self.gate_chi2]
+        if not fits:
+            return None
+        _, kind, x_prior, P_prior = min(fits, key=lambda f: f[0])  # the one it fits best
+        return kind, x_prior, P_prior
+
+    def _previous_contradicted(self, x1: np.ndarray, P1: np.ndarray, x2: np.ndarray, P2: np.ndarray, z: np.ndarray,
+                               R: np.ndarray) -> bool:
+        """Whether the previous measurement contradicts the track without it and ``z``: the state at its
+        step, smoothed from the state before it (``x1``, ``P1``: its prediction) and this one (``x2``,
+        ``P2``: the prediction two steps on, updated with ``z``), does not hold it within the gate. A
+        measurement that merely moved the track (as the first of a turn) is kept."""
+        x_now, P_now, _ = update(x2, P2, z, R)
+        # one Rauch-Tung-Striebel step back: C = P1 F' P2^-1
+        C = np.linalg.solve(P2, self.F @ P1).T
+        x_s = x1 + C @ (x_now - x2)
+        P_s = P1 + C @ (P_now - P2) @ C.T
+        y = self._last_z - H @ x_s
+        S = H @ P_s @ H.T + self._last_R
+        return float(y @ np.linalg.solve(S, y)) > self.gate_chi2
 
     def _track_lost(self, z: np.ndarray, R: np.ndarray) -> bool:
         """True when this measurement would be gated too and the last ``reinit_after_gated`` - 1 were:
@@ -175,7 +236,7 @@ class ConstantVelocityKalman:
             return False
         x_prior, P_prior = predict(self.x, self.P, self.F, self.Q)
         _, _, innovation = update(x_prior, P_prior, z, R)
-        return innovation.mahalanobis**2 > self.gate_chi2
+        return innovation.mahalanobis**2 > self.gate_chi2 and self._other_hypothesis(z, R) is None
 
     def _initialise(self, z: np.ndarray | None, R: np.ndarray) -> FilterStep:
         """Start (or restart) the track at ``z``; a restart takes its velocity from the last gated
@@ -193,6 +254,8 @@ class ConstantVelocityKalman:
         x, P, innovation = update(x_prior, P_prior, z, R)
         restarted = self.x is not None
         self._gated = []
+        self._before = None
+        self._applied = 1
         self.x, self.P = x, P
         return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation, R=R, restarted=restarted)
 
@@ -228,25 +291,33 @@ class SmoothedStep:
 def rts_smooth(steps: list[FilterStep], dt_s: float) -> list[SmoothedStep]:
     """Rauch-Tung-Striebel smoothing of a finished filter run (constant velocity, step ``dt_s``).
 
-    Uses each step's stored prediction (x_prior, P_prior = F P F' + Q), so it needs
-    only F. Steps before the first measurement (NaN state) stay NaN.
+    Uses each step's stored prediction (x_prior, P_prior = F P F' + Q, or the maneuver Q it was
+    applied with), so it needs only F. Steps before the first measurement (NaN state) stay NaN.
+    A restart cuts the run into segments, each smoothed on its own: the step before a restart
+    is not smoothed towards the new track (its prior was P0 at the restart, not a prediction).
+    A step whose measurement the next one retracted counts as its prediction alone.
     Backwards from the last step k = n-2 .. first:
         C_k = P_k F' (P_prior_{k+1})^-1
         x_s_k = x_k + C_k (x_s_{k+1} - x_prior_{k+1})
         P_s_k = P_k + C_k (P_s_{k+1} - P_prior_{k+1}) C_k'
     """
     F = transition_matrix(dt_s)
-    out = [SmoothedStep(s.x.copy(), s.P.copy()) for s in steps]
+    # a step whose measurement the next step retracted is, for the smoother, its own prediction
+    xs = [s.x_prior if k + 1 < len(steps) and steps[k + 1].retracted_previous else s.x for k, s in enumerate(steps)]
+    Ps = [s.P_prior if k + 1 < len(steps) and steps[k + 1].retracted_previous else s.P for k, s in enumerate(steps)]
+    out = [SmoothedStep(x.copy(), P.copy()) for x, P in zip(xs, Ps)]
     for k in range(len(steps) - 2, -1, -1):
-        if not np.all(np.isfinite(steps[k].x)):
+        if not np.all(np.isfinite(xs[k])):
             continue  # before the track started
         nxt = steps[k + 1]
+        if nxt.restarted:
+            continue  # the last step of a segment: nothing after it belongs to its track
         # C = P F' Pp^-1   (solve instead of inverting Pp; Pp is symmetric)
-        C = np.linalg.solve(nxt.P_prior, F @ steps[k].P).T
+        C = np.linalg.solve(nxt.P_prior, F @ Ps[k]).T
         # x_s = x + C (x_s' - x_prior')
-        x = steps[k].x + C @ (out[k + 1].x - nxt.x_prior)
+        x = xs[k] + C @ (out[k + 1].x - nxt.x_prior)
         # P_s = P + C (P_s' - P_prior') C'
-        P = steps[k].P + C @ (out[k + 1].P - nxt.P_prior) @ C.T
+        P = Ps[k] + C @ (out[k + 1].P - nxt.P_prior) @ C.T
         out[k] = SmoothedStep(x, 0.5 * (P + P.T))
     return out
 
