@@ -126,7 +126,8 @@ def _ensure_store(path: Path, sequences: dict, sift: SiftParams, workers: int, s
             say(f"building {path} ({seq.name}, SIFT {sift.as_dict()})")
             ws.ingest(seq, sift, workers=workers, progress=progress_reporter(f"ingest {seq.name}", "images"),
                       vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
-                      structure_progress=progress_reporter(f"structure {seq.name}", "images"))
+                      structure_progress=progress_reporter(f"structure {seq.name}", "images"),
+                      self_check_progress=progress_reporter(f"self-check {seq.name}", "images"))
         else:  # a store from before structure was kept: add what ingest now stores
             ws.build_global_vectors(seq.source, seq.camera,
                                     progress=progress_reporter(f"global vectors {seq.name}", "images"))

@@ -3,7 +3,7 @@
 This package is the only place in the project that speaks SQL. It knows nothing
 about SIFT or Kalman filters: it stores numpy arrays and plain metadata and hands
 them back. ``store`` holds ``FeatureStore``, ``schema`` the tables and migrations,
-``records`` the plain records and errors, ``structures`` the table of triangulated points, ``vectors`` global vectors and named arrays.
+``records`` the plain records and errors, ``structures`` the table of triangulated points, ``vectors`` global vectors and named arrays, ``selfchecks`` the database's self-checks.
 """
 
 from visloc.db.records import (
@@ -11,6 +11,7 @@ from visloc.db.records import (
     EmptyStoreError,
     ImageRecord,
     NotAStoreError,
+    SelfCheckRecord,
     SettingsMismatchError,
     SkippedFrame,
     StoredImage,
@@ -18,6 +19,7 @@ from visloc.db.records import (
     StructureRecord,
 )
 from visloc.db.schema import SCHEMA_VERSION
+from visloc.db.selfchecks import SelfCheckTable
 from visloc.db.store import FeatureStore
 from visloc.db.structures import StructureTable
 from visloc.db.vectors import VectorTable
@@ -29,6 +31,8 @@ __all__ = [
     "FeatureStore",
     "ImageRecord",
     "NotAStoreError",
+    "SelfCheckRecord",
+    "SelfCheckTable",
     "SettingsMismatchError",
     "SkippedFrame",
     "StoreError",

@@ -104,3 +104,27 @@ class SkippedFrame:
     frame: int
     path: str
     reason: str
+
+
+@dataclass(frozen=True)
+class SelfCheckRecord:
+    """One database image posed from its neighbours as a query would be (``visloc.selfcheck``).
+
+    params_json:    the settings it was made with (JSON); a self-check made with other settings is not used
+    error_*_m:      the pose minus the image's own geotag, metres east and north (None: no pose, see reason)
+    cov_*_m2:       the pose's covariance without the lever term (PnP and views), m^2
+    lever_m:        distance from the pose to its nearest view's geotag, metres
+    side:           "both" (views before and after it) or "one"
+    reason:         why there is no pose, None otherwise
+    """
+
+    image_id: int
+    params_json: str
+    error_east_m: float | None
+    error_north_m: float | None
+    cov_ee_m2: float | None
+    cov_en_m2: float | None
+    cov_nn_m2: float | None
+    lever_m: float | None
+    side: str | None
+    reason: str | None = None

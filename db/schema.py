@@ -5,6 +5,9 @@ columns (``ALTER TABLE ... ADD COLUMN``), every existing row and cached count ke
 adds each image's stated geotag accuracy (``position_accuracy_m``) the same way. Version 4 adds
 the tables of database structure (``structures``) and of global vectors (``global_vectors``,
 ``arrays``), which ``visloc ingest`` fills; every image and cached count is kept.
+
+Two tables are made when first needed, in any version: ``skipped_frames`` (frames ingest left
+out) and ``self_checks`` (how well the database poses its own images).
 """
 
 from __future__ import annotations
@@ -120,3 +123,11 @@ def ensure_skipped_frames(db: sqlite_utils.Database) -> None:
     if "skipped_frames" not in db.table_names():
         db["skipped_frames"].create({"source": str, "camera": str, "frame": int, "path": str, "reason": str,
                                      "skipped_at": str}, pk=("source", "camera", "frame"))
+
+
+def ensure_self_checks(db: sqlite_utils.Database) -> None:
+    """The table of self-checks (inside the caller's transaction); made when first needed."""
+    if "self_checks" not in db.table_names():
+        db["self_checks"].create({"image_id": int, "params_json": str, "error_east_m": float, "error_north_m": float,
+                                  "cov_ee_m2": float, "cov_en_m2": float, "cov_nn_m2": float, "lever_m": float,
+                                  "side": str, "reason": str, "checked_at": str}, pk=("image_id", "params_json"))

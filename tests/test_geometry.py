@@ -21,6 +21,7 @@ from visloc.pose import PoseMeasurer, StructureCache, pose_measurement
 from visloc.viewpose import DatabaseGeometry
 from visloc.retrieval import Retrieval
 from visloc.tracking import run_filter
+from visloc.uncertainty import DEFAULT_LEVER_GAIN, LeverGain
 
 K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
 WIDTH_PX, HEIGHT_PX = 1242, 375
@@ -151,9 +152,12 @@ def test_essential_inliers_reject_wrong_matches_and_need_five_points():
 
 # -- the whole measurement -------------------------------------------------------------
 
-def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3, seed=11, geotag_sigma_m=0.01):
+def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3, seed=11, geotag_sigma_m=0.01,
+                       lever_gain=None, yaw_error_rad=None):
     """Database images at the given eastings (all heading east), a query, and descriptors per 3D point;
-    the geotags state ``geotag_sigma_m`` as their accuracy."""
+    the geotags state ``geotag_sigma_m`` as their accuracy, the database's self-check measured
+    ``lever_gain`` (None: none, the default applies). ``yaw_error_rad`` (one per image): how far each
+    database camera's recorded yaw is off the true one (the images are taken at the true poses)."""
     rng = np.random.default_rng(seed)
     points = street(n_points=n_points, seed=seed)
     descriptors = rng.integers(0, 256, (n_points, 128)).astype(np.uint8)
@@ -166,8 +170,12 @@ def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3
         descs.append(descriptors[v])
     Tq, Tq_imu = camera_pose(query_east_m, north_m=0.3, yaw_rad=0.02)
     xq, vq = observe(points, Tq, noise_px, rng)
-    geometry = DatabaseGeometry(T_world_camera=np.array(poses), keypoints_xy_px=tuple(kps), descriptors_u8=tuple(descs),
-                                camera=CAMERA, geotag_sigma_m=np.full(len(poses), geotag_sigma_m))
+    recorded = poses if yaw_error_rad is None else [camera_pose(east, yaw_rad=err)[0]
+                                                    for east, err in zip(db_east_m, yaw_error_rad)]
+    geometry = DatabaseGeometry(T_world_camera=np.array(recorded), keypoints_xy_px=tuple(kps),
+                                descriptors_u8=tuple(descs), camera=CAMERA, geotag_sigma_m=np.full(len(poses), geotag_sigma_m),
+                                lever_gain=lever_gain,
+                                heading_spread_rad=None if yaw_error_rad is None else float(np.std(yaw_error_rad)))
     imu_positions = np.array([(T @ T_CAMERA_IMU)[:2, 3] for T in poses])
     return geometry, imu_positions, xq[vq], descriptors[vq], Tq_imu[:2, 3]
 
@@ -180,7 +188,7 @@ def retrieval_over(n):
 
 
 def test_measurement_gives_back_the_known_query_position_within_centimetres():
-    geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0])
+    geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], lever_gain=LeverGain(0.0, 0.0))
     params = RefinedParams(neighbour_baselines_m=(2.0, 5.0), max_neighbour_gap=2, n_views=2)
     cache = StructureCache()
     m = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, params, cache)
@@ -213,21 +221,67 @@ def test_views_are_taken_on_both_sides_of_the_query_when_the_database_has_both()
     assert (geotags[list(one_side.view_indices), 0] < truth[0]).all()
 
 
-def test_the_covariance_carries_the_geotags_stated_accuracy_and_grows_with_distance_from_the_views():
+def test_the_covariance_is_relative_to_the_map_and_grows_with_the_lever_to_the_nearest_view():
     params = RefinedParams(neighbour_baselines_m=(2.0, 5.0), max_neighbour_gap=2, n_views=2)
-    near = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], query_east_m=2.0, geotag_sigma_m=0.3)
-    far = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], query_east_m=-6.0, geotag_sigma_m=0.3)
+    gain = LeverGain(both_sides=0.01, one_side=0.03)
+    near = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], query_east_m=2.0, geotag_sigma_m=0.3, lever_gain=gain)
+    far = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], query_east_m=-6.0, geotag_sigma_m=0.3, lever_gain=gain)
     m_near = pose_measurement(near[2], near[3], retrieval_over(5), near[1], near[0], CAMERA, params)
     m_far = pose_measurement(far[2], far[3], retrieval_over(5), far[1], far[0], CAMERA, params)
     assert m_near.source == m_far.source == GEOMETRY
-    # the views' geotags are good to 0.3 m per axis, so no pose tied to them can claim better
-    assert np.all(np.linalg.eigvalsh(m_near.cov_m2) >= 0.3**2 - 1e-9)
-    # the structure's scale comes from baselines of a few metres: the farther the query, the less certain
-    assert m_far.sigma_m > m_near.sigma_m
-    # a geotag without a stated accuracy takes geotag_sigma_m
-    unstated = replace(near[0], geotag_sigma_m=None)
+    for m, truth in ((m_near, near[4]), (m_far, far[4])):
+        # the parts, each named, add up to the covariance the filter takes
+        np.testing.assert_allclose(m.cov_m2, sum(m.cov_terms_m2.values()))
+        assert set(m.cov_terms_m2) == {"pnp", "views", "lever"}
+        # every view lies ahead of these queries: one side, the lever to the nearest view's geotag
+        assert m.side == "one"
+        assert m.lever_m == pytest.approx(np.linalg.norm(near[1][list(m.view_indices)] - m.east_north_m, axis=1).min())
+        np.testing.assert_allclose(m.cov_terms_m2["lever"], (0.03 * m.lever_m) ** 2 * np.eye(2))
+        # the geotags' stated accuracy is the map's own error: stated apart, not in the relative covariance
+        assert m.absolute_sigma_m == pytest.approx(0.3)
+        assert m.sigma_m < 0.3
+    # the farther from its nearest view, the larger the lever and the covariance
+    assert m_far.lever_m > m_near.lever_m + 5.0 and m_far.sigma_m > m_near.sigma_m
+    # a database without a self-check takes the default gain; a geotag without a stated accuracy states
+    # geotag_sigma_m as its absolute error
+    unstated = replace(near[0], geotag_sigma_m=None, lever_gain=None)
     m = pose_measurement(near[2], near[3], retrieval_over(5), near[1], unstated, CAMERA, params.replace(geotag_sigma_m=2.0))
-    assert np.all(np.linalg.eigvalsh(m.cov_m2) >= 4.0 - 1e-9)
+    np.testing.assert_allclose(m.cov_terms_m2["lever"], (DEFAULT_LEVER_GAIN.one_side * m.lever_m) ** 2 * np.eye(2))
+    assert m.absolute_sigma_m == pytest.approx(2.0)
+
+
+def test_views_on_both_sides_use_the_both_sides_gain():
+    geometry, geotags, xq, dq, truth = synthetic_database([-12.0, -9.0, -6.0, 6.0, 9.0, 12.0], query_east_m=0.0,
+                                                          lever_gain=LeverGain(both_sides=0.01, one_side=0.05))
+    counts = np.array([60, 70, 80, 50, 45, 40])
+    retrieval = Retrieval(candidates=np.arange(6), counts=counts, best_index=2)
+    m = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA,
+                         RefinedParams(neighbour_baselines_m=(3.0,), max_neighbour_gap=2, n_views=2))
+    assert m.side == "both"
+    np.testing.assert_allclose(m.cov_terms_m2["lever"], (0.01 * m.lever_m) ** 2 * np.eye(2))
+    assert m.lever_m == pytest.approx(np.linalg.norm(geotags[list(m.view_indices)] - m.east_north_m, axis=1).min())
+
+
+def test_refined_database_poses_straighten_a_structure_built_on_wrong_headings():
+    """Recorded yaws off by up to 0.8 degrees (as an INS in a turn): posing from the structure as
+    recorded misplaces the query; the bundle adjustment finds the true headings from the images."""
+    errors = np.radians([0.8, -0.5, 0.6, -0.7, 0.4, -0.6])
+    args = dict(query_east_m=-4.0, noise_px=0.3, lever_gain=LeverGain(0.0, 0.0), yaw_error_rad=errors)
+    geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0, 18.0], **args)
+    params = RefinedParams(neighbour_baselines_m=(3.0, 6.0), max_neighbour_gap=3, n_views=2)
+    refined = pose_measurement(xq, dq, retrieval_over(6), geotags, geometry, CAMERA, params)
+    as_recorded = pose_measurement(xq, dq, retrieval_over(6), geotags, geometry, CAMERA,
+                                   params.replace(refine_poses=False))
+    assert refined.source == GEOMETRY, refined.fallback_reason
+    error_refined = np.linalg.norm(refined.east_north_m - truth)
+    error_recorded = np.inf if as_recorded.source != GEOMETRY else np.linalg.norm(as_recorded.east_north_m - truth)
+    # what is left is the compromise with the priors: a 5 cm position prior over 3 m baselines lets the
+    # track turn by about a degree, as far as the attitude prior lets the headings stay
+    assert error_refined < 0.2 and error_recorded > 3 * error_refined, (error_refined, error_recorded)
+    # a structure on poses that were right all along stays where it is
+    right = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0, 18.0], query_east_m=-4.0, lever_gain=LeverGain(0.0, 0.0))
+    m = pose_measurement(right[2], right[3], retrieval_over(6), right[1], right[0], CAMERA, params)
+    assert np.linalg.norm(m.east_north_m - right[4]) < 0.03
 
 
 def test_a_stopped_car_has_no_baseline_and_falls_back_to_the_geotag():

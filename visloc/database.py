@@ -8,8 +8,10 @@ import numpy as np
 
 from visloc.db import CameraRecord, StoredImage
 from visloc.features import Query
+from visloc.bundle import heading_spread_rad
 from visloc.geo import LocalFrame
 from visloc.geometry import CameraModel, imu_poses, invert
+from visloc.uncertainty import LeverGain
 from visloc.viewpose import DatabaseGeometry
 
 
@@ -38,6 +40,7 @@ class GeoDatabase:
     up_m: np.ndarray | None = None  # (N,)
     rpy_rad: np.ndarray | None = None  # (N, 3)
     geotag_sigma_m: np.ndarray | None = None  # (N,) stated geotag accuracy, sigma per axis, m; NaN if unknown
+    lever_gain: LeverGain | None = None  # measured by the store's self-check (visloc.uncertainty); None: default
 
     def __len__(self) -> int:
         return len(self.images)
@@ -66,7 +69,10 @@ class GeoDatabase:
                                 keypoints_xy_px=tuple(np.ascontiguousarray(k[:, :2], dtype=np.float64)
                                                       for k in self.keypoints_f32),
                                 descriptors_u8=self.descriptors_u8, camera=camera, unavailable_reason=reason,
-                                geotag_sigma_m=self.geotag_sigma_m)
+                                geotag_sigma_m=self.geotag_sigma_m,
+                                heading_spread_rad=(heading_spread_rad(self.east_north_m, self.rpy_rad[:, 2])
+                                                    if self.rpy_rad is not None else None),
+                                lever_gain=self.lever_gain)
 
 
 def camera_model(record: CameraRecord | None, what: str) -> tuple[CameraModel | None, str | None]:
@@ -124,3 +130,31 @@ class QuerySet:
     def camera_model(self) -> CameraModel | None:
         """The query camera's calibration, None when the store has none."""
         return camera_model(self.calibration, f"queries {self.name}")[0]
+
+
+SAME_DRIVE_WITHIN_S = 0.5  # a database image this close in time to a query ...
+SAME_DRIVE_WITHIN_M = 25.0  # ... and this close in place (0.5 s at 180 km/h) was taken on the query's drive
+
+
+def same_drive(db: GeoDatabase, timestamps_s: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray) -> bool:
+    """True when the database holds an image of the queries' own drive: one taken within
+    ``SAME_DRIVE_WITHIN_S`` of a query and within ``SAME_DRIVE_WITHIN_M`` of where it was taken (its
+    stereo partner, the query's own image, or a copy of either under another name, as a CSV made
+    from a KITTI drive). Such a database geotags its images with the queries' own receiver: a query
+    must not be posed from its own image or its twin (the exclusion window), and its ground truth
+    shares the map's absolute error (``visloc.uncertainty``)."""
+    t_db = np.asarray(db.timestamps_s, float)
+    t_q = np.asarray(timestamps_s, float)
+    if t_db.size == 0 or t_q.size == 0:
+        return False
+    order = np.argsort(t_db)
+    sorted_t = t_db[order]
+    pos = np.clip(np.searchsorted(sorted_t, t_q), 1, max(len(sorted_t) - 1, 1))
+    before, after = order[pos - 1], order[np.minimum(pos, len(order) - 1)]
+    nearest = np.where(np.abs(t_db[before] - t_q) <= np.abs(t_db[after] - t_q), before, after)
+    close_in_time = np.abs(t_db[nearest] - t_q) <= SAME_DRIVE_WITHIN_S
+    if not close_in_time.any():
+        return False
+    query_m = db.frame.to_local(np.asarray(lat_deg, float)[close_in_time], np.asarray(lon_deg, float)[close_in_time])
+    apart_m = np.linalg.norm(np.asarray(query_m).reshape(-1, 2) - db.east_north_m[nearest[close_in_time]], axis=1)
+    return bool(np.any(apart_m <= SAME_DRIVE_WITHIN_M))

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.database import GeoDatabase, QuerySet
+from visloc.database import GeoDatabase, QuerySet, same_drive
 from visloc.errors import ParameterError
 from visloc.localizer import StepResult, StepTimings
 from visloc.matching import PairCountCache, cancellable
@@ -138,13 +138,14 @@ def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filte
                                    reinit_after_gated=matches.method.reinit_after_gated if gate_chi2 > 0 else 0)
     records = []
     no_time = StepTimings(0.0, 0.0, 0.0)
+    shares = same_drive(db, queries.timestamps_s, queries.lat_deg, queries.lon_deg)
     for k, (q, retrieval, m, f) in enumerate(zip(matches.query_indices, matches.retrievals, matches.measurements,
                                                  filtered)):
         result = StepResult(queries.query(int(q)), retrieval, m, f, no_time)
         records.append(step_record(k, result, db, query_frame=int(queries.frames[q]),
                                    truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
                                    latency_ms=float(matches.latency_ms[k]), keep_counts=True,
-                                   truth_sigma_m=queries.truth_sigma(int(q))))
+                                   truth_sigma_m=queries.truth_sigma(int(q)), truth_shares_map=shares))
     return records
 
 

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.database import GeoDatabase, QuerySet
+from visloc.database import GeoDatabase, QuerySet, same_drive
 from visloc.errors import ParameterError
 from visloc.geo import LocalFrame
 from visloc.matching import PairCountCache
@@ -28,6 +28,7 @@ from visloc.pose import StructureCache
 from visloc.records import StepRecord, step_record
 from visloc.runs import run_queries
 from visloc.tracking import rts_smooth
+from visloc.uncertainty import SIDES, calibration
 from visloc.vlad import GlobalIndex
 
 
@@ -67,6 +68,16 @@ def series_schedule(timestamps_s: np.ndarray, dt_s: float, n_steps: int, samplin
         idx = np.abs(t[None, :] - targets[:, None]).argmin(axis=1)
         if np.all(np.abs(t[idx] - targets) <= tolerance_s) and np.all(np.diff(idx) > 0):
             out.append([int(i) for i in idx])
+    return out
+
+
+def measurement_calibration(records: Sequence[StepRecord]) -> dict:
+    """Calibration figures of the geometry measurements' covariances: over all of them ("all") and per
+    side of their views ("both", "one"); see ``visloc.uncertainty.calibration``."""
+    geometry = [r for r in records if r.measurement_source == GEOMETRY and r.measurement_nees is not None]
+    out = {"all": calibration([r.measurement_nees for r in geometry]).as_dict()}
+    for side in SIDES:
+        out[side] = calibration([r.measurement_nees for r in geometry if r.measurement_side == side]).as_dict()
     return out
 
 
@@ -168,6 +179,11 @@ class Evaluation:
                 "fraction_within_95": float(np.mean(geometry_nees <= 5.991)) if geometry_nees.size else None,
                 "n": int(geometry_nees.size),
             } if refined else None,
+            # how honest the covariances are (visloc.uncertainty.calibration): the geometry measurements', over
+            # every one and split by the side their views lie on, and the estimates' (the filter's P)
+            "calibration": measurement_calibration(records) if refined else None,
+            "estimate_calibration": calibration([r.estimate_nees for r in records]).as_dict() if refined else None,
+            "truth_shares_map": bool(records[0].truth_shares_map) if records else None,
             "smoothed_error_m": self._per_step("smoothed_error_m") if self.smoothed else None,
             "structure_build_ms": self.structure_build_ms if refined else None,
             "params": self.params,
@@ -216,6 +232,7 @@ def evaluate(
                                 counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True,
                                 stored=stored)
     latency_cache = None if method.camera_rate else cache  # the camera-rate path counts without the cache
+    shares = same_drive(db, queries.timestamps_s, queries.lat_deg, queries.lon_deg)
     series = []
     for done, indices in enumerate(schedule, 1):
         localizer.reset()
@@ -224,7 +241,8 @@ def evaluate(
                     else [None] * len(steps))
         series.append([step_record(k, s.result, db, query_frame=int(queries.frames[q]),
                                    truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
-                                   latency_ms=s.latency_ms, smoothed=sm, truth_sigma_m=queries.truth_sigma(q))
+                                   latency_ms=s.latency_ms, smoothed=sm, truth_sigma_m=queries.truth_sigma(q),
+                                   truth_shares_map=shares)
                        for k, (q, s, sm) in enumerate(zip(indices, steps, smoothed))])
         if progress:
             progress(done, len(schedule))

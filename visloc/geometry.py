@@ -140,7 +140,7 @@ def essential_inliers(xy1_px: np.ndarray, xy2_px: np.ndarray, K1: np.ndarray, K2
     p1, p2 = _normalised(xy1_px, K1), _normalised(xy2_px, K2)
     focal = 0.25 * (K1[0, 0] + K1[1, 1] + K2[0, 0] + K2[1, 1])
     cv2.setRNGSeed(int(seed))
-    E, mask = cv2.findEssentialMat(p1, p2, np.eye(3), method=cv2.RANSAC, prob=confidence,
+    E, mask = cv2.findEssentialMat(p1, p2, np.eye(3), method=cv2.USAC_DEFAULT, prob=confidence,
                                    threshold=threshold_px / focal)
     if E is None or mask is None:
         return np.zeros(n, bool)

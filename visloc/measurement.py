@@ -39,6 +39,11 @@ class Measurement:
     n_verified_inliers:  essential-matrix inliers of the best verified candidate.
     n_correspondences_3d, n_pnp_inliers, reprojection_rms_px: the pose's support.
     up_m, heading_deg:   the pose's altitude in the local frame and compass heading (geometry only).
+    absolute_sigma_m:    geometry: the stated accuracy of the geotags it rests on (per axis, m), the map's own
+                         error, which ``cov_m2`` (relative to the map) leaves out; see ``visloc.uncertainty``.
+    side, lever_m:       geometry: "both" when its views lie on both sides of it, else "one"; the distance
+                         to the nearest view's geotag, m.
+    cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever").
     compute_ms:          wall time this measurement took when it was made (query side: matching,
                          RANSAC, PnP, and any database structure built on the way).
     structure_ms:        of which building database structure that was not cached yet.
@@ -57,6 +62,10 @@ class Measurement:
     reprojection_rms_px: float | None = None
     up_m: float | None = None
     heading_deg: float | None = None
+    absolute_sigma_m: float | None = None
+    side: str | None = None
+    lever_m: float | None = None
+    cov_terms_m2: dict = field(default_factory=dict, repr=False)
     compute_ms: float = 0.0
     structure_ms: float = 0.0
     candidate_inliers: dict[int, int] = field(default_factory=dict, repr=False)

@@ -57,7 +57,7 @@ def _refine_points(K: np.ndarray, T_camera_world: np.ndarray, X: np.ndarray, xy:
     c = np.array([K[0, 2], K[1, 2]])
     w = used.astype(float)
     for _ in range(iterations):
-        Xc = np.einsum("cij,mj->mci", R, X) + t[None]  # (M, C, 3)
+        Xc = np.tensordot(X, R, axes=([1], [2])) + t[None]  # (M, C, 3): R_c X_m + t_c
         z = Xc[..., 2:3]
         with np.errstate(divide="ignore", invalid="ignore"):
             r = f * Xc[..., :2] / z + c - xy  # (M, C, 2)
@@ -66,11 +66,12 @@ def _refine_points(K: np.ndarray, T_camera_world: np.ndarray, X: np.ndarray, xy:
             J[..., 1, 1] = f[1] / z[..., 0]
             J[..., 0, 2] = -f[0] * Xc[..., 0] / z[..., 0] ** 2
             J[..., 1, 2] = -f[1] * Xc[..., 1] / z[..., 0] ** 2
-        J = np.einsum("mcab,cbd->mcad", J, R)
+        J = J @ R[None]  # d pixel / d X (M, C, 2, 3)
         J = np.nan_to_num(J) * w[..., None, None]
         r = np.nan_to_num(r) * w[..., None]
-        H = np.einsum("mcai,mcaj->mij", J, J)
-        g = np.einsum("mcai,mca->mi", J, r)
+        Jm = J.reshape(len(X), -1, 3)  # (M, 2C, 3)
+        H = np.swapaxes(Jm, 1, 2) @ Jm
+        g = (np.swapaxes(Jm, 1, 2) @ r.reshape(len(X), -1, 1))[..., 0]
         ok = np.linalg.det(H) > 1e-12
         step = np.zeros_like(X)
         step[ok] = np.linalg.solve(H[ok], g[ok][..., None])[..., 0]

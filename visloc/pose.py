@@ -44,6 +44,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from visloc.bundle import PosePriors, refine_database_poses
 from visloc.features import Query
 from visloc.geometry import CameraModel, essential_inliers
 from visloc.multiview import triangulate_tracks
@@ -96,10 +97,44 @@ def build_view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequ
         for c, pixel in tracks[d_row].items():
             xy[m, c] = pixel
     T = geometry.T_world_camera[[view, *neighbours]]
+    if params.refine_poses:
+        T = refined_poses(geometry, T, xy, params)
     tri = triangulate_tracks(geometry.camera.K, T, xy, max_reprojection_px=params.triangulation_px,
                              min_parallax_deg=params.min_parallax_deg, max_depth_m=params.max_depth_m)
     return {int(k): (X, S) for k, X, S in zip(rows[tri.keep].tolist(), tri.points_world[tri.keep],
                                                tri.cov_world[tri.keep])}
+
+
+def pose_priors(geometry: DatabaseGeometry, params: RefinedParams, n_images: int,
+                sigma_pos_m: float | None = None) -> PosePriors:
+    """The priors of ``n_images`` poses in a bundle adjustment: ``relative_geotag_sigma_m`` (or
+    ``sigma_pos_m``) on the horizontal position, twice that (at least 0.2 m) on the height, which
+    GNSS gets worse, and ``attitude_prior_per_heading_spread`` times the database's heading spread, at
+    least ``min_attitude_prior_deg``, on the attitude."""
+    sigma = params.relative_geotag_sigma_m if sigma_pos_m is None else sigma_pos_m
+    spread = geometry.heading_spread_rad
+    attitude = max(np.radians(params.min_attitude_prior_deg),
+                   params.attitude_prior_per_heading_spread * spread if spread is not None else 0.0)
+    return PosePriors(sigma_pos_m=np.full(n_images, sigma), sigma_up_m=max(0.2, 2.0 * sigma), sigma_rot_rad=attitude)
+
+
+def refined_poses(geometry: DatabaseGeometry, T: np.ndarray, xy: np.ndarray, params: RefinedParams) -> np.ndarray:
+    """``T`` (C, 4, 4), the poses of a view and its neighbours, refined by bundle adjustment on their
+    observations ``xy`` (M, C, 2). Where the images move the positions much farther than the prior
+    allows (a jittery track), the adjustment is run again with the prior loosened to the RMS of those
+    moves: the images, not the prior, then decide the track's shape. ``T`` itself when too few points
+    start an adjustment."""
+    used = np.all(np.isfinite(xy), axis=2)
+    priors = pose_priors(geometry, params, len(T))
+    refined = refine_database_poses(geometry.camera.K, T, xy, used, priors)
+    if refined is None:
+        return T
+    moved_rms_m = float(np.sqrt(np.mean(refined.moved_m**2) / 3.0))
+    if moved_rms_m > 3.0 * params.relative_geotag_sigma_m:
+        again = refine_database_poses(geometry.camera.K, T, xy, used, pose_priors(geometry, params, len(T),
+                                                                                  moved_rms_m))
+        refined = again if again is not None else refined
+    return refined.T_world_camera
 
 
 def view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], params: RefinedParams,
@@ -226,6 +261,7 @@ def pose_measurement(
     return Measurement(
         posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
         reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
+        absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m, cov_terms_m2=posed.cov_terms_m2,
         compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=spent["structure_ms"], **base,
     )
 

@@ -54,10 +54,16 @@ class StepRecord:
     fallback_reason: str | None = None  # refined method: why this step's measurement is a geotag
     measurement_cov_m2: list[list[float]] | None = None  # the R the filter used, m^2 (east, north)
     measurement_sigma_m: float | None = None  # sqrt of its largest eigenvalue
-    # e' (R + s^2 I)^-1 e of the measurement error e against a truth stated good to s per axis (about 2 on
-    # average if R is honest)
+    # e' C^-1 e of the measurement error e (about 2 on average if C is honest): C = R where the truth comes from
+    # the map's own receiver (truth_shares_map), else R + the map's absolute error + the truth's, a^2 I + s^2 I
     measurement_nees: float | None = None
     truth_sigma_m: float | None = None  # s: the ground-truth geotag's stated accuracy, m per axis (None: unknown)
+    truth_shares_map: bool = False  # the truth and the database's geotags come from one drive's receiver
+    absolute_sigma_m: float | None = None  # a: refined: the map's own error (its geotags' stated accuracy), m per axis
+    measurement_side: str | None = None  # refined: "both" (views before and after the pose) or "one"
+    measurement_lever_m: float | None = None  # refined: distance to the nearest view's geotag, m
+    measurement_term_sigma_m: dict = field(default_factory=dict)  # refined: sigma of each part of R, m
+    estimate_nees: float | None = None  # the estimate's error against its covariance P, as measurement_nees
     mahalanobis: float | None = None  # innovation's Mahalanobis distance to the prediction
     gated: bool = False  # rejected by the filter's gate: this step only predicted
     view_db_frames: list[int] = field(default_factory=list)  # refined: database frames the pose was solved against
@@ -75,12 +81,15 @@ def _position(xy) -> Position:
 
 def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: int, truth_lat_deg: float,
                 truth_lon_deg: float, latency_ms: float, keep_counts: bool = False,
-                smoothed: SmoothedStep | None = None, truth_sigma_m: float | None = None) -> StepRecord:
+                smoothed: SmoothedStep | None = None, truth_sigma_m: float | None = None,
+                truth_shares_map: bool = False) -> StepRecord:
     """Everything about one localized query, in metres, against its ground-truth geotag.
 
     ``truth_sigma_m``: the ground truth's stated accuracy (standard deviation per axis, m; None or NaN:
-    taken as exact). The measurement's NEES compares its error with R + s^2 I, since the error is
-    measured against a truth that is itself uncertain."""
+    taken as exact). ``truth_shares_map``: the truth comes from the receiver that geotagged the
+    database, on the same drive (``visloc.database.same_drive``), so it shares the map's absolute
+    error: the NEES compares the error with the relative covariance R alone. Otherwise with
+    R + a^2 I + s^2 I, the map's absolute error a and the truth's s added (``visloc.uncertainty``)."""
     truth = (float(truth_lat_deg), float(truth_lon_deg))
     truth_m = db.frame.to_local(*truth)
     best = result.best_index
@@ -98,12 +107,15 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         m_hav = float(haversine_distance_m(*m_lat_lon, *truth))
     R = result.filter.R
     s_truth = float(truth_sigma_m) if truth_sigma_m is not None and np.isfinite(truth_sigma_m) else 0.0
-    nees = m_sigma = None
+    a_map = float(m.absolute_sigma_m) if m.absolute_sigma_m is not None else 0.0
+    # what the error is measured against adds to the covariance, unless it shares the map's receiver
+    extra_m2 = 0.0 if truth_shares_map else a_map**2 + s_truth**2
+    nees = m_sigma = e_nees = None
     if R is not None and m.east_north_m is not None:
         m_sigma = float(np.sqrt(np.linalg.eigvalsh(R).max()))
         e = np.asarray(m.east_north_m, float) - truth_m
-        # NEES = e' (R + s^2 I)^-1 e
-        nees = float(e @ np.linalg.solve(np.asarray(R, float) + s_truth**2 * np.eye(2), e))
+        # NEES = e' (R + extra I)^-1 e
+        nees = float(e @ np.linalg.solve(np.asarray(R, float) + extra_m2 * np.eye(2), e))
     s_m = s_err = None
     if smoothed is not None and np.all(np.isfinite(smoothed.x)):
         s_m = _position(smoothed.x[:2])
@@ -120,6 +132,8 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         e_hav = float(haversine_distance_m(float(lat), float(lon), *truth))
         sigma = float(np.sqrt(np.linalg.eigvalsh(result.filter.position_cov_m2).max()))
         cov = result.filter.position_cov_m2.tolist()
+        e = np.asarray(result.filter.x[:2], float) - truth_m
+        e_nees = float(e @ np.linalg.solve(result.filter.position_cov_m2 + extra_m2 * np.eye(2), e))
     return StepRecord(
         step=step, query_frame=int(query_frame), query_timestamp_s=float(result.query.timestamp_s),
         truth_geotag_deg=truth, truth_m=_position(truth_m), n_candidates=int(candidates.size),
@@ -134,7 +148,11 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         candidate_frames=[int(db.images[i].frame) for i in candidates] if keep_counts else [],
         measurement_source=m.source, fallback_reason=m.fallback_reason,
         measurement_cov_m2=None if R is None else np.asarray(R, float).tolist(), measurement_sigma_m=m_sigma,
-        measurement_nees=nees, truth_sigma_m=s_truth if s_truth > 0 else None,
+        measurement_nees=nees, truth_sigma_m=s_truth if s_truth > 0 else None, truth_shares_map=bool(truth_shares_map),
+        absolute_sigma_m=m.absolute_sigma_m, measurement_side=m.side, measurement_lever_m=m.lever_m,
+        measurement_term_sigma_m={k: float(np.sqrt(max(np.linalg.eigvalsh(v).max(), 0.0)))
+                                  for k, v in (m.cov_terms_m2 or {}).items()},
+        estimate_nees=e_nees,
         mahalanobis=None if result.filter.innovation is None else float(result.filter.innovation.mahalanobis),
         gated=bool(result.filter.gated),
         view_db_frames=[int(db.images[i].frame) for i in m.view_indices],

@@ -97,6 +97,14 @@ class Sequence:
         return np.array([f.timestamp_s for f in self.frames])
 
     @property
+    def lat_deg(self) -> np.ndarray:
+        return np.array([f.lat_deg for f in self.frames])
+
+    @property
+    def lon_deg(self) -> np.ndarray:
+        return np.array([f.lon_deg for f in self.frames])
+
+    @property
     def name(self) -> str:
         return f"{self.source}/{self.camera}"
 

@@ -19,10 +19,11 @@ from pathlib import Path
 
 import numpy as np
 
-from visloc.evaluation import Evaluation
+from visloc.evaluation import Evaluation, measurement_calibration
 from visloc.measurement import GEOMETRY
 from visloc.records import StepRecord
 from visloc.sources import kitti_drives
+from visloc.uncertainty import calibration
 
 CHI2_2DOF_95 = 5.991
 GROSS_ERROR_M = 2.0
@@ -82,6 +83,9 @@ def _row(records: list[StepRecord], finals: list[float], final_measurements: lis
                               if measured and mode != "paper" else None),
         "gated_fraction": sum(r.gated for r in records) / len(records) if records else None,
         "gross_geometry_errors": sum(1 for r in geometry if r.measurement_error_m > GROSS_ERROR_M),
+        "calibration": measurement_calibration(records) if mode != "paper" else None,
+        "estimate_calibration": (calibration([r.estimate_nees for r in records]).as_dict() if mode != "paper"
+                                 else None),
     }
 
 

@@ -16,6 +16,7 @@ from visloc.errors import InputError
 from visloc.geometry import (CameraModel, PnPResult, heading_deg_of, imu_east_north_covariance, imu_pose_from_camera,
                              refine_pose, solve_pnp)
 from visloc.params import RefinedParams
+from visloc.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, lever_covariance_m2
 
 
 @dataclass(frozen=True)
@@ -26,7 +27,10 @@ class DatabaseGeometry:
     NaN where the image's attitude is unknown; camera: intrinsics and extrinsics of
     the database camera, or None with ``unavailable_reason`` saying why; geotag_sigma_m:
     the stated accuracy of each geotag (standard deviation per axis, metres; NaN or None
-    where the source states none).
+    where the source states none); heading_spread_rad: how far the database's headings stray from
+    its course over ground (``visloc.bundle.heading_spread_rad``; None where it cannot be told);
+    lever_gain: what the database's poses get wrong per metre of lever (``visloc.uncertainty``),
+    as its self-check measured it (None: ``DEFAULT_LEVER_GAIN``).
     """
 
     T_world_camera: np.ndarray
@@ -35,6 +39,8 @@ class DatabaseGeometry:
     camera: CameraModel | None
     unavailable_reason: str | None = None
     geotag_sigma_m: np.ndarray | None = None  # (N,) stated accuracy of each geotag, per axis, NaN if unknown
+    heading_spread_rad: float | None = None
+    lever_gain: LeverGain | None = None  # measured by the store's self-check; None: DEFAULT_LEVER_GAIN
 
 
 def require_calibrated(geometry: DatabaseGeometry, query_camera: CameraModel | None, query_what: str) -> None:
@@ -111,7 +117,10 @@ def _spread_m(positions: list[np.ndarray]) -> float:
 class PosedViews:
     """What ``pose_from_views`` found: a pose (``reason`` None) or why there is none.
 
-    support: view_indices, neighbour_indices, n_correspondences_3d and n_pnp_inliers (Measurement fields)."""
+    support: view_indices, neighbour_indices, n_correspondences_3d and n_pnp_inliers (Measurement fields).
+    cov_m2 is the relative covariance (``visloc.uncertainty``): the sum of ``cov_terms_m2`` ("pnp",
+    "views", "lever"); side: "both" or "one" (the views' sides of the pose); lever_m: the distance
+    from the pose to its nearest view's geotag; absolute_sigma_m: the views' geotags' stated accuracy."""
 
     reason: str | None
     support: dict
@@ -122,6 +131,10 @@ class PosedViews:
     reprojection_rms_px: float | None = None
     up_m: float | None = None
     heading_deg: float | None = None
+    cov_terms_m2: dict | None = None
+    side: str | None = None
+    lever_m: float | None = None
+    absolute_sigma_m: float | None = None
 
 
 def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np.ndarray],
@@ -203,34 +216,19 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
         return failed(f"PnP pose faces {turn_deg:.0f} deg away from view {anchor} (limit "
                       f"{params.max_heading_diff_deg:g} deg)")
 
-    # 5. covariance: PnP's + the views' spread + the views' geotags' stated accuracy + the scale of
-    #    each view's structure, which its geotags' accuracy over its baselines leaves uncertain
-    geotag_var = np.nanmean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])
-    scale_cov = np.zeros((2, 2))
-    for i in chosen:
-        scale_cov += _scale_covariance(geometry, i, neighbours_used[i], east_north, params) / len(chosen) ** 2
-    cov = (imu_east_north_covariance(pnp, query_camera.T_camera_imu) + _mean_covariance(list(per_view.values()))
-           + geotag_var * np.eye(2) + scale_cov)
+    # 5. covariance (visloc.uncertainty): relative to the map, PnP's + the views' spread + what the
+    #    database's poses get wrong over the lever to the nearest view; the geotags' stated accuracy apart
+    sides = {_side(geometry.T_world_camera[i][:3, 3], pnp.T_world_camera) for i in chosen}
+    side = "both" if len(sides) == 2 else "one"
+    lever_m = float(min(np.linalg.norm(east_north - np.asarray(db_east_north_m[i], float)) for i in chosen))
+    gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
+    terms = {"pnp": imu_east_north_covariance(pnp, query_camera.T_camera_imu),
+             "views": _mean_covariance(list(per_view.values())),
+             "lever": lever_covariance_m2(gain.of(side), lever_m)}
+    cov = terms["pnp"] + terms["views"] + terms["lever"]
+    absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
     return PosedViews(None, support, spent["structure_ms"], east_north, cov, anchor, pnp.reprojection_rms_px,
-                      float(T_world_imu[2, 3]), heading)
-
-
-def _scale_covariance(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], east_north_m: np.ndarray,
-                      params: RefinedParams) -> np.ndarray:
-    """Covariance (2x2, m^2) of a pose from one view's structure due to that structure's scale.
-
-    The scale comes from the baselines between the view and its neighbours; errors of s per axis in
-    the two geotags of a baseline b make its length uncertain by about sqrt(2) s, a relative scale
-    error sqrt(2) s / b (the longest baseline dominates). A query d metres from the view is placed
-    d times that scale, along the line from the view to the query.
-    """
-    centre = geometry.T_world_camera[view][:3, 3]
-    baseline_m = max(float(np.linalg.norm(geometry.T_world_camera[j][:3, 3] - centre)) for j in neighbours)
-    sigma_m = np.sqrt(np.mean([_geotag_sigma_m(geometry, k, params) ** 2 for k in (view, *neighbours)]))
-    offset = np.asarray(east_north_m, float) - centre[:2]
-    # the camera, not the geotag's reference point, is the centre of the scaling; the difference
-    # (the camera's lever arm, about a metre) is small against the offsets this term matters for
-    return (np.sqrt(2.0) * sigma_m / baseline_m) ** 2 * np.outer(offset, offset)
+                      float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m)
 
 
 def _geotag_sigma_m(geometry: DatabaseGeometry, i: int, params: RefinedParams) -> float:

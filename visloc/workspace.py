@@ -11,14 +11,14 @@ from __future__ import annotations
 import sqlite3
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from visloc.database import GeoDatabase, QuerySet
-from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecord, SkippedFrame, StoredImage,
-                       StoreError, StructureRecord, StructureTable, VectorTable)
+from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecord, SelfCheckTable, SkippedFrame,
+                       StoredImage, StoreError, StructureRecord, StructureTable, VectorTable)
 from visloc.errors import InputError
 from visloc.geo import LocalFrame
 from visloc.imagesize import DEFAULT_MAX_IMAGE_MP
@@ -26,8 +26,10 @@ from visloc.ingest import IngestReport, check_sift_settings, ingest, stored_sift
 from visloc.matching import PairCountCache
 from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
 from visloc.pose import StructureCache
+from visloc.selfcheck import lever_gain_from, pose_record, record_pose, self_check, self_check_settings_json
 from visloc.sources import Sequence
 from visloc.structure import VARIANTS, ViewStructure, structure_settings_json, view_structures
+from visloc.uncertainty import LeverGain
 from visloc.vlad import GlobalEncoder, GlobalIndex, train_encoder
 
 STORE_SCHEMA_VERSION = SCHEMA_VERSION  # the store schema this visloc reads and writes
@@ -138,10 +140,12 @@ class Workspace:
                progress: Callable[[int, int], None] | None = None,
                structure_progress: Callable[[int, int], None] | None = None, structure: bool = True,
                skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
-               vectors_progress: Callable[[int, int], None] | None = None) -> IngestReport:
+               vectors_progress: Callable[[int, int], None] | None = None,
+               self_check_progress: Callable[[int, int], None] | None = None) -> IngestReport:
         """SIFT every frame of ``sequence`` that the store lacks (see ``visloc.ingest``, also for
-        ``skip_bad_frames`` and ``max_image_mp``), then its global vectors and its structure
-        (``build_global_vectors``, ``build_structure``; ``structure=False``: SIFT only); resumable."""
+        ``skip_bad_frames`` and ``max_image_mp``), then its global vectors, its structure and its
+        self-check (``build_global_vectors``, ``build_structure``, ``build_self_check``;
+        ``structure=False``: SIFT only); resumable."""
         with self._store(create=True) as store:
             report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit,
                             skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp)
@@ -149,6 +153,7 @@ class Workspace:
         if structure and self.stored_frame_count(sequence.source, sequence.camera):
             self.build_global_vectors(sequence.source, sequence.camera, progress=vectors_progress)
             self.build_structure(sequence.source, sequence.camera, progress=structure_progress)
+            self.build_self_check(sequence.source, sequence.camera, progress=self_check_progress)
         return report
 
     def build_structure(self, source: str, camera: str, params: RefinedParams = REFINED,
@@ -180,6 +185,48 @@ class Workspace:
             if progress:
                 progress(n, len(todo))
         return len(todo)
+
+    def build_self_check(self, source: str, camera: str, params: RefinedParams = REFINED,
+                         progress: Callable[[int, int], None] | None = None) -> int:
+        """Pose every image of (source, camera) that has no self-check with ``params``' settings as a query
+        of its own drive (``visloc.selfcheck``), committing every few images: an interrupted check
+        resumes. Nothing to do without calibration, attitudes or global vectors. Returns the images checked."""
+        settings = self_check_settings_json(params)
+        ids = self.image_ids(source, camera)
+        with self._store() as store:
+            done = set(SelfCheckTable(store).get(ids.tolist(), settings))
+        if len(done) == len(ids):
+            return 0
+        db = self.load_database(source, camera)
+        geometry = db.geometry()
+        index = self.load_database_index(db)
+        if geometry.camera is None or index is None:
+            return 0
+        ids_of = [im.image_id for im in db.images]
+        todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
+        if progress:
+            progress(0, len(todo))
+        cache = StructureCache()
+        for start in range(0, len(todo), 16):
+            chunk = todo[start : start + 16]
+            poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
+                               index.vectors_f32, params, indices=chunk, cache=cache)
+            with self._store() as store:
+                SelfCheckTable(store).add([pose_record(p, ids_of[p.index], settings) for p in poses])
+            if progress:
+                progress(start + len(chunk), len(todo))
+        return len(todo)
+
+    def lever_gain(self, db: GeoDatabase, params: RefinedParams = REFINED) -> LeverGain | None:
+        """The lever gain ``db``'s stored self-check calls for (``visloc.selfcheck.lever_gain_from``);
+        None when the store holds no self-check of it with ``params``' settings."""
+        with self._store() as store:
+            records = SelfCheckTable(store).get([im.image_id for im in db.images], self_check_settings_json(params))
+        if not records:
+            return None
+        index_of = {im.image_id: k for k, im in enumerate(db.images)}
+        poses = [record_pose(r, index_of[r.image_id]) for r in records.values()]
+        return lever_gain_from(poses, source=f"self-check of {db.source}/{db.camera} ({len(poses)} images)")
 
     def load_structure(self, db: GeoDatabase, params: RefinedParams = REFINED,
                        views: list[int] | None = None) -> dict[int, dict[str, ViewStructure]]:
@@ -284,13 +331,15 @@ class Workspace:
         alt = np.array([np.nan if im.alt_m is None else im.alt_m for im in images], float)
         rpy = np.array([[np.nan if v is None else v for v in (im.roll_rad, im.pitch_rad, im.yaw_rad)]
                         for im in images], float).reshape(-1, 3)
-        return GeoDatabase(
+        db = GeoDatabase(
             source=source, camera=camera, images=images,
             timestamps_s=np.array([im.timestamp_s for im in images]),
             lat_deg=lat, lon_deg=lon, east_north_m=frame.to_local(lat, lon),
             keypoints_f32=keypoints, descriptors_u8=descriptors,
             calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy, geotag_sigma_m=_sigmas(images),
         )
+        gain = self.lever_gain(db)
+        return db if gain is None else replace(db, lever_gain=gain)
 
     def load_queries(self, source: str, camera: str, sift: SiftParams | None = None) -> QuerySet:
         """(source, camera) as queries, with their geotags as ground truth."""
