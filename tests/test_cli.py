@@ -66,11 +66,16 @@ def test_reingest_reports_everything_skipped(synthetic):
 
 
 def test_localize_prints_tables_2_and_3_and_finds_the_right_images(synthetic, tmp_path):
+    """The query drive is the database's drive, shifted by a quarter frame (same times, same places):
+    with the exclusion turned off, each query finds its own database frame, and a warning says what
+    that number is worth."""
     _, _, query_csv, store = synthetic
     out = tmp_path / "series.json"
     result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "4",
-                     "--start-frame", "1", "--json", out)
+                     "--start-frame", "1", "--exclusion-s", "0", "--json", out)
     assert result.returncode == 0, result.stderr
+    assert "warning: --exclusion-s 0 with a database (dbdrive/camera) that holds images of querydrive/camera's own " \
+           "drive" in result.stdout
     assert "Table 2: output of the image retrieval step" in result.stdout
     assert "Table 3: Kalman filter estimation of the vehicle location" in result.stdout
     steps = json.loads(out.read_text())["steps"]
@@ -79,6 +84,18 @@ def test_localize_prints_tables_2_and_3_and_finds_the_right_images(synthetic, tm
     assert [s["best_db_frame"] for s in steps] == [1, 3, 5, 7]
     assert all(s["measurement_error_m"] < 0.05 for s in steps)  # same geotags up to rounding
     assert all(s["best_count"] > 20 for s in steps)
+
+
+def test_localize_excludes_the_queries_own_drive_by_default_and_says_so(synthetic, tmp_path):
+    _, _, query_csv, store = synthetic
+    out = tmp_path / "series.json"
+    result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--steps", "3",
+                     "--start-frame", "1", "--json", out)
+    assert result.returncode == 0, result.stderr
+    assert "exclusion 1 s: the database dbdrive/camera holds images of querydrive/camera's own drive" in result.stdout
+    assert "warning" not in result.stdout
+    for s in json.loads(out.read_text())["steps"]:
+        assert abs(s["best_offset_s"]) >= 1.0  # never its own frame or a neighbour within the second
 
 
 def test_localize_with_exclusion_skips_the_own_frame(synthetic, tmp_path):

@@ -4,6 +4,8 @@
   ``camera``); a KITTI camera left out is the preferred one the drive holds;
 * the database: a flag given wins; else the store's only source (or the query's own) and the
   source's only camera; an ambiguous choice is one line listing what the store holds;
+* the exclusion window: left out, 1 s when the database holds images of the queries' own drive,
+  else 0; 0 asked for on such a database prints a warning;
 * the store file: a writing command makes its missing folder (one level, as ``out/``) and, failing
   before any image is stored in a store it created, removes the file again.
 """
@@ -14,6 +16,7 @@ from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 
+from visloc.database import GeoDatabase, same_drive
 from visloc.errors import InputError
 from visloc.outputs import require_writable_output
 from visloc.sources import default_data_root, resolve_drive
@@ -160,3 +163,26 @@ def require_output(path: Path | str | None, flag: str, store: Path | str | None 
         if not parent.exists() and parent == Path(store).absolute().parent and parent.parent.is_dir():
             return
     require_writable_output(path, flag)
+
+
+SAME_DRIVE_EXCLUSION_S = 1.0  # the evaluation's window: a same-drive query never sees its own second of driving
+
+
+def exclusion_for(asked_s: float | None, db: GeoDatabase, timestamps_s, lat_deg, lon_deg, what: str) -> float:
+    """The exclusion window of queries (``timestamps_s`` and their geotags) against ``db``: ``asked_s``
+    when given, else 1 s when the database holds images of the queries' own drive
+    (``visloc.database.same_drive``) and 0 otherwise. Says so on stdout; warns when a window of 0
+    was asked for on such a database."""
+    same = same_drive(db, timestamps_s, lat_deg, lon_deg)
+    if asked_s is None:
+        if not same:
+            return 0.0
+        print(f"exclusion {SAME_DRIVE_EXCLUSION_S:g} s: the database {db.source}/{db.camera} holds images of "
+              f"{what}'s own drive; a query must not be posed from its own image or its twin "
+              "(--exclusion-s 0 turns this off)")
+        return SAME_DRIVE_EXCLUSION_S
+    if same and asked_s == 0:
+        print(f"warning: --exclusion-s 0 with a database ({db.source}/{db.camera}) that holds images of {what}'s "
+              "own drive: a query may be posed from its own image or its twin, and its error then says nothing of "
+              "how well visloc localizes")
+    return float(asked_s)

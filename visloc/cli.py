@@ -50,13 +50,22 @@ def _add_sift(p: argparse.ArgumentParser) -> None:
                         "pixels (default %(default)s)")
 
 
-def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams) -> None:
+EXCLUSION_AUTO_HELP = ("ignore database images closer in time to the query than this, s (default: 1 when the database "
+                       "holds images of the queries' own drive, any camera, so that no query is posed from its own "
+                       "image or its twin; else 0. 0 turns it off, with a warning on such a database)")
+
+
+def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams, *, auto_exclusion: bool = False) -> None:
     g = p.add_argument_group("matching, retrieval and filter (defaults: the paper's Table 1)")
     g.add_argument("--tau1", type=float, default=PAPER_MATCH.tau1, help="Lowe ratio threshold, eq. (1), in (0, 1] (default %(default)s)")
     g.add_argument("--tau2", type=float, default=PAPER_MATCH.tau2, help="cosine similarity threshold, eq. (2), in [-1, 1] (default %(default)s)")
     g.add_argument("--window-s", type=float, default=retrieval.window_s, help="search +-this around the previous best match, s (default %(default)s)")
-    g.add_argument("--exclusion-s", type=float, default=retrieval.exclusion_s,
-                   help="ignore database images closer in time to the query than this, s (default %(default)s)")
+    if auto_exclusion:
+        g.add_argument("--exclusion-s", type=float, default=None, help=EXCLUSION_AUTO_HELP)
+    else:
+        g.add_argument("--exclusion-s", type=float, default=retrieval.exclusion_s,
+                       help="ignore database images closer in time to the query than this, s (default %(default)s; "
+                            "0 on a database of the queries' own drive prints a warning)")
     f = PAPER_FILTER
     g.add_argument("--dt-s", type=float, default=f.dt_s, help=f"time between queries, s, in [{MIN_DT_S:g}, {MAX_DT_S:g}] (default %(default)s)")
     g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2, help=f"R: measurement variance, m^2, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] "
@@ -176,7 +185,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
     _add_exports(p)
-    _add_method(p, PAPER_RETRIEVAL)
+    _add_method(p, PAPER_RETRIEVAL, auto_exclusion=True)
     _add_mode(p)
     _add_sift(p)
     p.set_defaults(func=commands.cmd_localize)
@@ -297,9 +306,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="database drive/dataset in the store (default: the frames' own drive, ingested first)")
     p.add_argument("--exact", action="store_true",
                    help="the exact refined path (the paper's retrieval, every candidate verified; seconds per frame)")
-    p.add_argument("--exclusion-s", type=float, default=t.exclusion_s,
-                   help="ignore database images closer in time to the frame than this, s; use about 1 when the "
-                        "database is the frames' own camera (default %(default)s: off)")
+    p.add_argument("--exclusion-s", type=float, default=None, help=EXCLUSION_AUTO_HELP)
     p.add_argument("--stride", type=int, default=t.stride, help="localize every stride-th frame (default %(default)s)")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: the whole drive)")
     p.add_argument("--query-scale", type=float, default=t.query_image_scale,

@@ -13,10 +13,11 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from visloc.bench.run import BenchParams, run_bench
-from visloc.choices import (PAPER_DATABASE_CAMERA, choose_database, kitti_camera, kitti_only_camera, make_folder_of,
-                            only_camera, refuse_camera_for_csv, require_output, store_for_writing)
+from visloc.choices import (PAPER_DATABASE_CAMERA, choose_database, exclusion_for, kitti_camera, kitti_only_camera,
+                            make_folder_of, only_camera, refuse_camera_for_csv, require_output, store_for_writing)
 from visloc.errors import InputError, ParameterError
 from visloc.export_flags import require_exports, write_exports
+from visloc.database import same_drive
 from visloc.evaluation import evaluate, series_schedule
 from visloc.methods import METHODS, Method, build_localizer, method_named
 from visloc.outputs import require_output_folder, require_writable_output
@@ -66,9 +67,11 @@ def sift_params(a: argparse.Namespace) -> SiftParams:
 
 
 def method_params(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, FilterParams]:
+    """The method's parameters from the flags; an automatic ``--exclusion-s`` (None) is 0 here, until
+    ``exclusion_for`` has seen the database."""
     with flags_named():
         return (MatchParams(tau1=a.tau1, tau2=a.tau2),
-                RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s),
+                RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s or 0.0),
                 FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4,
                              init_var=a.init_var))
 
@@ -112,6 +115,7 @@ def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespac
                      progress=progress_reporter(f"ingest {seq.name}", "images"),
                      vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
                      structure_progress=progress_reporter(f"structure {seq.name}", "images"),
+                     self_check_progress=progress_reporter(f"self-check {seq.name}", "images"),
                      skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp)
 
 
@@ -165,22 +169,22 @@ def cmd_localize(a: argparse.Namespace) -> int:
         raise InputError(f"--start-frame {a.start_frame}: {a.steps} queries {filt.dt_s} s apart do not fit in the "
                          f"{times[-1] - times[start]:.1f} s left of {seq.name}")
     indices = [start + i for i in schedule[0]]
+    retrieval = retrieval.replace(exclusion_s=exclusion_for(a.exclusion_s, db, seq.timestamps_s, seq.lat_deg,
+                                                            seq.lon_deg, seq.name))
     localizer = build_localizer(method, db, match, retrieval, filt, query_camera=seq.camera_model, query_what=seq.name,
                                 **stored_for(ws, db, method))
     progress = progress_reporter(f"localize {seq.name}", "queries")
     progress(0, len(indices))
     steps = run_queries(localizer, extract_queries(seq, indices, sift),
                         progress=lambda done: progress(done, len(indices)))
+    shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
     records = [step_record(k, s.result, db, query_frame=seq.frames[i].frame, truth_lat_deg=seq.frames[i].lat_deg,
                            truth_lon_deg=seq.frames[i].lon_deg, latency_ms=s.latency_ms, keep_counts=True,
-                           truth_sigma_m=seq.frames[i].position_accuracy_m)
+                           truth_sigma_m=seq.frames[i].position_accuracy_m, truth_shares_map=shares)
                for k, (i, s) in enumerate(zip(indices, steps))]
     print(f"queries: {seq.name} frames {[seq.frames[i].frame for i in indices]}   "
           f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s   "
           f"mode {method.name}")
-    if (db.source, db.camera) == (seq.source, seq.camera) and retrieval.exclusion_s == 0:
-        print("note: the database is the queries' own camera; with --exclusion-s 0 each query may find its own "
-              "image (try --exclusion-s 1)")
     print()
     print(series_tables(records, db.frame))
     if a.json:
@@ -224,6 +228,7 @@ def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence | N
     db = ws.load_database(*(db_key or (db_seq.source, db_seq.camera)), sift)
     queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
     starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
+    exclusion_for(a.exclusion_s, db, queries.timestamps_s, queries.lat_deg, queries.lon_deg, queries.name)  # warns
     cache = ws.pair_cache(db, queries, match)  # counts earlier runs computed with the same tau1, tau2
     results = []
     for method in methods:
@@ -372,7 +377,7 @@ def cmd_track(a: argparse.Namespace) -> int:
     with flags_named():
         params = TrackParams(fast=not a.exact, query_image_scale=a.query_scale,
                              query_max_keypoints=a.query_keypoints, shortlist_size=a.shortlist,
-                             exclusion_s=a.exclusion_s, stride=a.stride)
+                             exclusion_s=a.exclusion_s or 0.0, stride=a.stride)
         base = FilterParams(meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var)
     pose = refined_params(a)
     require_output(a.json, "--json", a.db)
@@ -392,6 +397,8 @@ def cmd_track(a: argparse.Namespace) -> int:
             source, db_camera = choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
                                                 prefer=(seq.camera,))
     db = ws.load_database(source, db_camera, sift)
+    params = params.replace(exclusion_s=exclusion_for(a.exclusion_s, db, seq.timestamps_s, seq.lat_deg, seq.lon_deg,
+                                                      seq.name))
     localizer, query_sift = track_localizer(ws, db, seq.camera_model, filt, params, pose, query_what=seq.name)
     progress = progress_reporter(f"track {seq.name}", "frames")
     progress(0, len(indices))
