@@ -17,8 +17,10 @@ Beyond the paper (the refined mode): a step may bring its own measurement
 covariance ``R`` (``step(z, R)``; None = the filter's constant R), and with
 ``gate_chi2 > 0`` a measurement whose squared Mahalanobis distance to the prediction,
 y' S^-1 y, exceeds ``gate_chi2`` is not applied: the step only predicts and is marked
-``gated`` (its innovation is kept for diagnostics). Before a measurement is gated it is tested
-once more against a *maneuver* prediction, made with the process noise of a firm brake or a
+``gated`` (its innovation is kept for diagnostics). Every measurement is also tested against
+two other predictions, and applied with the likeliest of the three (the Gaussian density of its
+innovation, which weighs how far off it is against how loose each prediction is); beyond the gate
+it must fit one of the other two. The first is a *maneuver* prediction, made with the process noise of a firm brake or a
 tight turn (``FilterParams.maneuver_accel_var_m2_s4``) instead of Q: a measurement that fits
 that one is applied with it (marked ``maneuver``), since what was wrong was the constant-velocity
 prediction, not the measurement. Before that, it is tested against the track without the
@@ -78,6 +80,12 @@ class Innovation:
     S: np.ndarray  # (2, 2) residual covariance, m^2
     K: np.ndarray  # (4, 2) Kalman gain
     mahalanobis: float  # sqrt(y' S^-1 y)
+
+
+def _log_likelihood(innovation: "Innovation") -> float:
+    """ln of the Gaussian density of an innovation y under its covariance S, up to a constant:
+    -(y' S^-1 y + ln det S) / 2."""
+    return -0.5 * (innovation.mahalanobis**2 + float(np.log(np.linalg.det(innovation.S))))
 
 
 def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray, Innovation]:
@@ -174,16 +182,17 @@ class ConstantVelocityKalman:
             self.x, self.P, self._before = x_prior, P_prior, None
             return FilterStep(x_prior, P_prior, x_prior, P_prior, None)
         x, P, innovation = update(x_prior, P_prior, z, R)
-        if self.gate_chi2 > 0 and innovation.mahalanobis**2 > self.gate_chi2:
+        kind = None
+        if self.gate_chi2 > 0:
             fitted = self._other_hypothesis(z, R)
-            if fitted is None:  # nothing explains it: an outlier, predict only
+            normal_fits = innovation.mahalanobis**2 <= self.gate_chi2
+            if fitted is not None and (not normal_fits or fitted[3] > _log_likelihood(innovation)):
+                kind, x_prior, P_prior, _ = fitted
+                x, P, innovation = update(x_prior, P_prior, z, R)
+            elif not normal_fits:  # nothing explains it: an outlier, predict only
                 self._gated.append(np.asarray(z, float).reshape(MEAS_DIM))
                 self.x, self.P, self._before = x_prior, P_prior, None
                 return FilterStep(x_prior, P_prior, x_prior.copy(), P_prior.copy(), innovation, gated=True, R=R)
-            kind, x_prior, P_prior = fitted
-            x, P, innovation = update(x_prior, P_prior, z, R)
-        else:
-            kind = None
         self._gated = []
         self._applied += 1
         # a measurement can be retracted once the track before it knew its velocity (two measurements)
@@ -193,9 +202,9 @@ class ConstantVelocityKalman:
         return FilterStep(x_prior, P_prior, self.x.copy(), self.P.copy(), innovation, R=R,
                           maneuver=kind == "maneuver", retracted_previous=kind == "retract")
 
-    def _other_hypothesis(self, z: np.ndarray, R: np.ndarray) -> tuple[str, np.ndarray, np.ndarray] | None:
+    def _other_hypothesis(self, z: np.ndarray, R: np.ndarray) -> tuple[str, np.ndarray, np.ndarray, float] | None:
         """A prediction ``z`` fits when the constant-velocity one does not, as ("retract" or "maneuver",
-        x_prior, P_prior), else None: the previous measurement was the bad one (predict from the state
+        x_prior, P_prior, its Mahalanobis distance), else None: the previous measurement was the bad one (predict from the state
         before it, twice, with Q; only when it contradicts that track and ``z``), or the car turned or
         braked (predict with the maneuver process noise, ``maneuver_accel_var_m2_s4``, when that exceeds
         Q). Where both fit, the one with the smaller Mahalanobis distance."""
@@ -207,12 +216,12 @@ class ConstantVelocityKalman:
                 candidates.append(("retract", x2, P2))
         if self.params.maneuver_accel_var_m2_s4 > self.params.accel_var_m2_s4:
             candidates.append(("maneuver", *predict(self.x, self.P, self.F, self.Q_maneuver)))
-        fits = [(update(x, P, z, R)[2].mahalanobis, kind, x, P) for kind, x, P in candidates]
-        fits = [f for f in fits if f[0] ** 2 <= self.gate_chi2]
+        fits = [(update(x, P, z, R)[2], kind, x, P) for kind, x, P in candidates]
+        fits = [f for f in fits if f[0].mahalanobis ** 2 <= self.gate_chi2]
         if not fits:
             return None
-        _, kind, x_prior, P_prior = min(fits, key=lambda f: f[0])  # the one it fits best
-        return kind, x_prior, P_prior
+        innovation, kind, x_prior, P_prior = max(fits, key=lambda f: _log_likelihood(f[0]))  # the likeliest
+        return kind, x_prior, P_prior, _log_likelihood(innovation)
 
     def _previous_contradicted(self, x1: np.ndarray, P1: np.ndarray, x2: np.ndarray, P2: np.ndarray, z: np.ndarray,
                                R: np.ndarray) -> bool:
