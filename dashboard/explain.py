@@ -59,12 +59,18 @@ TERMS = {
                    "3D points that the best database views were triangulated into with their neighbours; "
                    "inliers are the correspondences that agree with that pose",
     "measurement error": "Distance from the measurement to the ground truth (m)",
-    "measurement σ": "The measurement's own uncertainty (m): the filter's R for a geotag, the PnP covariance "
-                     "for a pose",
+    "measurement σ": "The measurement's own uncertainty (m), along its most uncertain direction: the filter's R "
+                     "for a geotag; for a pose, relative to the map: the PnP fit, the disagreement of its views, "
+                     "and what the database's poses get wrong over the distance to the nearest view (grows "
+                     "faster when every view lies on one side). Its 2σ ellipse is drawn light orange",
+    "map's own error": "How far the database's geotags themselves may be off (their stated accuracy, m per "
+                       "axis): an error every step shares, so the filter cannot average it away; it is not in "
+                       "the ellipses, which are relative to the map",
     "estimate": "The Kalman filter's position after this step",
     "estimate error": "Distance from the estimate to the ground truth (m)",
-    "estimate 2σ": "Twice the filter's standard deviation along its most uncertain direction (m): the truth "
-                   "should lie inside the 2σ ellipse about 86 % of the time",
+    "estimate 2σ": "Twice the filter's standard deviation along its most uncertain direction (m), from its "
+                   "covariance P (the blue ellipses): the truth should lie inside the 2σ ellipse about 86 % of "
+                   "the time",
     "nearest allowed image": "The smallest error any allowed database image's geotag could give (m): the "
                              "floor of the paper's method at this step",
     "truth": "The query's recorded GPS/IMU position (ground truth)",
@@ -88,7 +94,8 @@ def help_html() -> str:
         "<b>estimate</b> with an uncertainty (the <b>2σ ellipse</b>). The <b>ground truth</b> is the car's "
         "recorded GPS.</p>"
         "<p style=\"margin:4px 0\"><b>3D view</b> (middle) and <b>Map</b> tab (top-down, north up): green = "
-        "truth, orange = measurements, blue = estimates and their ellipses, grey = database images, "
+        "truth, orange = measurements (light orange: a refined measurement's own 2σ ellipse), blue = "
+        "estimates and their 2σ ellipses (the filter's covariance), grey = database images, "
         "magenta = the current step. <b>Current step</b> tab: the query above its best match with "
         "correspondences joined, the step's numbers, the correspondences per database image, and the "
         "error per step.</p>"

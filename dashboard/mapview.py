@@ -11,8 +11,8 @@ import cv2
 import numpy as np
 
 import visloc
-from visloc.dashboard.scene import (CURRENT_RGB, DATABASE_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB,
-                                    TRUTH_RGB, positions)
+from visloc.dashboard.scene import (CURRENT_RGB, DATABASE_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_ELLIPSE_RGB,
+                                    MEASUREMENT_RGB, TRUTH_RGB, positions)
 
 MAP_WIDTH_PX = 620
 VIEW_HEIGHT_PX = 300
@@ -97,16 +97,19 @@ def _polyline(img: np.ndarray, view: View, points_m: np.ndarray, color, thick: i
 
 def draw_view(view: View, title: str, truth_track_m: np.ndarray, db_m: np.ndarray,
               records: list[visloc.StepRecord], k: int | None) -> np.ndarray:
-    """One map view: database images, the truth track, measurements, estimates with 2σ ellipses,
+    """One map view: database images, the truth track, measurements (refined ones with their own 2σ
+    ellipses, light orange), estimates with theirs (the filter's covariance, blue),
     step ``k`` highlighted; ``title`` and a north arrow above, a scale bar below."""
     img = np.full((view.height_px, view.width_px, 3), 255, np.uint8)
     for p in view.px(db_m):
         cv2.circle(img, tuple(int(v) for v in p), 2, DATABASE_RGB, -1, cv2.LINE_AA)
     _polyline(img, view, truth_track_m, TRUTH_RGB, 2)
     truth, meas, est = (positions([getattr(r, a) for r in records]) for a in ("truth_m", "measurement_m", "estimate_m"))
-    for r, e in zip(records, est):
+    for r, e, m in zip(records, est, meas):
         if np.all(np.isfinite(e)) and r.estimate_cov_m2 is not None:
             _ellipse(img, view, e, r.estimate_cov_m2, ELLIPSE_RGB, 1)
+        if r.measurement_source == visloc.GEOMETRY and r.measurement_cov_m2 is not None and np.all(np.isfinite(m)):
+            _ellipse(img, view, m, r.measurement_cov_m2, MEASUREMENT_ELLIPSE_RGB, 1)
     for t, m in zip(view.px(truth), view.px(meas)):
         if np.all(np.abs(m) < 10_000):
             cv2.line(img, tuple(int(v) for v in t), tuple(int(v) for v in m), MEASUREMENT_RGB, 1, cv2.LINE_AA)

@@ -18,14 +18,16 @@ import numpy as np
 
 import visloc
 from visloc.dashboard.explain import TERMS
-from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, TRUTH_RGB, css
+from visloc.dashboard.scene import (CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_ELLIPSE_RGB, MEASUREMENT_RGB,
+                                    TRUTH_RGB, css)
 
 FIGURE_WIDTH_PX = 620
 FRUSTUM_IMAGE_WIDTH_PX = 320
 
 LEGEND = (
     (TRUTH_RGB, "ground truth"), (MEASUREMENT_RGB, "measurement"), (ESTIMATE_RGB, "Kalman estimate"),
-    (ELLIPSE_RGB, "2σ ellipse"), ((150, 150, 150), "database images"), (CURRENT_RGB, "current step"),
+    (ELLIPSE_RGB, "estimate 2σ (filter's P)"), (MEASUREMENT_ELLIPSE_RGB, "measurement 2σ (its R)"),
+    ((150, 150, 150), "database images"), (CURRENT_RGB, "current step"),
 )
 
 
@@ -51,8 +53,10 @@ def map_legend_html() -> str:
     items = "".join(f"<div>{_swatch(rgb, label)}</div>" for rgb, label in LEGEND)
     return (f'<div style="font-size:12px;line-height:1.7;display:grid;grid-template-columns:1fr 1fr 1fr;'
             f'padding:0 12px">{items}</div><div style="font-size:12px;color:#555;padding:2px 12px 12px">'
-            f'Lines from each truth point to its measurement; ellipses are the estimates&#39; 2σ. The lower '
-            f'view is centred on the current step (magenta ring: its truth, magenta ellipse: its estimate).</div>')
+            f'Lines from each truth point to its measurement. Blue ellipses: the estimates&#39; 2σ (the '
+            f'filter&#39;s covariance); light orange: a refined measurement&#39;s own 2σ (its covariance R). Both '
+            f'are relative to the map; the map&#39;s own GPS error is stated in the step table. The lower view '
+            f'is centred on the current step (magenta ring: its truth, magenta ellipse: its estimate).</div>')
 
 
 def status_html(message: str, *, error: bool = False) -> str:
@@ -113,6 +117,18 @@ def source_text(rec: visloc.StepRecord) -> str:
     return "nothing" + (f" ({rec.fallback_reason})" if rec.fallback_reason else "")
 
 
+def measurement_sigma_note(rec: visloc.StepRecord) -> str:
+    """What a measurement's σ is made of, in words."""
+    if rec.measurement_source == visloc.GEOTAG:
+        return " (the filter's R)"
+    if rec.measurement_source != visloc.GEOMETRY:
+        return ""
+    parts = ", ".join(f"{name} {sigma:.2f}" for name, sigma in rec.measurement_term_sigma_m.items())
+    side = {"both": "views on both sides", "one": "views on one side"}.get(rec.measurement_side or "", "")
+    lever = "" if rec.measurement_lever_m is None else f", {rec.measurement_lever_m:.1f} m from the nearest"
+    return f" (relative to the map; {parts}; {side}{lever})" if parts else ""
+
+
 _CELL = "padding:3px 12px 3px 0;border-bottom:1px solid #e9ecef;vertical-align:top"
 
 
@@ -132,8 +148,9 @@ def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotag
         ("measurement", _position(rec.measurement_m, geotags.measurement, latlon)),
         ("measured by", source_text(rec)),
         ("measurement error", _fmt(rec.measurement_error_m)),
-        ("measurement σ", _fmt(rec.measurement_sigma_m) + ("" if rec.measurement_source != visloc.GEOTAG
-                                                          else " (the filter's R)")),
+        ("measurement σ", _fmt(rec.measurement_sigma_m) + measurement_sigma_note(rec)),
+        ("map's own error", _fmt(rec.absolute_sigma_m) + (" per axis (the database geotags' stated accuracy)"
+                                                         if rec.absolute_sigma_m is not None else "")),
         ("estimate", _position(rec.estimate_m, geotags.estimate, latlon)),
         ("estimate error", _fmt(rec.estimate_error_m) + ("  (measurement gated: prediction only)"
                                                           if rec.gated else "")),

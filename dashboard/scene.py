@@ -18,7 +18,8 @@ import visloc
 TRUTH_RGB = (30, 150, 60)
 MEASUREMENT_RGB = (235, 120, 0)
 ESTIMATE_RGB = (40, 90, 220)
-ELLIPSE_RGB = (120, 160, 245)
+ELLIPSE_RGB = (120, 160, 245)  # the estimate's 2-sigma ellipse: the filter's covariance P
+MEASUREMENT_ELLIPSE_RGB = (245, 175, 90)  # a refined measurement's own 2-sigma ellipse: its covariance R
 DATABASE_RGB = (150, 150, 150)
 CURRENT_RGB = (220, 30, 120)
 
@@ -123,11 +124,12 @@ def draw_run(scene: viser.SceneApi, records: list[visloc.StepRecord]) -> None:
     own = [_ellipse_segments(m, r.measurement_cov_m2, z + 0.05) for r, m in zip(records, meas)
            if r.measurement_source == visloc.GEOMETRY and r.measurement_cov_m2]
     scene.add_line_segments("/measurement/ellipses", np.concatenate(own) if own else np.zeros((0, 2, 3)),
-                            colors=MEASUREMENT_RGB, thickness=0.03)
+                            colors=MEASUREMENT_ELLIPSE_RGB, thickness=0.05)
 
 
 def draw_current(scene: viser.SceneApi, record: visloc.StepRecord) -> None:
-    """The current step: its truth, measurement and estimate as spheres, the estimate's 2-sigma ellipse."""
+    """The current step: its truth, measurement and estimate as spheres, the estimate's 2-sigma ellipse (the
+    filter's covariance) and a refined measurement's own (its covariance R)."""
     z = TRACK_HEIGHT_M
     tx, ty = record.truth_m
     scene.add_icosphere("/current/truth", radius=0.9, color=TRUTH_RGB, position=(tx, ty, z))
@@ -142,6 +144,11 @@ def draw_current(scene: viser.SceneApi, record: visloc.StepRecord) -> None:
                                                                       record.estimate_cov_m2, z + 0.06),
                                 colors=CURRENT_RGB, thickness=0.3)
         scene.add_icosphere("/current/estimate", radius=0.9, color=ESTIMATE_RGB, position=(ex, ey, z + 0.04))
+    own = (record.measurement_source == visloc.GEOMETRY and record.measurement_m is not None
+           and record.measurement_cov_m2 is not None)
+    segments = (_ellipse_segments(np.array(record.measurement_m), record.measurement_cov_m2, z + 0.07) if own
+                else np.zeros((0, 2, 3)))
+    scene.add_line_segments("/current/measurement_ellipse", segments, colors=MEASUREMENT_ELLIPSE_RGB, thickness=0.2)
 
 
 def draw_cameras(scene: viser.SceneApi, fov_rad: float, aspect: float, query_xy: tuple[float, float],

@@ -240,6 +240,8 @@ def page() -> int:
     DIGEST.parent.mkdir(parents=True, exist_ok=True)
     DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
     PAGE.write_text(render_page(digest))
+    if digest.get("suite"):
+        calibration_figure(digest["suite"], DIGEST.parent / "calibration.png")
     print(f"results: wrote {DIGEST} and {PAGE}")
     return 0
 
@@ -259,10 +261,123 @@ def _setups(drive: dict) -> list[tuple[str, dict]]:
     return sorted(drive["setups"].items(), key=lambda kv: (kv[0] != drive["primary"], kv[0] != "stereo", kv[0]))
 
 
-TARGETS = ("Targets, the same on every drive: no geometry measurement more than 2 m off; NEES between 1 and 4 with "
-           "88-98 % inside the 95 % ellipse; geotag fallbacks at most 5 % of the steps of a moving car; the final "
-           "estimate's mean error no higher than the measurements' at the same steps. On drives with RTK-fixed "
-           "ground truth: measurement error median at most 0.10 m, mean 0.15 m, p90 0.30 m.")
+TARGETS = ("Targets, the same parameters on every drive. Where the ground truth is RTK-fixed (stated accuracy "
+           "at most 0.05 m): NEES between 1 and 4 with 85-99 % of the errors inside the 95 % ellipse, for views on "
+           "both sides and on one side alike; geometry error median at most 0.10 m and p90 at most 0.30 m; final "
+           "estimate mean at most 0.25 m (0.07 m on 2011_09_26_drive_0001). Where it is not (float GPS): at least "
+           "85 % inside the 95 % ellipse and NEES at least 0.3 with views on both sides (no ellipse more than three "
+           "times too large). On every drive: the final estimate's mean error no higher than the final "
+           "measurements'; no geometry measurement more than 2 m off; geotag fallbacks at most 5 % of the steps.")
+RTK_STATED_M = 0.05  # a drive whose geotags state at most this is held to the RTK-fixed targets
+
+
+def uncertainty_verdicts(r: dict) -> list[tuple[str, bool]]:
+    """(what, met) for one refined row of evaluate-drives, against ``TARGETS``."""
+    cal, db = r["calibration"], r.get("database") or {}
+    stated = db.get("stated_accuracy_median_m")
+    rtk = stated is not None and stated <= RTK_STATED_M
+    out = []
+    for side in ("both", "one"):
+        k = cal[side]
+        if not k["n"]:
+            continue
+        if rtk:
+            out.append((f"{side} sides NEES {c(k['nees_mean'])} in 1-4, {c(100 * k['inside_95'], '.0f')} % inside "
+                        "in 85-99 %", 1 <= k["nees_mean"] <= 4 and 0.85 <= k["inside_95"] <= 0.99))
+        else:
+            out.append((f"{side} sides {c(100 * k['inside_95'], '.0f')} % inside >= 85 %", k["inside_95"] >= 0.85))
+            if side == "both":
+                out.append((f"both sides NEES {c(k['nees_mean'])} >= 0.3", k["nees_mean"] >= 0.3))
+    g, f, fm = r["geometry_error_m"], r["final_error_m"], r["final_measurement_error_m"]
+    if rtk:
+        final_limit = 0.07 if r.get("drive") == PAPER_DRIVE else 0.25
+        out.append((f"geometry median {c(g['median'])} <= 0.10, p90 {c(g['p90'])} <= 0.30 m",
+                    g["median"] is not None and g["median"] <= 0.10 and g["p90"] <= 0.30))
+        out.append((f"final estimate {c(f['mean'])} <= {final_limit:g} m", f["mean"] <= final_limit))
+    out.append((f"final estimate {c(f['mean'])} <= final measurements {c(fm['mean'])} m", f["mean"] <= fm["mean"]))
+    out.append((f"{r['gross_geometry_errors']} geometry measurements over 2 m", r["gross_geometry_errors"] == 0))
+    out.append((f"fallbacks {c(100 * r['fallback_fraction'], '.1f')} % <= 5 %", r["fallback_fraction"] <= 0.05))
+    return out
+
+
+def render_uncertainty(s: dict, add) -> None:
+    """How honest the refined mode's ellipses are, drive by drive, split by the side the views lie on."""
+    add("## Honest uncertainty, drive by drive")
+    add("")
+    add("Every geometry measurement of the evaluation above (refined mode) against its covariance R: NEES is "
+        "e' R^-1 e (2 on average, and 95 % of the errors inside the 95 % ellipse, if R is honest). The truth comes "
+        "from the receiver that geotagged the database, on the same drive, so it shares the map's absolute error, "
+        "which is stated apart (the geotags' own accuracy) and is not in R: see the [method notes](method.md). "
+        "\"both\" counts measurements whose views lie before and after them, \"one\" those whose views all lie on "
+        "one side. The lever gain (m of error per m from the nearest view) is what each store's self-check "
+        "measured on its own images; the estimate's NEES uses the filter's covariance P.")
+    add("")
+    add("| drive | protocol | GPS stated (median) | heading spread | lever gain both / one (self-check poses) | "
+        "NEES, inside 95 %: all | both sides | one side | estimate (P) |")
+    add("|---|---|---|---|---|---|---|---|---|")
+    rows = [(drive, r) for drive, rs in s["drives"].items() for r in rs if r["mode"] != "paper"]
+
+    def cal(k: dict) -> str:
+        return "-" if not k or not k["n"] else f"{c(k['nees_mean'])}, {c(100 * k['inside_95'], '.0f')} % ({k['n']})"
+
+    for drive, r in rows:
+        db = r.get("database") or {}
+        g = db.get("lever_gain") or {}
+        gain = "-" if not g else (f"{c(g['both_sides'], '.4f')} / {c(g['one_side'], '.4f')} "
+                                  f"({g['n_both']} / {g['n_one']})")
+        add(f"| {drive} | {r['protocol_label']} | {c(db.get('stated_accuracy_median_m'), '.3f')} m | "
+            f"{c(db.get('heading_spread_deg'), '.2f')} deg | {gain} | {cal(r['calibration']['all'])} | "
+            f"{cal(r['calibration']['both'])} | {cal(r['calibration']['one'])} | {cal(r['estimate_calibration'])} |")
+    add("")
+    add("Calibration curve: the share of geometry measurements inside each nominal ellipse (the nominal share "
+        "itself if R is honest; below it: ellipses too small; above: too large):")
+    add("")
+    levels = list(rows[0][1]["calibration"]["all"]["coverage"]) if rows else []
+    add("| drive | protocol | " + " | ".join(f"{float(p) * 100:g} %" for p in levels) + " |")
+    add("|---|---|" + "---|" * len(levels))
+    for drive, r in rows:
+        cov = r["calibration"]["all"]["coverage"]
+        add(f"| {drive} | {r['protocol_label']} | " + " | ".join(c(100 * cov[p], '.0f') for p in levels) + " |")
+    add("")
+    add("![calibration curves](results/calibration.png)")
+    add("")
+    add(TARGETS)
+    add("")
+    for drive, r in rows:
+        verdicts = uncertainty_verdicts({**r, "drive": drive})
+        missed = [w for w, ok in verdicts if not ok]
+        add(f"- {drive}, {r['protocol_label']}: " + ("every target met" if not missed else
+                                                      "NOT met: " + "; ".join(missed)) + ".")
+    add("")
+
+
+def calibration_figure(s: dict, path: Path) -> None:
+    """The calibration curves of every drive and protocol (refined mode), as a PNG."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=100)
+    ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", label="honest")
+    for drive, rs in s["drives"].items():
+        for r in rs:
+            if r["mode"] == "paper" or not r["calibration"]["all"]["n"]:
+                continue
+            cov = r["calibration"]["all"]["coverage"]
+            ax.plot([float(p) for p in cov], list(cov.values()), marker="o", markersize=3,
+                    label=f"{drive.replace('_drive_', ' ')}, {r['protocol_label']}")
+    ax.set_xlabel("nominal probability of the ellipse")
+    ax.set_ylabel("share of geometry measurements inside")
+    ax.set_xlim(0, 1)
+    ax.set_ylim(0, 1)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title("Refined mode: calibration of the measurement covariance")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
 
 
 def render_suite(s: dict, add) -> None:
@@ -271,24 +386,24 @@ def render_suite(s: dict, add) -> None:
     add(f"`{s['command'].split(' --out-dir ')[0]}` evaluates every drive of the data root with each protocol it "
         "supports (a stereo drive: left queries against the right camera's database; every drive: queries against "
         "its own camera's database with the 1 s exclusion), in both modes, with the same parameters. Measurement "
-        "errors are over every step of every series; NEES is over the refined mode's geometry measurements and "
-        "counts the ground truth's own stated accuracy (OXTS `pos_accuracy`); \"final vs measured\" compares the "
-        "final estimate's mean error with the mean error of the measurements at the same final steps.")
+        "errors are over every step of every series; NEES is over the refined mode's geometry measurements (see "
+        "the next section); \"final vs measured\" compares the final estimate's mean error with the mean error of "
+        "the measurements at the same final steps.")
     add("")
     add("| drive | protocol | mode | measurement error median / mean / p90 / max (m) | final estimate mean (m) | "
-        "final vs measured (m) | NEES, inside 95 % | fallback | gated | geometry > 2 m off |")
-    add("|---|---|---|---|---|---|---|---|---|---|")
+        "final vs measured (m) | geometry error median / p90 (m) | NEES, inside 95 % | fallback | gated | "
+        "geometry > 2 m off |")
+    add("|---|---|---|---|---|---|---|---|---|---|---|")
     rows = [(drive, r["protocol_label"], r) for drive, rs in s["drives"].items() for r in rs]
     rows += [("pooled", "every drive and protocol", r) for r in s["pooled"]]
     for drive, label, r in rows:
         m, f, fm, n = r["measurement_error_m"], r["final_error_m"], r["final_measurement_error_m"], r["nees"]
         nees = "-" if not n["n"] else f"{c(n['mean'])}, {c(100 * n['fraction_within_95'], '.0f')} %"
         fb = "-" if r["fallback_fraction"] is None else f"{c(100 * r['fallback_fraction'], '.1f')} %"
+        g = r["geometry_error_m"]
         add(f"| {drive} | {label} | {r['mode']} | {c(m['median'])} / {c(m['mean'])} / {c(m['p90'])} / "
-            f"{c(m['max'])} | {c(f['mean'])} | {c(f['mean'])} vs {c(fm['mean'])} | {nees} | {fb} | "
-            f"{c(100 * r['gated_fraction'], '.1f')} % | {r['gross_geometry_errors']} |")
-    add("")
-    add(TARGETS)
+            f"{c(m['max'])} | {c(f['mean'])} | {c(f['mean'])} vs {c(fm['mean'])} | {c(g['median'])} / "
+            f"{c(g['p90'])} | {nees} | {fb} | {c(100 * r['gated_fraction'], '.1f')} % | {r['gross_geometry_errors']} |")
     add("")
 
 
@@ -349,6 +464,7 @@ def render_page(d: dict) -> str:
     add("")
     if d.get("suite"):
         render_suite(d["suite"], add)
+        render_uncertainty(d["suite"], add)
     if d.get("diagnostics"):
         render_diagnostics(d["diagnostics"], add)
     add("## Every drive, both modes, per step")

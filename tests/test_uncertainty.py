@@ -73,6 +73,9 @@ def test_the_self_check_gain_per_side_and_what_a_side_without_poses_keeps():
     gain = lever_gain_from(both + one)
     assert gain.both_sides == pytest.approx(0.01, rel=0.2) and gain.one_side == pytest.approx(0.04, rel=0.2)
     assert (gain.n_both, gain.n_one) == (150, 150) and gain.source == "self-check"
+    # one-sided poses that happen to fit a smaller gain: never below the both-sides gain
+    luckier = lever_gain_from(_poses("both", 150, 0.03, rng) + _poses("one", 150, 0.01, rng))
+    assert luckier.one_side == luckier.both_sides == pytest.approx(0.03, rel=0.2)
     # too few one-sided poses: that side keeps the default, but never below the other side's gain
     few = lever_gain_from(_poses("both", 150, 0.1, rng) + _poses("one", MIN_POSES_PER_SIDE - 1, 0.0, rng))
     assert few.one_side == pytest.approx(few.both_sides) and few.one_side > DEFAULT_LEVER_GAIN.one_side

@@ -296,6 +296,20 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     return 0
 
 
+def database_row(db) -> dict:
+    """What a database's own data says of its geotags: their stated accuracy, its heading spread, and the
+    lever gain its self-check measured (``visloc.uncertainty``)."""
+    import numpy as np
+
+    geometry = db.geometry()
+    sigma = db.geotag_sigma_m[np.isfinite(db.geotag_sigma_m)] if db.geotag_sigma_m is not None else np.zeros(0)
+    spread = geometry.heading_spread_rad
+    return {"name": f"{db.source}/{db.camera}", "images": len(db),
+            "stated_accuracy_median_m": float(np.median(sigma)) if sigma.size else None,
+            "heading_spread_deg": None if spread is None else float(np.degrees(spread)),
+            "lever_gain": None if db.lever_gain is None else db.lever_gain.as_dict()}
+
+
 def cmd_evaluate_drives(a: argparse.Namespace) -> int:
     sift = sift_params(a)
     match, retrieval, filt = method_params(a)
@@ -321,14 +335,14 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
         for protocol in drive_protocols(folder):
             db_seq = open_source(root, drive=drive, camera=protocol.db_camera)
             query_seq = open_source(root, drive=drive, camera=protocol.query_camera)
-            results, _, _ = _evaluate_sources(a, ws, db_seq, query_seq, methods, sift,
-                                              label=f"{drive} {protocol.key} ")
+            results, db, _ = _evaluate_sources(a, ws, db_seq, query_seq, methods, sift,
+                                               label=f"{drive} {protocol.key} ")
             for method, result in zip(methods, results):
                 summary = _summary(result, sift)
                 name = f"{drive}_{protocol.key}_{method.name}"
                 write_json(out_dir / f"{name}.json", evaluation_json(result, summary))
                 row = {**protocol_row(result), "protocol": protocol.key, "protocol_label": protocol.label,
-                       "file": f"{name}.json"}
+                       "file": f"{name}.json", "database": database_row(db)}
                 report["drives"].setdefault(drive, []).append(row)
                 rows.append((f"{protocol.key} ({protocol.label[:11]}), {method.name}", row))
                 everything.append(result)

@@ -52,7 +52,8 @@ class StepRecord:
     # what the measurement was and how the filter took it
     measurement_source: str | None = None  # "geometry", "geotag" or None (no measurement)
     fallback_reason: str | None = None  # refined method: why this step's measurement is a geotag
-    measurement_cov_m2: list[list[float]] | None = None  # the R the filter used, m^2 (east, north)
+    measurement_cov_m2: list[list[float]] | None = None  # its covariance, m^2 (east, north): a refined pose's own, the
+    #   filter's R for a geotag
     measurement_sigma_m: float | None = None  # sqrt of its largest eigenvalue
     # e' C^-1 e of the measurement error e (about 2 on average if C is honest): C = R where the truth comes from
     # the map's own receiver (truth_shares_map), else R + the map's absolute error + the truth's, a^2 I + s^2 I
@@ -105,7 +106,8 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
     if m_lat_lon is not None:
         m_err = float(geodesic_distance_m(*m_lat_lon, *truth))
         m_hav = float(haversine_distance_m(*m_lat_lon, *truth))
-    R = result.filter.R
+    # the measurement's own covariance (a refined pose's; the filter's R for a geotag): what its error is held to
+    R = m.cov_m2 if m.cov_m2 is not None else result.filter.R
     s_truth = float(truth_sigma_m) if truth_sigma_m is not None and np.isfinite(truth_sigma_m) else 0.0
     a_map = float(m.absolute_sigma_m) if m.absolute_sigma_m is not None else 0.0
     # what the error is measured against adds to the covariance, unless it shares the map's receiver

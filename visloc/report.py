@@ -215,4 +215,12 @@ def track_text(s: dict) -> str:
         f"estimate error (m): mean {e['mean']:.3f}, median {e['median']:.3f}, p90 {e['p90']:.3f}, max {e['max']:.3f}",
         f"measurement error (m): mean {m['mean']:.3f}, median {m['median']:.3f}, p90 {m['p90']:.3f}, "
         f"max {m['max']:.3f}; {geometry}" + (f" (their mean {g['mean']:.3f})" if g["n"] else ""),
+        *([calibration_line(s["calibration"]["all"], s["estimate_calibration"])] if s.get("calibration") else []),
     ])
+
+
+def calibration_line(measurements: dict, estimates: dict) -> str:
+    """How honest the covariances were: NEES (2 if honest) and the share inside the 95 % ellipse."""
+    def one(k: dict) -> str:
+        return "-" if not k["n"] else f"NEES {k['nees_mean']:.2f}, {100 * k['inside_95']:.0f}% inside the 95% ellipse"
+    return f"uncertainty: geometry measurements {one(measurements)}; estimates {one(estimates)}"

@@ -103,9 +103,11 @@ def self_check(geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_times
 
 def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check") -> LeverGain:
     """The lever gain per side that the self-check's poses call for (``fit_lever_gain`` at
-    ``SELF_CHECK_PROBABILITY``). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the
-    default gain, but never less than the other side's (a query with views on one side only is
-    never better off than one with views on both); with no pose on either side, the defaults."""
+    ``SELF_CHECK_PROBABILITY``). The one-side gain is never below the both-sides one: a query with
+    views on one side only extrapolates the database's errors where one with views on both sides
+    interpolates them, and is never better off (a self-check with few one-sided poses can say
+    otherwise by chance). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the default gain,
+    again never below the other side's; with no pose on either side, the defaults."""
     gains, counts = {}, {}
     for side in SIDES:
         chosen = [p for p in poses if p.error_m is not None and p.side == side]
@@ -115,7 +117,7 @@ def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check") 
                                          np.array([p.base_cov_m2 for p in chosen]),
                                          np.array([p.lever_m for p in chosen]), probability=SELF_CHECK_PROBABILITY)
     if "both" in gains and "one" in gains:
-        both, one = gains["both"], gains["one"]
+        both, one = gains["both"], max(gains["one"], gains["both"])
     elif "both" in gains:
         both, one = gains["both"], max(DEFAULT_LEVER_GAIN.one_side, gains["both"])
     elif "one" in gains:

@@ -20,11 +20,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visloc.database import GeoDatabase
+from visloc.database import GeoDatabase, same_drive
 from visloc.errors import InputError
 from visloc.geo import geodesic_distance_m
 from visloc.geometry import CameraModel
 from visloc.localizer import Localizer, StepResult
+from visloc.measurement import GEOMETRY
 from visloc.matching import MatchCancelled
 from visloc.methods import REFINED_FAST_METHOD, REFINED_METHOD, build_localizer
 from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, REFINED, FilterParams, RefinedParams,
@@ -33,6 +34,7 @@ from visloc.pose import StructureCache
 from visloc.queries import extract_queries
 from visloc.runs import latency_ms
 from visloc.sources import Sequence
+from visloc.uncertainty import SIDES, calibration
 from visloc.workspace import Workspace
 
 WINDOW_S = 20.0  # the exact path's retrieval window, the paper's
@@ -110,7 +112,15 @@ class TrackFrame:
     filter_ms: float
     latency_ms: float
     estimate_cov_m2: list[list[float]] | None = None  # 2x2 east/north position covariance, m^2
-    measurement_cov_m2: list[list[float]] | None = None  # the R the filter used, m^2
+    measurement_cov_m2: list[list[float]] | None = None  # the measurement's own covariance, m^2
+    # e' C^-1 e of the measurement's and the estimate's errors (visloc.records.step_record's rule: C alone when
+    # the frame's geotag comes from the map's own receiver, else with the map's and the truth's accuracy added)
+    measurement_nees: float | None = None
+    estimate_nees: float | None = None
+    measurement_side: str | None = None  # refined: "both" or "one" (the views' sides of the pose)
+    absolute_sigma_m: float | None = None  # refined: the map's own error, m per axis
+    maneuver: bool = False  # the filter applied the measurement with its maneuver prediction
+    retracted_previous: bool = False  # the filter took the previous frame's measurement out
 
 
 def _stats(values: list[float]) -> dict:
@@ -146,6 +156,12 @@ class TrackRun:
                                                     if x.measurement_source == "geometry"]),
             "geometry_fraction": n_geometry / len(f) if f else None,
             "gated": sum(x.gated for x in f), "restarts": sum(x.restarted for x in f),
+            "maneuvers": sum(x.maneuver for x in f), "retracted": sum(x.retracted_previous for x in f),
+            "calibration": {"all": calibration([x.measurement_nees for x in f if x.measurement_source == GEOMETRY])
+                            .as_dict(),
+                            **{side: calibration([x.measurement_nees for x in f if x.measurement_source == GEOMETRY
+                                                  and x.measurement_side == side]).as_dict() for side in SIDES}},
+            "estimate_calibration": calibration([x.estimate_nees for x in f]).as_dict(),
             "wall_s": self.wall_s, "sustained_hz": len(f) / self.wall_s if self.wall_s > 0 else None,
             "params": self.params,
         }
@@ -156,9 +172,21 @@ class TrackRun:
         return out
 
 
-def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoDatabase) -> TrackFrame:
+def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoDatabase,
+                  truth_shares_map: bool) -> TrackFrame:
     fr, m = seq.frames[i], r.measurement
     truth = (fr.lat_deg, fr.lon_deg)
+    truth_m = np.asarray(db.frame.to_local(*truth), float)
+    a_map = m.absolute_sigma_m or 0.0
+    s_truth = fr.position_accuracy_m if fr.position_accuracy_m is not None else 0.0
+    extra = 0.0 if truth_shares_map else a_map**2 + s_truth**2
+
+    def nees(position: np.ndarray | None, cov: np.ndarray | None) -> float | None:
+        if position is None or cov is None or not np.all(np.isfinite(position)):
+            return None
+        e = np.asarray(position, float) - truth_m
+        return float(e @ np.linalg.solve(np.asarray(cov, float) + extra * np.eye(2), e))
+
 
     def error(en: np.ndarray) -> float:
         lat, lon = db.frame.to_geo(np.asarray(en, float))
@@ -167,8 +195,9 @@ def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoD
     est = r.filter.position_m
     P = np.asarray(r.filter.P, float)[:2, :2]
     m_sigma = None
-    if m.east_north_m is not None and r.filter.R is not None:
-        m_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(r.filter.R, float)).max()))
+    R = m.cov_m2 if m.cov_m2 is not None else r.filter.R  # the measurement's own covariance
+    if m.east_north_m is not None and R is not None:
+        m_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(R, float)).max()))
     return TrackFrame(
         frame=fr.frame, timestamp_s=fr.timestamp_s, truth_m=tuple(float(v) for v in db.frame.to_local(*truth)),
         estimate_m=(float(est[0]), float(est[1])), estimate_sigma_m=float(np.sqrt(np.linalg.eigvalsh(P).max())),
@@ -181,7 +210,10 @@ def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoD
         n_pnp_inliers=int(m.n_pnp_inliers), sift_ms=float(r.query.sift_ms), retrieval_ms=float(r.timings.retrieval_ms),
         geometry_ms=float(m.query_side_ms), filter_ms=float(r.timings.filter_ms), latency_ms=float(latency),
         estimate_cov_m2=P.tolist(),
-        measurement_cov_m2=None if m_sigma is None else np.asarray(r.filter.R, float).tolist())
+        measurement_cov_m2=None if m_sigma is None else np.asarray(R, float).tolist(),
+        measurement_nees=nees(m.east_north_m, R if m_sigma is not None else None),
+        estimate_nees=nees(est, P), measurement_side=m.side, absolute_sigma_m=m.absolute_sigma_m,
+        maneuver=bool(r.filter.maneuver), retracted_previous=bool(r.filter.retracted_previous))
 
 
 def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
@@ -194,10 +226,11 @@ def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoData
                    {"track": params.as_dict(), "query_sift": sift.as_dict(), "filter": localizer.filter_params.as_dict(),
                     **(path_params or {})})
     localizer.reset()
+    shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
     start = time.perf_counter()
     for n, (i, query) in enumerate(zip(indices, extract_queries(seq, indices, sift)), 1):
         result = localizer.step(query)
-        run.frames.append(_frame_record(seq, i, result, latency_ms(result), db))
+        run.frames.append(_frame_record(seq, i, result, latency_ms(result), db, shares))
         run.wall_s = time.perf_counter() - start
         if progress:
             progress(n, len(indices))

@@ -46,6 +46,7 @@ from visloc.params import FilterParams
 
 STATE_DIM = 4
 MEAS_DIM = 2
+
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])  # (7)
 
 
