@@ -29,7 +29,7 @@ from visloc.report import (evaluation_json, is_paper_protocol, record_json, save
                            summary_text, track_text, write_json)
 from visloc.runs import run_queries
 from visloc.sources import Sequence, default_data_root, open_source
-from visloc.suite import drive_protocols, drives_of, pooled_rows, protocol_row, table_text
+from visloc.suite import database_row, drive_protocols, drives_of, pooled_rows, protocol_row, table_text
 from visloc.track import run_track, track_filter, track_localizer
 from visloc.workspace import STORE_SCHEMA_VERSION, Workspace
 
@@ -103,9 +103,12 @@ def method_of(a: argparse.Namespace, mode: str | None = None) -> Method:
 
 
 def stored_for(ws: Workspace, db, method: Method) -> dict:
-    """What the camera-rate method reads from the store (nothing for the others)."""
-    if not method.camera_rate:
+    """What a refined method reads from the store: its structure (the camera-rate path's global vectors too;
+    nothing for the paper's)."""
+    if method.pose is None:
         return {}
+    if not method.camera_rate:
+        return {"stored": ws.load_structure(db, method.pose)}
     return {"stored": ws.load_structure(db, method.pose),
             "shortlist_index": ws.load_database_index(db, method.shortlist)}
 
@@ -294,20 +297,6 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     write_exports(a, result.series, result.frame, f"{queries.source}/{queries.camera} against "
                                                    f"{db.source}/{db.camera}, mode {method.name}")
     return 0
-
-
-def database_row(db) -> dict:
-    """What a database's own data says of its geotags: their stated accuracy, its heading spread, and the
-    lever gain its self-check measured (``visloc.uncertainty``)."""
-    import numpy as np
-
-    geometry = db.geometry()
-    sigma = db.geotag_sigma_m[np.isfinite(db.geotag_sigma_m)] if db.geotag_sigma_m is not None else np.zeros(0)
-    spread = geometry.heading_spread_rad
-    return {"name": f"{db.source}/{db.camera}", "images": len(db),
-            "stated_accuracy_median_m": float(np.median(sigma)) if sigma.size else None,
-            "heading_spread_deg": None if spread is None else float(np.degrees(spread)),
-            "lever_gain": None if db.lever_gain is None else db.lever_gain.as_dict()}
 
 
 def cmd_evaluate_drives(a: argparse.Namespace) -> int:

@@ -25,6 +25,7 @@ from visloc.measurement import GEOMETRY, GEOTAG
 from visloc.methods import PAPER_METHOD, Method, build_localizer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
 from visloc.pose import StructureCache
+from visloc.structure import seeded_structure_cache
 from visloc.records import StepRecord, step_record
 from visloc.runs import run_queries
 from visloc.tracking import rts_smooth
@@ -219,6 +220,7 @@ def evaluate(
     database pair and not part of any query's latency (``structure_build_ms``). ``smooth`` adds
     the RTS smoother's estimates of every step of each series. ``progress(done, total)`` is told
     of each series done. ``stored``: the database's stored structure, which the camera-rate method needs
+    and the exact refined one reads where it can
     (``Workspace.load_structure``).
     """
     schedule = series_schedule(queries.timestamps_s, filter_params.dt_s, n_steps, sampling)
@@ -226,7 +228,9 @@ def evaluate(
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
     cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
-    structures = StructureCache()
+    # the exact path reads the store's structure where it would triangulate the same view with the same
+    # neighbours (the same numbers, built at ingest) and triangulates the rest
+    structures = seeded_structure_cache(stored) if stored and not method.camera_rate else StructureCache()
     localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
                                 query_camera=queries.camera_model, query_what=queries.name,
                                 counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True,

@@ -33,6 +33,7 @@ from visloc.measurement import GeotagMeasurer, MemoisedMeasurer
 from visloc.params import FAST, REFINED, TRACK, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
 from visloc.pose import PoseMeasurer, StructureCache
 from visloc.retrieval import ShortlistRetriever, WindowRetriever, build_global_index
+from visloc.structure import seeded_structure_cache
 from visloc.vlad import GlobalIndex
 
 
@@ -119,7 +120,8 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
     shortlist_index:  the fast retrieval's global vectors of ``db``, if built already
     structures:       database structure triangulated by earlier refined measurements, to reuse
     stored:           the database's stored structure (``Workspace.load_structure``): the camera-rate
-                      path needs it; it counts with it and ignores ``counter``
+                      path needs it (it counts with it and ignores ``counter``); the exact refined path
+                      reads it where it would triangulate the same view with the same neighbours
     memoise:          measure a query (by its key) with the same retrieval only once
     """
     if method.camera_rate:
@@ -137,6 +139,8 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
     if method.pose is None:
         measurer = GeotagMeasurer(db.east_north_m)
     else:
+        if structures is None and stored:
+            structures = seeded_structure_cache(stored)  # the stored structure, where the views' neighbours match
         measurer = PoseMeasurer(db.east_north_m, db.geometry(), query_camera, method.pose, structures=structures,
                                 query_what=query_what)
     if memoise:

@@ -113,3 +113,15 @@ def choose_variant(structures: dict[str, ViewStructure], allowed: np.ndarray | N
         if allowed is None or all(bool(allowed[j]) for j in s.neighbours):
             return s
     return None
+
+
+def seeded_structure_cache(structures: dict) -> StructureCache:
+    """A ``StructureCache`` holding stored structure under the keys the exact path looks up (view and
+    its neighbours): where the exact path would triangulate the same view with the same neighbours,
+    it reads the stored points instead (the same numbers)."""
+    cache = StructureCache()
+    for variants in structures.values():
+        for s in variants.values():
+            if len(s):
+                cache.put((s.view, s.neighbours), s.lookup(), 0.0)
+    return cache

@@ -131,3 +131,15 @@ def table_text(title: str, rows: list[tuple[str, dict]]) -> str:
             f"{_cell(r['fallback_fraction'], '8.0%')} {_cell(r['gated_fraction'], '6.0%')} "
             f"{r['gross_geometry_errors']:4d}")
     return "\n".join(lines)
+
+
+def database_row(db) -> dict:
+    """What a database's own data says of its geotags: their stated accuracy, its heading spread, and the
+    lever gain its self-check measured (``visloc.uncertainty``)."""
+    geometry = db.geometry()
+    sigma = db.geotag_sigma_m[np.isfinite(db.geotag_sigma_m)] if db.geotag_sigma_m is not None else np.zeros(0)
+    spread = geometry.heading_spread_rad
+    return {"name": f"{db.source}/{db.camera}", "images": len(db),
+            "stated_accuracy_median_m": float(np.median(sigma)) if sigma.size else None,
+            "heading_spread_deg": None if spread is None else float(np.degrees(spread)),
+            "lever_gain": None if db.lever_gain is None else db.lever_gain.as_dict()}

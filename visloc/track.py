@@ -30,8 +30,8 @@ from visloc.matching import MatchCancelled
 from visloc.methods import REFINED_FAST_METHOD, REFINED_METHOD, build_localizer
 from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, REFINED, FilterParams, RefinedParams,
                            RetrievalParams, SiftParams, TrackParams)
-from visloc.pose import StructureCache
 from visloc.queries import extract_queries
+from visloc.structure import seeded_structure_cache
 from visloc.runs import latency_ms
 from visloc.sources import Sequence
 from visloc.uncertainty import SIDES, calibration
@@ -50,18 +50,6 @@ def track_filter(seq: Sequence, params: TrackParams, base: FilterParams = PAPER_
         raise InputError(f"{seq.name}: its median frame interval times --stride {params.stride} is {dt_s:g} s, the "
                          f"filter's time step; it must be in [{MIN_DT_S:g}, {MAX_DT_S:g}] s (check the timestamps)")
     return base.replace(dt_s=dt_s)
-
-
-def seeded_structure_cache(structures: dict) -> StructureCache:
-    """A ``StructureCache`` holding stored structure under the keys the exact path looks up (view and
-    its neighbours): where the exact path would triangulate the same view with the same neighbours,
-    it reads the stored points instead (the same numbers)."""
-    cache = StructureCache()
-    for variants in structures.values():
-        for s in variants.values():
-            if len(s):
-                cache.put((s.view, s.neighbours), s.lookup(), 0.0)
-    return cache
 
 
 def track_localizer(ws: Workspace, db: GeoDatabase, query_camera: CameraModel | None, filter_params: FilterParams,

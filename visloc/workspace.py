@@ -28,7 +28,8 @@ from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams,
 from visloc.pose import StructureCache
 from visloc.selfcheck import lever_gain_from, pose_record, record_pose, self_check, self_check_settings_json
 from visloc.sources import Sequence
-from visloc.structure import VARIANTS, ViewStructure, structure_settings_json, view_structures
+from visloc.structure import (VARIANTS, ViewStructure, seeded_structure_cache, structure_settings_json,
+                              view_structures)
 from visloc.uncertainty import LeverGain
 from visloc.vlad import GlobalEncoder, GlobalIndex, train_encoder
 
@@ -206,7 +207,7 @@ class Workspace:
         todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
         if progress:
             progress(0, len(todo))
-        cache = StructureCache()
+        cache = seeded_structure_cache(self.load_structure(db, params))  # the views' stored structure, read
         for start in range(0, len(todo), 16):
             chunk = todo[start : start + 16]
             poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
