@@ -62,9 +62,10 @@ class LeverGain:
                 "n_one": self.n_one, "source": self.source}
 
 
-# Fitted on the self-checks of the shared development drives (2011_09_26_drive_0001 both cameras,
-# 2011_09_26_drive_0005, 2011_10_03_drive_0027), pooled: used only by a store that has no self-check.
-DEFAULT_LEVER_GAIN = LeverGain(both_sides=0.02, one_side=0.03)
+# Fitted (``visloc.selfcheck.lever_gain_from``) on the self-checks of the shared development drives pooled
+# (2011_09_26_drive_0001 both cameras, 2011_09_26_drive_0005, 2011_10_03_drive_0027: 524 poses; per drive
+# they range from 0.004 to 0.038): used only by a store that has no self-check yet.
+DEFAULT_LEVER_GAIN = LeverGain(both_sides=0.016, one_side=0.018)
 
 
 def lever_covariance_m2(gain: float, lever_m: float) -> np.ndarray:
