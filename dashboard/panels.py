@@ -117,6 +117,17 @@ def source_text(rec: visloc.StepRecord) -> str:
     return "nothing" + (f" ({rec.fallback_reason})" if rec.fallback_reason else "")
 
 
+def filter_note(rec: visloc.StepRecord) -> str:
+    """How the filter took the step's measurement, when not as usual."""
+    if rec.gated:
+        return "  (measurement gated: prediction only)"
+    if rec.retracted_previous:
+        return "  (the previous measurement contradicted this one and the track: taken out)"
+    if rec.maneuver:
+        return "  (applied with the maneuver prediction: the car turned or braked)"
+    return ""
+
+
 def measurement_sigma_note(rec: visloc.StepRecord) -> str:
     """What a measurement's σ is made of, in words."""
     if rec.measurement_source == visloc.GEOTAG:
@@ -152,8 +163,7 @@ def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotag
         ("map's own error", _fmt(rec.absolute_sigma_m) + (" per axis (the database geotags' stated accuracy)"
                                                          if rec.absolute_sigma_m is not None else "")),
         ("estimate", _position(rec.estimate_m, geotags.estimate, latlon)),
-        ("estimate error", _fmt(rec.estimate_error_m) + ("  (measurement gated: prediction only)"
-                                                          if rec.gated else "")),
+        ("estimate error", _fmt(rec.estimate_error_m) + filter_note(rec)),
         ("estimate 2σ", _fmt(None if rec.estimate_sigma_m is None else 2.0 * rec.estimate_sigma_m)),
         ("nearest allowed image", _fmt(rec.nearest_candidate_error_m)),
         ("truth", _position(rec.truth_m, geotags.truth, latlon)),
@@ -181,8 +191,14 @@ def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.Drive
     summary = visloc.drive_summary(records)
     refined = (f"geometry on {100 * summary['geometry_fraction']:.0f}% of steps, {summary['gated_steps']} gated; "
                if matches.method.measures_pose else "")
-    return (f"**This run** ({text(matches.method.name)} mode, {summary['n_steps']} queries, "
-            f"{matches.retrieval_params.exclusion_s:g} s exclusion): {refined}"
+    exclusion = matches.retrieval_params.exclusion_s
+    same = bool(records) and records[0].truth_shares_map
+    warning = ("⚠ **Exclusion 0 s with a database of the queries' own drive**: a query may be posed from its own "
+               "image or its stereo twin, and its error then says nothing of how well visloc localizes. " if same and
+               exclusion == 0 else "")
+    why = " (the database holds this drive's own images)" if same and exclusion > 0 else ""
+    return (f"{warning}**This run** ({text(matches.method.name)} mode, {summary['n_steps']} queries, "
+            f"{exclusion:g} s exclusion{why}): {refined}"
             f"mean measurement error {_fmt(summary['mean_measurement_error_m'])}, "
             f"mean estimate error {_fmt(summary['mean_estimate_error_m'])}, "
             f"final estimate error {_fmt(summary['final_estimate_error_m'])}; "

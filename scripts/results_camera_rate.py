@@ -21,6 +21,10 @@ def _c(value, fmt: str = ".2f") -> str:
     return "-" if value is None else format(value, fmt)
 
 
+def _cal(k: dict) -> str:
+    return "-" if not k or not k["n"] else f"{_c(k['nees_mean'])}, {_c(100 * k['inside_95'], '.0f')} % ({k['n']})"
+
+
 def render_camera_rate(d: dict, add) -> None:
     """The "Camera rate" section: every track run, then the bench's exact-against-fast comparison."""
     # sorted: the digest is stored with sorted keys, and the page must render the same from it
@@ -53,6 +57,20 @@ def render_camera_rate(d: dict, add) -> None:
         for name, t in tracks.items():
             add(f"- {name}: `{t['command']}`")
         add("")
+        if any(t.get("calibration") for t in tracks.values()):
+            add("How honest its ellipses are at the camera's rate (NEES, 2 if honest, and the share inside the 95 % "
+                "ellipse; the geometry measurements against their own covariance, the estimates against the "
+                "filter's P; see the [method notes](method.md) for why the estimates' are too small at 10 Hz):")
+            add("")
+            add("| drive / setup | measurements: all | views on both sides | on one side | estimates |")
+            add("|---|---|---|---|---|")
+            for name, t in tracks.items():
+                k = t.get("calibration")
+                if not k:
+                    continue
+                add(f"| {name} | {_cal(k['all'])} | {_cal(k['both'])} | {_cal(k['one'])} | "
+                    f"{_cal(t['estimate_calibration'])} |")
+            add("")
     if bench:
         add("`visloc bench` runs the exact refined path (the paper's retrieval, every candidate verified, "
             "full-resolution SIFT) and the camera-rate path on the same frames of each drive, one after the other in "

@@ -67,6 +67,8 @@ class StepRecord:
     estimate_nees: float | None = None  # the estimate's error against its covariance P, as measurement_nees
     mahalanobis: float | None = None  # innovation's Mahalanobis distance to the prediction
     gated: bool = False  # rejected by the filter's gate: this step only predicted
+    maneuver: bool = False  # applied with the filter's maneuver prediction (visloc.tracking)
+    retracted_previous: bool = False  # the filter took the previous step's measurement out (visloc.tracking)
     view_db_frames: list[int] = field(default_factory=list)  # refined: database frames the pose was solved against
     neighbour_db_frames: list[int] = field(default_factory=list)  # refined: frames triangulated with those views
     n_pnp_inliers: int = 0
@@ -156,7 +158,8 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
                                   for k, v in (m.cov_terms_m2 or {}).items()},
         estimate_nees=e_nees,
         mahalanobis=None if result.filter.innovation is None else float(result.filter.innovation.mahalanobis),
-        gated=bool(result.filter.gated),
+        gated=bool(result.filter.gated), maneuver=bool(result.filter.maneuver),
+        retracted_previous=bool(result.filter.retracted_previous),
         view_db_frames=[int(db.images[i].frame) for i in m.view_indices],
         neighbour_db_frames=[int(db.images[i].frame) for i in m.neighbour_indices],
         n_pnp_inliers=int(m.n_pnp_inliers), measurement_ms=float(m.query_side_ms),
