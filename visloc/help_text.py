@@ -45,10 +45,10 @@ examples:
   # the same series as JSON and as a trajectory for GIS tools
   visloc localize {KITTI} --drive 2011_09_26_drive_0001 --camera image_00 --db-camera image_01 --start-frame 40 \\
       --json out/series_40.json --geojson out/series_40.geojson
-  # a single-camera drive against its own images (--exclusion-s 1 keeps a query off its own image)
-  visloc localize {KITTI} --drive 2011_09_26_drive_0005 --db-camera image_00 --exclusion-s 1 --start-frame 20
+  # a single-camera drive against its own images: the 1 s exclusion keeps a query off its own image (automatic)
+  visloc localize {KITTI} --drive 2011_09_26_drive_0005 --db-camera image_00 --start-frame 20
   # a CSV drive against the store holding it alone: no --db-source or --db-camera needed
-  visloc localize my_drive/geotags.csv --db out/my_drive.sqlite --exclusion-s 1 --steps 4 --csv out/my_drive.csv
+  visloc localize my_drive/geotags.csv --db out/my_drive.sqlite --steps 4 --csv out/my_drive.csv
 
 The database defaults to the store's only drive (or the queries' own) and its only camera; with
 several, name it with --db-source and --db-camera.""",
@@ -71,8 +71,9 @@ examples:
   visloc evaluate-drives {KITTI} --modes paper --out-dir out/drives_paper""",
     "track": f"""\
 examples:
-  # every frame of a single-camera drive against its own images, at camera rate, with a trajectory file
-  visloc track {KITTI} --drive 2011_09_26_drive_0005 --camera image_00 --exclusion-s 1 --json out/track.json \\
+  # every frame of a single-camera drive against its own images (the 1 s exclusion is automatic), at camera
+  # rate, with a trajectory file
+  visloc track {KITTI} --drive 2011_09_26_drive_0005 --camera image_00 --json out/track.json \\
       --geojson out/track.geojson
   # left frames against the right camera's database, first 50 frames, the exact (slow) path
   visloc track {KITTI} --drive 2011_09_26_drive_0001 --camera image_00 --db-camera image_01 --frames 50 --exact
