@@ -193,7 +193,7 @@ def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.Drive
                if matches.method.measures_pose else "")
     exclusion = matches.retrieval_params.exclusion_s
     same = bool(records) and records[0].truth_shares_map
-    warning = ("⚠ **Exclusion 0 s with a database of the queries' own drive**: a query may be posed from its own "
+    warning = ("**Warning: exclusion 0 s with a database of the queries' own drive**: a query may be posed from its own "
                "image or its stereo twin, and its error then says nothing of how well visloc localizes. " if same and
                exclusion == 0 else "")
     why = " (the database holds this drive's own images)" if same and exclusion > 0 else ""

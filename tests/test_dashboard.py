@@ -289,6 +289,30 @@ def test_moving_tau1_rematches_in_the_background(dashboard, browser):
         page.close()
 
 
+def test_a_zero_exclusion_on_the_queries_own_drive_is_warned_of(dashboard, browser):
+    page = open_page(browser, dashboard.url)
+    warning = "Warning: exclusion 0 s with a database of the queries' own drive"
+    try:
+        assert page.get_by_text("1 s exclusion (the database holds this drive's own images)").count() >= 1
+        assert page.get_by_text(warning).count() == 0
+        runs = run_number(page)
+        box = control(page, "Exclusion (s)").locator("input:not([type=hidden])")
+        box.fill("0")
+        box.press("Enter")
+        wait_for(lambda: run_number(page) > runs, RUN_S, "the run with no exclusion")
+        page.get_by_text(warning).first.wait_for()
+        # queries may now be matched to images less than 1 s from them (their stereo twins, for most)
+        offsets_s = []
+        for step in range(11):
+            go_to_step(page, step)
+            offsets_s.append(abs(float(re.search(r"\(([+-]\d+\.\d\d) s\)", row(page, "best match")).group(1))))
+        assert min(offsets_s) < 1.0, offsets_s
+        screenshot(page, "dashboard_exclusion_0.png")
+    finally:
+        reset(page)
+        page.close()
+
+
 def test_two_tabs_see_the_same_session(dashboard, browser):
     a, b = open_page(browser, dashboard.url), open_page(browser, dashboard.url)
     try:
