@@ -33,11 +33,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from visloc.errors import InputError  # noqa: E402
 from visloc.suite import drive_protocols, drives_of  # noqa: E402
 from results_camera_rate import digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
+from results_peer import digest_peer, render_peer  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
 OUT = REPO / "out" / "results"
 DIGEST = REPO / "docs" / "results" / "digest.json"
 PAGE = REPO / "docs" / "results.md"
+PEER = REPO.parent / "shared" / "peer" / "results"  # the COLMAP-style peer's measurements, beside the project
 PAPER_FINAL_ERROR_M = 1.85  # the paper's section 4, Figure 4: drive 2011_09_26_drive_0001
 PAPER_DRIVE = "2011_09_26_drive_0001"
 VARIANTS = {  # the paper's mode, one change each: (label, extra flags)
@@ -237,6 +239,7 @@ def page() -> int:
             setup["modes"][entry["mode"]] = result
         else:
             drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
+    digest["peer"] = digest_peer(PEER, OUT) if PEER.is_dir() else {}
     DIGEST.parent.mkdir(parents=True, exist_ok=True)
     DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
     PAGE.write_text(render_page(digest))
@@ -465,6 +468,7 @@ def render_page(d: dict) -> str:
     if d.get("suite"):
         render_suite(d["suite"], add)
         render_uncertainty(d["suite"], add)
+    render_peer(d.get("peer") or {}, add)
     if d.get("diagnostics"):
         render_diagnostics(d["diagnostics"], add)
     add("## Every drive, both modes, per step")

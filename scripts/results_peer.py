@@ -1,0 +1,101 @@
+"""The results page's comparison with the COLMAP-style peer (../shared/peer), frame by frame.
+
+The peer measures single measurements (no filter) on some frames of a drive, under the same protocol as
+``visloc evaluate --mode refined``: the same cameras and the 1 s exclusion. Its JSON holds each query's error
+under ``queries[i].variants.counts.pnp["12.0"]``. visloc's error on a frame is its refined measurement at that
+frame, the median over the series that pose it (a frame is posed once per series it lies in; the series differ
+only in the retrieval window). A peer query whose pose failed counts with the error of its fallback geotag.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+PEER_VARIANT, PEER_THRESHOLD = "counts", "12.0"  # the peer's default variant and its PnP threshold, px
+
+
+def protocol_key(query_camera: str, db_camera: str) -> str | None:
+    """The evaluate-drives protocol key of a (query, database) camera pair, as visloc.suite names it."""
+    if (query_camera, db_camera) == ("image_00", "image_01"):
+        return "stereo"
+    return f"same_{query_camera}" if query_camera == db_camera else None
+
+
+def _stats(values) -> dict:
+    v = np.asarray(values, float)
+    return {"n": int(v.size), "mean": float(v.mean()), "median": float(np.median(v)),
+            "p90": float(np.percentile(v, 90)), "max": float(v.max())}
+
+
+def digest_peer(peer_dir: Path, out: Path) -> dict:
+    """drive -> the peer's and visloc's per-frame errors on the peer's frames, for every peer JSON that has a
+    matching refined evaluation in ``out`` (evaluate-drives' per-drive JSON)."""
+    digest = {}
+    for path in sorted(Path(peer_dir).glob("peer_*.json")):
+        peer = json.loads(path.read_text())
+        params = peer["params"]
+        key = protocol_key(params["query_camera"], params["db_camera"])
+        ours_path = out / f"{params['drive']}_{key}_refined.json"
+        if key is None or not ours_path.is_file():
+            continue
+        ours: dict[int, list[float]] = {}
+        sources: dict[int, list[str]] = {}
+        for series in json.loads(ours_path.read_text())["series"]:
+            for step in series:
+                if step["measurement_error_m"] is not None:
+                    ours.setdefault(step["query_frame"], []).append(step["measurement_error_m"])
+                    sources.setdefault(step["query_frame"], []).append(step["measurement_source"])
+        frames = []
+        for q in peer["queries"]:
+            pnp = q["variants"][PEER_VARIANT]["pnp"][PEER_THRESHOLD]
+            f = q["query_frame"]
+            if f not in ours:
+                continue
+            frames.append({"frame": f, "peer_error_m": pnp["error_m"] if pnp["ok"] else pnp["fallback_error_m"],
+                           "peer_ok": bool(pnp["ok"]), "peer_inliers": pnp.get("num_inliers"),
+                           "visloc_error_m": float(np.median(ours[f])),
+                           "visloc_geotag_fallbacks": sum(s == "geotag" for s in sources[f])})
+        if not frames:
+            continue
+        peer_e = [r["peer_error_m"] for r in frames]
+        ours_e = [r["visloc_error_m"] for r in frames]
+        digest[params["drive"]] = {
+            "peer_file": f"peer/results/{path.name}", "evaluation_file": ours_path.name,
+            "protocol": key, "peer_versions": peer.get("versions", {}), "frames": frames,
+            "peer_error_m": _stats(peer_e), "visloc_error_m": _stats(ours_e),
+            "peer_failures": sum(not r["peer_ok"] for r in frames),
+            "visloc_better": sum(o < p for o, p in zip(ours_e, peer_e))}
+    return digest
+
+
+def render_peer(peer: dict, add) -> None:
+    """The page's section: visloc's refined measurement against the peer's, on the peer's frames."""
+    if not peer:
+        return
+    add("## Against a COLMAP-style peer")
+    add("")
+    add("The peer in `../shared/peer` (pycolmap: RootSIFT, a multi-view map of every allowed database image within "
+        "10 frames at its known pose, the 5 images with most matches, LO-RANSAC PnP and refinement) measured the "
+        "same queries under the same protocol (1 s exclusion), one measurement per query, no filter. visloc's "
+        "error on a frame is its refined measurement there (the median over the series that pose it, from the "
+        "evaluation above); a failed peer pose counts with its fallback geotag's error.")
+    add("")
+    add("| drive | protocol | frames | peer mean / median / p90 / max (m) | visloc mean / median / p90 / max (m) | "
+        "visloc better on | peer failures | visloc geotag fallbacks |")
+    add("|---|---|---|---|---|---|---|---|")
+    for drive, d in peer.items():
+        p, v = d["peer_error_m"], d["visloc_error_m"]
+        fallbacks = sum(r["visloc_geotag_fallbacks"] for r in d["frames"])
+        add(f"| {drive} | {d['protocol']} | {p['n']} | {p['mean']:.3f} / {p['median']:.3f} / {p['p90']:.3f} / "
+            f"{p['max']:.3f} | {v['mean']:.3f} / {v['median']:.3f} / {v['p90']:.3f} / {v['max']:.3f} | "
+            f"{d['visloc_better']} of {p['n']} | {d['peer_failures']} | {fallbacks} |")
+    add("")
+    for drive, d in peer.items():
+        worst = sorted(d["frames"], key=lambda r: -r["visloc_error_m"])[:3]
+        add(f"- {drive}: visloc's largest errors at frames "
+            + ", ".join(f"{r['frame']} ({r['visloc_error_m']:.2f} m; peer {r['peer_error_m']:.2f} m)" for r in worst)
+            + f". Peer numbers from `{d['peer_file']}`, visloc's from `out/results/{d['evaluation_file']}`.")
+    add("")

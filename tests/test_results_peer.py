@@ -1,0 +1,59 @@
+"""The results page's comparison with the COLMAP-style peer: frames matched one by one, failures counted."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import pytest
+
+from conftest import REPO
+
+sys.path.insert(0, str(REPO / "scripts"))
+import results_peer  # noqa: E402
+
+
+def peer_query(frame: int, error_m: float, ok: bool = True, fallback_m: float = 9.0) -> dict:
+    return {"query_frame": frame, "variants": {"counts": {"pnp": {"12.0": {
+        "ok": ok, "error_m": error_m if ok else None, "num_inliers": 100 if ok else 3,
+        "fallback_error_m": fallback_m}}}}}
+
+
+def step(frame: int, error_m: float | None, source: str | None = "geometry") -> dict:
+    return {"query_frame": frame, "measurement_error_m": error_m, "measurement_source": source}
+
+
+def test_each_peer_frame_meets_visloc_s_median_measurement_there(tmp_path):
+    peer_dir, out = tmp_path / "peer", tmp_path / "out"
+    peer_dir.mkdir()
+    out.mkdir()
+    drive = "2011_10_03_drive_0027"
+    (peer_dir / f"peer_{drive}.json").write_text(json.dumps({
+        "params": {"drive": drive, "query_camera": "image_00", "db_camera": "image_00"},
+        "versions": {"pycolmap": "4.2.1"},
+        "queries": [peer_query(0, 0.30), peer_query(5, 0.10), peer_query(10, None, ok=False, fallback_m=8.0),
+                    peer_query(15, 0.2)]}))  # frame 15: visloc never posed it, so it is left out
+    (out / f"{drive}_same_image_00_refined.json").write_text(json.dumps({"series": [
+        [step(0, 0.10), step(5, 0.40), step(10, 9.5, "geotag")],
+        [step(5, 0.20), step(10, 0.50), step(15, None, None)],
+        [step(10, 0.70)]]}))
+    # a stereo peer run with no matching evaluation is skipped, not an error
+    (peer_dir / "peer_2011_09_26_drive_0001.json").write_text(json.dumps({
+        "params": {"drive": "2011_09_26_drive_0001", "query_camera": "image_00", "db_camera": "image_01"},
+        "queries": [peer_query(0, 0.05)]}))
+
+    digest = results_peer.digest_peer(peer_dir, out)
+
+    assert list(digest) == [drive]
+    d = digest[drive]
+    assert [r["frame"] for r in d["frames"]] == [0, 5, 10]
+    assert [r["visloc_error_m"] for r in d["frames"]] == pytest.approx([0.10, 0.30, 0.70])  # medians over the series
+    assert [r["peer_error_m"] for r in d["frames"]] == [0.30, 0.10, 8.0]  # the failure at its fallback's error
+    assert d["peer_failures"] == 1 and d["visloc_better"] == 2
+    assert [r["visloc_geotag_fallbacks"] for r in d["frames"]] == [0, 0, 1]
+    assert d["visloc_error_m"]["mean"] == pytest.approx(1.1 / 3)
+
+    lines: list[str] = []
+    results_peer.render_peer(digest, lines.append)
+    row = next(line for line in lines if line.startswith(f"| {drive} "))
+    assert "| 2 of 3 | 1 | 1 |" in row
