@@ -113,8 +113,9 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
             "shortlist_index": ws.load_database_index(db, method.shortlist)}
 
 
-def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None):
-    return ws.ingest(seq, sift, workers=a.workers, limit=limit,
+def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,
+            structure: bool = True):
+    return ws.ingest(seq, sift, workers=a.workers, limit=limit, structure=structure,
                      progress=progress_reporter(f"ingest {seq.name}", "images"),
                      vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
                      structure_progress=progress_reporter(f"structure {seq.name}", "images"),
@@ -227,7 +228,8 @@ def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence | N
     """
     match, retrieval, filt = method_params(a)
     for seq in {s.name: s for s in (db_seq, query_seq) if s is not None}.values():
-        _ingest(ws, seq, sift, a)
+        # queries need only their SIFT: the structure and self-check are the database's
+        _ingest(ws, seq, sift, a, structure=db_seq is not None and seq.name == db_seq.name)
     db = ws.load_database(*(db_key or (db_seq.source, db_seq.camera)), sift)
     queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
     starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
