@@ -52,7 +52,7 @@ VARIANTS = {  # the paper's mode, one change each: (label, extra flags)
 
 # -- run: the commands --------------------------------------------------------------------------
 
-def run(data: Path, speed_only: bool = False) -> int:
+def run(data: Path, speed_only: bool = False, suite_only: bool = False) -> int:
     OUT.mkdir(parents=True, exist_ok=True)
     try:
         drives = drives_of(data)
@@ -83,6 +83,10 @@ def run(data: Path, speed_only: bool = False) -> int:
         subprocess.run([*visloc, *args], cwd=REPO, check=True)
         manifest["runs"].append({"file": f"{name}.json", "command": "visloc " + " ".join(args), **meta})
 
+    if suite_only:  # evaluate-drives alone; the page keeps the other sections of the committed digest
+        manifest["suite_only"] = True
+        evaluations(drives, root, out, store, command, manifest, variants=False)
+        return finish(manifest)
     if not speed_only:
         evaluations(drives, root, out, store, command, manifest)
     for n, folder in enumerate(drives):
@@ -104,6 +108,10 @@ def run(data: Path, speed_only: bool = False) -> int:
         print(f"results: wrote {OUT / 'manifest.json'}; now: python scripts/results.py page")
         return 0
     diagnostics(drives, root, out, store, manifest)
+    return finish(manifest)
+
+
+def finish(manifest: dict) -> int:
     manifest["finished"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
     manifest["load_after"] = os.getloadavg()[0]
     (OUT / "manifest.json").write_text(json.dumps(manifest, indent=1))
@@ -111,8 +119,9 @@ def run(data: Path, speed_only: bool = False) -> int:
     return 0
 
 
-def evaluations(drives: list, root: str, out: Path, store: Path, command, manifest: dict) -> None:
-    """evaluate-drives on the root, then the paper's mode with one change per variant."""
+def evaluations(drives: list, root: str, out: Path, store: Path, command, manifest: dict,
+                variants: bool = True) -> None:
+    """evaluate-drives on the root, then (``variants``) the paper's mode with one change per variant."""
     suite = ["evaluate-drives", root, "--db", str(store), "--smooth", "--out-dir", str(out)]
     command("drives", suite, kind="drives")
     for drive, rows in json.loads((OUT / "drives.json").read_text())["drives"].items():
@@ -120,7 +129,7 @@ def evaluations(drives: list, root: str, out: Path, store: Path, command, manife
             manifest["runs"].append({"file": row["file"], "command": "visloc " + " ".join(suite), "kind": "evaluate",
                                      "drive": drive, "setup": row["protocol"], "setup_label": row["protocol_label"],
                                      "mode": row["mode"]})
-    for folder in drives:
+    for folder in drives if variants else []:
         drive = folder.name.removesuffix("_sync")
         first = drive_protocols(folder)[0]  # the paper's setup where the drive has it
         key, label, query, database = first.key, first.label, first.query_camera, first.db_camera
@@ -240,6 +249,8 @@ def page() -> int:
         else:
             drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
     digest["peer"] = digest_peer(PEER, OUT) if PEER.is_dir() else {}
+    if manifest.get("suite_only"):
+        carry_over(digest, json.loads(DIGEST.read_text()))
     DIGEST.parent.mkdir(parents=True, exist_ok=True)
     DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
     PAGE.write_text(render_page(digest))
@@ -247,6 +258,24 @@ def page() -> int:
         calibration_figure(digest["suite"], DIGEST.parent / "calibration.png")
     print(f"results: wrote {DIGEST} and {PAGE}")
     return 0
+
+
+CARRIED_SECTIONS = ("bench", "tracks", "diagnostics", "haversine")
+
+
+def carry_over(digest: dict, previous: dict) -> None:
+    """A ``run --suite-only`` digest: the sections that run did not measure (the paper's mode with one change
+    per variant, the Table 3 check, camera rate, speed, the refined error's sources) as ``previous`` has them,
+    with the commit and time that measured them."""
+    carried = previous.get("carried_over") or {k: previous.get(k) for k in ("commit", "started", "finished", "speed")}
+    digest["carried_over"] = carried
+    digest["speed"] = None
+    for key in CARRIED_SECTIONS:
+        if previous.get(key):
+            digest[key] = previous[key]
+    for drive, dd in previous.get("drives", {}).items():
+        if drive in digest["drives"] and dd.get("variants"):
+            digest["drives"][drive]["variants"] = dd["variants"]
 
 
 # -- render: digest -> Markdown ---------------------------------------------------------------------
@@ -315,10 +344,14 @@ def render_uncertainty(s: dict, add) -> None:
         "one side. The lever gain (m of error per m from the nearest view) is what each store's self-check "
         "measured on its own images; the estimate's NEES uses the filter's covariance P.")
     add("")
+    rows = [(drive, r) for drive, rs in s["drives"].items() for r in rs if r["mode"] != "paper" and "calibration" in r]
+    if not rows:
+        add("Not measured with this commit: `python scripts/results.py run` measures it.")
+        add("")
+        return
     add("| drive | protocol | GPS stated (median) | heading spread | lever gain both / one (self-check poses) | "
         "NEES, inside 95 %: all | both sides | one side | estimate (P) |")
     add("|---|---|---|---|---|---|---|---|---|")
-    rows = [(drive, r) for drive, rs in s["drives"].items() for r in rs if r["mode"] != "paper"]
 
     def cal(k: dict) -> str:
         return "-" if not k or not k["n"] else f"{c(k['nees_mean'])}, {c(100 * k['inside_95'], '.0f')} % ({k['n']})"
@@ -365,7 +398,7 @@ def calibration_figure(s: dict, path: Path) -> None:
     ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", label="honest")
     for drive, rs in s["drives"].items():
         for r in rs:
-            if r["mode"] == "paper" or not r["calibration"]["all"]["n"]:
+            if r["mode"] == "paper" or not r.get("calibration", {}).get("all", {}).get("n"):
                 continue
             cov = r["calibration"]["all"]["coverage"]
             ax.plot([float(p) for p in cov], list(cov.values()), marker="o", markersize=3,
@@ -457,13 +490,24 @@ def render_page(d: dict) -> str:
         "(its numbers are also in `docs/results/digest.json`). Distances are geodesic on WGS84; the paper's "
         "Haversine distances appear only in the check of its Table 3. What the numbers mean: "
         "[method notes](method.md).")
-    speed = d.get("speed")
+    carried = d.get("carried_over")
+    if carried:
+        measured = sorted({drive for key in ("bench", "diagnostics") for drive in d.get(key) or {}})
+        add("")
+        add(f"Only the evaluations of every drive (`python scripts/results.py run --suite-only`: the sections from "
+            f"\"Every drive at once\" to \"Every drive, both modes, per step\" and the comparison with the peer) were "
+            f"measured with that commit. The sensitivity rows, \"Where the refined measurement's error comes "
+            f"from\", the Table 3 check, \"Camera rate\" and \"Speed\" were measured with commit "
+            f"`{carried['commit']}` from {carried['started']} to {carried['finished']}, on "
+            f"{', '.join(measured) or 'no drive'}: a drive of the data root missing from them has not been "
+            "measured there yet.")
+    speed = d.get("speed") or (carried or {}).get("speed")
     if speed:
         add("")
         add(f"The sections \"Camera rate\" and \"Speed\" were measured again with commit `{speed['commit']}` "
             f"(`python scripts/results.py run --speed-only`) from {speed['started']} to {speed['finished']} (1-minute "
-            f"load average {speed['load_before']:.2f} before, {speed['load_after']:.2f} after); that commit evaluates "
-            "the paper's and the refined method as the one above does.")
+            f"load average {speed['load_before']:.2f} before, {speed['load_after']:.2f} after)"
+            + ("." if carried else "; that commit evaluates the paper's and the refined method as the one above does."))
     add("")
     if d.get("suite"):
         render_suite(d["suite"], add)
@@ -639,13 +683,15 @@ def main(argv: list[str]) -> int:
     p = sub.add_parser("run", help="run every command (out/results/)")
     p.add_argument("--speed-only", action="store_true",
                    help="run only visloc bench and visloc track again, keeping the other runs' JSON")
+    p.add_argument("--suite-only", action="store_true",
+                   help="run only visloc evaluate-drives; the page keeps the other sections of docs/results/digest.json")
     p.add_argument("--data", type=Path, default=Path(os.environ.get("VISLOC_DATA", REPO.parent / "shared" / "data"
                                                                       / "kitti")).resolve(), help="KITTI data root")
     sub.add_parser("page", help="digest and page from out/results/")
     sub.add_parser("render", help="the page from the committed digest")
     a = parser.parse_args(argv)
     if a.what == "run":
-        return run(a.data, a.speed_only)
+        return run(a.data, a.speed_only, a.suite_only)
     if a.what == "page":
         return page()
     PAGE.write_text(render_page(json.loads(DIGEST.read_text())))
