@@ -82,7 +82,7 @@ def test_same_camera_without_exclusion_finds_the_query_image_itself(evaluation, 
                      "--camera", "image_01", "--db-camera", "image_01", "--start-frame", "30", "--steps", "2",
                      "--exclusion-s", "0", "--json", tmp / "self.json")
     assert result.returncode == 0, result.stderr
-    assert "warning: --exclusion-s 0 with a database (2011_09_26_drive_0001/image_01)" in result.stdout
+    assert "warning: --exclusion-s 0 with a database (2011_09_26_drive_0001_sync/image_01)" in result.stdout
     steps = json.loads((tmp / "self.json").read_text())["steps"]
     assert [s["best_db_frame"] for s in steps] == [s["query_frame"] for s in steps]
     assert all(s["measurement_error_m"] == 0.0 for s in steps)
