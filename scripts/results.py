@@ -375,7 +375,7 @@ def render_uncertainty(s: dict, add) -> None:
         cov = r["calibration"]["all"]["coverage"]
         add(f"| {drive} | {r['protocol_label']} | " + " | ".join(c(100 * cov[p], '.0f') for p in levels) + " |")
     add("")
-    add("![calibration curves](results/calibration.png)")
+    add("![calibration curves, one panel per drive and protocol](results/calibration.png)")
     add("")
     add(TARGETS)
     add("")
@@ -388,28 +388,43 @@ def render_uncertainty(s: dict, add) -> None:
 
 
 def calibration_figure(s: dict, path: Path) -> None:
-    """The calibration curves of every drive and protocol (refined mode), as a PNG."""
+    """The calibration curves of the refined mode as a PNG, one panel per drive and protocol: every geometry
+    measurement, those with views on both sides and on one side (against R), and the estimate (against P)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.8), dpi=100)
-    ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", label="honest")
-    for drive, rs in s["drives"].items():
-        for r in rs:
-            if r["mode"] == "paper" or not r.get("calibration", {}).get("all", {}).get("n"):
-                continue
-            cov = r["calibration"]["all"]["coverage"]
-            ax.plot([float(p) for p in cov], list(cov.values()), marker="o", markersize=3,
-                    label=f"{drive.replace('_drive_', ' ')}, {r['protocol_label']}")
-    ax.set_xlabel("nominal probability of the ellipse")
-    ax.set_ylabel("share of geometry measurements inside")
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="upper left")
-    ax.set_title("Refined mode: calibration of the measurement covariance")
+    panels = [(drive, r) for drive, rs in s["drives"].items() for r in rs
+              if r["mode"] != "paper" and r.get("calibration", {}).get("all", {}).get("n")]
+    n_cols = 2 if len(panels) > 1 else 1
+    n_rows = max(1, -(-len(panels) // n_cols))
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(5.2 * n_cols, 4.2 * n_rows), dpi=100, squeeze=False)
+    curves = (("all", "every measurement (R)", "C0", "-"), ("both", "views on both sides (R)", "C2", "--"),
+              ("one", "views on one side (R)", "C3", ":"))
+    for ax, (drive, r) in zip(axes.flat, panels):
+        ax.plot([0, 1], [0, 1], color="0.6", linestyle="--", linewidth=1, label="honest")
+        for key, label, colour, style in curves:
+            k = r["calibration"].get(key) or {}
+            if k.get("n"):
+                cov = k["coverage"]
+                ax.plot([float(p) for p in cov], list(cov.values()), color=colour, linestyle=style, marker="o",
+                        markersize=3, label=f"{label}, n={k['n']}")
+        est = r.get("estimate_calibration") or {}
+        if est.get("n"):
+            cov = est["coverage"]
+            ax.plot([float(p) for p in cov], list(cov.values()), color="C1", marker="s", markersize=3,
+                    linewidth=1, label=f"estimate (P), n={est['n']}")
+        ax.set_title(f"{drive}\n{r['protocol_label']}", fontsize=9)
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.set_xlabel("nominal probability of the ellipse", fontsize=8)
+        ax.set_ylabel("share inside", fontsize=8)
+        ax.legend(fontsize=7, loc="lower right")
+    for ax in list(axes.flat)[len(panels):]:
+        ax.axis("off")
+    fig.suptitle("Refined mode: calibration of the covariances, drive by drive", fontsize=11)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path)
