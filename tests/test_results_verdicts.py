@@ -1,0 +1,68 @@
+"""The results page's verdicts: the filter's gap to its measurements with its interval, and the chance that an
+honest covariance gives a small split's coverage."""
+
+from __future__ import annotations
+
+import sys
+
+import pytest
+
+from conftest import REPO
+
+sys.path.insert(0, str(REPO / "scripts"))
+import results  # noqa: E402
+
+
+def series(t0_s: float, estimate_m: float, measurement_m: float) -> list[dict]:
+    first = {"query_timestamp_s": t0_s, "estimate_error_m": 1.0, "measurement_error_m": 1.0}
+    last = {"query_timestamp_s": t0_s + 5.0, "estimate_error_m": estimate_m, "measurement_error_m": measurement_m}
+    return [first, last]
+
+
+def test_a_constant_gap_has_no_spread_and_blocks_follow_the_start_times():
+    runs = [series(100.0 + 0.1 * i, 0.051, 0.050) for i in range(30)]
+    gap = results.final_minus_measurement(runs)
+    assert gap["mean"] == pytest.approx(0.001)
+    assert gap["ci95"] == pytest.approx([0.001, 0.001])
+    assert gap["n_series"] == 30 and gap["n_blocks"] == 3
+
+
+def test_a_gap_of_either_sign_has_an_interval_around_zero():
+    runs = [series(100.0 + 1.0 * i, 0.05 + (0.01 if i % 2 else -0.01), 0.05) for i in range(40)]
+    gap = results.final_minus_measurement(runs)
+    assert gap["ci95"][0] < 0 < gap["ci95"][1]
+
+
+def test_series_without_a_final_error_are_left_out():
+    runs = [series(0.0, None, 0.05), series(1.0, 0.04, 0.05)]
+    gap = results.final_minus_measurement(runs)
+    assert gap["n_series"] == 1 and gap["mean"] == pytest.approx(-0.01)
+    assert results.final_minus_measurement([series(0.0, None, None)])["mean"] is None
+
+
+def test_the_honest_chance_of_a_split_s_coverage():
+    assert results._honest_chance(0.95, 20) == ""  # inside 85-99 %: nothing to explain
+    # all of 24 inside: 0.95^24 = 29 %
+    assert "29 %" in results._honest_chance(1.0, 24)
+    # 70 of 100 inside is next to impossible for an honest 95 % ellipse
+    assert "0 %" in results._honest_chance(0.70, 100)
+
+
+def rtk_row(final_m: float, final_measurement_m: float, one_side_inside: float) -> dict:
+    k = {"n": 100, "nees_mean": 2.0, "inside_95": 0.95}
+    return {"drive": "some_drive", "calibration": {"both": k, "one": {**k, "inside_95": one_side_inside}},
+            "database": {"stated_accuracy_median_m": 0.02},
+            "geometry_error_m": {"median": 0.05, "p90": 0.2}, "final_error_m": {"mean": final_m},
+            "final_measurement_error_m": {"mean": final_measurement_m}, "gross_geometry_errors": 0,
+            "fallback_fraction": 0.0,
+            "final_minus_measurement_m": {"mean": final_m - final_measurement_m, "ci95": [-0.001, 0.004],
+                                          "n_blocks": 12}}
+
+
+def test_verdicts_name_what_is_missed_with_enough_digits():
+    met = results.uncertainty_verdicts(rtk_row(0.0900, 0.0925, 0.95))
+    assert all(ok for _, ok in met)
+    missed = [w for w, ok in results.uncertainty_verdicts(rtk_row(0.0949, 0.0925, 0.80)) if not ok]
+    assert len(missed) == 2
+    assert "views on one side" in missed[0] and "80 % inside" in missed[0]
+    assert "0.0949" in missed[1] and "0.0925" in missed[1] and "+2.4 mm" in missed[1] and "12 one-second" in missed[1]
