@@ -34,6 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from visloc.errors import InputError  # noqa: E402
 from visloc.suite import drive_protocols, drives_of  # noqa: E402
 from results_camera_rate import digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
+from filter_replay import render_filter_replay, replay  # noqa: E402
 from results_peer import digest_peer, render_peer  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
@@ -255,6 +256,9 @@ def page() -> int:
         else:
             drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
     digest["peer"] = digest_peer(PEER, OUT) if PEER.is_dir() else {}
+    digest["filter_replay"] = {Path(row["file"]).stem: replay(json.loads((OUT / row["file"]).read_text()))
+                               for rows in (digest.get("suite") or {}).get("drives", {}).values() for row in rows
+                               if row["mode"] != "paper" and (OUT / row.get("file", "")).is_file()}
     if manifest.get("suite_only"):
         carry_over(digest, json.loads(DIGEST.read_text()))
     DIGEST.parent.mkdir(parents=True, exist_ok=True)
@@ -572,6 +576,7 @@ def render_page(d: dict) -> str:
         render_suite(d["suite"], add)
         render_uncertainty(d["suite"], add)
     render_peer(d.get("peer") or {}, add)
+    render_filter_replay(d.get("filter_replay") or {}, add)
     if d.get("diagnostics"):
         render_diagnostics(d["diagnostics"], add)
     add("## Every drive, both modes, per step")
