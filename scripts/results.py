@@ -299,9 +299,8 @@ def carry_over(digest: dict, previous: dict) -> None:
     with the commit and time that measured them."""
     carried = previous.get("carried_over") or {k: previous.get(k) for k in ("commit", "started", "finished", "speed")}
     digest["carried_over"] = carried
-    digest["speed"] = None
-    for key in CARRIED_SECTIONS:
-        if previous.get(key):
+    for key in CARRIED_SECTIONS:  # a section measured by the run at hand (``--speed-only``) stays
+        if previous.get(key) and not digest.get(key):
             digest[key] = previous[key]
     for drive, dd in previous.get("drives", {}).items():
         if drive in digest["drives"] and dd.get("variants"):
@@ -555,7 +554,8 @@ def render_page(d: dict) -> str:
         "[method notes](method.md).")
     carried = d.get("carried_over")
     if carried:
-        measured = sorted({drive for key in ("bench", "diagnostics") for drive in d.get(key) or {}})
+        measured = sorted({drive for key in (("diagnostics",) if d.get("speed") else ("bench", "diagnostics"))
+                           for drive in d.get(key) or {}})
         add("")
         add(f"Only the evaluations of every drive (`python scripts/results.py run --suite-only`: the sections from "
             f"\"Every drive at once\" to \"Every drive, both modes, per step\" and the comparison with the peer) were "
