@@ -99,5 +99,5 @@ def render_camera_rate(d: dict, add) -> None:
             if targets:
                 add(f"- {drive}: " + "; ".join(f"{k.removeprefix('refined_fast_')} "
                                                f"{'met' if v['met'] else 'NOT met'} ({v['value']})"
-                                               for k, v in targets.items()))
+                                               for k, v in sorted(targets.items())))
         add("")
