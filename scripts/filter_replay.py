@@ -35,23 +35,20 @@ ACCEL_SCALES = (0.25, 4.0, 16.0)
 JERK_VARS_M2_S6 = (0.1, 1.0, 10.0)
 
 
-def kinematic_filter(zs: list[np.ndarray], Rs: list[np.ndarray], dt_s: float, order: int,
-                     noise_var: float) -> tuple[np.ndarray, list[float]]:
-    """A linear Kalman filter of ``order`` 2 (constant velocity, white acceleration of variance ``noise_var``)
-    or 3 (constant acceleration, white jerk), per axis, every measurement applied; the first measurement
-    initialises the position with its R, the rest of the state with 1000. Returns the final position and
-    the squared Mahalanobis distances of the innovations after the second step."""
-    if order == 2:
-        F1, g = np.array([[1, dt_s], [0, 1]]), np.array([dt_s**2 / 2, dt_s])
-    else:
-        F1, g = np.array([[1, dt_s, dt_s**2 / 2], [0, 1, dt_s], [0, 0, 1]]), np.array([dt_s**3 / 6, dt_s**2 / 2, dt_s])
-    k = F1.shape[0]
-    F, Q = np.kron(np.eye(2), F1), np.kron(np.eye(2), noise_var * np.outer(g, g))
-    H = np.zeros((2, 2 * k))
-    H[0, 0] = H[1, k] = 1
-    x, P = np.zeros(2 * k), 1000.0 * np.eye(2 * k)
-    x[[0, k]] = zs[0]
-    P[np.ix_([0, k], [0, k])] = Rs[0]
+def constant_acceleration_filter(zs: list[np.ndarray], Rs: list[np.ndarray], dt_s: float,
+                                 jerk_var_m2_s6: float) -> tuple[np.ndarray, list[float]]:
+    """A constant-acceleration Kalman filter (white jerk of variance ``jerk_var_m2_s6``) per axis, every
+    measurement applied; the first measurement initialises the position with its R, velocity and acceleration
+    with 1000. The engine has constant velocity only, hence this one. Returns the final position and the
+    squared Mahalanobis distances of the innovations after the second step."""
+    F1 = np.array([[1, dt_s, dt_s**2 / 2], [0, 1, dt_s], [0, 0, 1]])
+    g = np.array([dt_s**3 / 6, dt_s**2 / 2, dt_s])
+    F, Q = np.kron(np.eye(2), F1), np.kron(np.eye(2), jerk_var_m2_s6 * np.outer(g, g))
+    H = np.zeros((2, 6))
+    H[0, 0] = H[1, 3] = 1
+    x, P = np.zeros(6), 1000.0 * np.eye(6)
+    x[[0, 3]] = zs[0]
+    P[np.ix_([0, 3], [0, 3])] = Rs[0]
     d2 = []
     for i, (z, R) in enumerate(zip(zs[1:], Rs[1:]), start=1):
         x, P = F @ x, F @ P @ F.T + Q
@@ -59,7 +56,7 @@ def kinematic_filter(zs: list[np.ndarray], Rs: list[np.ndarray], dt_s: float, or
         if i >= 2:
             d2.append(float(y @ np.linalg.solve(S, y)))
         K = P @ H.T @ np.linalg.inv(S)
-        x, P = x + K @ y, (np.eye(2 * k) - K @ H) @ P
+        x, P = x + K @ y, (np.eye(6) - K @ H) @ P
     return H @ x, d2
 
 
@@ -70,10 +67,11 @@ def replay(report: dict) -> dict:
     refined = RefinedParams(**{k: tuple(v) if isinstance(v, list) else v for k, v in p["refined"].items()})
     first = report["series"][0][0]
     frame = LocalFrame(first["truth_lat_deg"], first["truth_lon_deg"])
-    filters = {"as run": ("engine", fp)}
-    filters.update({f"Q x {s:g}": ("engine", replace(fp, accel_var_m2_s4=fp.accel_var_m2_s4 * s))
+    # name -> ("engine", FilterParams, gated) or ("ca", jerk variance)
+    filters = {"as run": ("engine", fp, True)}
+    filters.update({f"Q x {s:g}": ("engine", replace(fp, accel_var_m2_s4=fp.accel_var_m2_s4 * s), True)
                     for s in ACCEL_SCALES})
-    filters[f"constant velocity, no gate, q {fp.accel_var_m2_s4:g}"] = ("cv", fp.accel_var_m2_s4)
+    filters[f"constant velocity, no gate, q {fp.accel_var_m2_s4:g}"] = ("engine", fp, False)
     filters.update({f"constant acceleration, no gate, jerk {j:g} m2/s6": ("ca", j) for j in JERK_VARS_M2_S6})
     finals = {name: [] for name in filters}
     d2 = {name: [] for name in filters}
@@ -87,14 +85,15 @@ def replay(report: dict) -> dict:
         measured.append(float(np.linalg.norm(zs[-1] - truth)))
         recorded.append(series[-1]["estimate_error_m"])
         geometry_final.append(series[-1]["measurement_source"] == "geometry")
-        for name, (kind, arg) in filters.items():
+        for name, (kind, *args) in filters.items():
             if kind == "engine":
-                steps = run_filter(zs, arg, covariances_m2=Rs, gate_chi2=refined.gate_chi2,
-                                   reinit_after_gated=refined.reinit_after_gated)
+                params, gated = args
+                steps = run_filter(zs, params, covariances_m2=Rs, gate_chi2=refined.gate_chi2 if gated else 0.0,
+                                   reinit_after_gated=refined.reinit_after_gated if gated else 0)
                 final = steps[-1].x[:2]
                 d2[name] += [s.innovation.mahalanobis**2 for s in steps[2:] if s.innovation is not None]
             else:
-                final, dd = kinematic_filter(zs, Rs, fp.dt_s, 2 if kind == "cv" else 3, arg)
+                final, dd = constant_acceleration_filter(zs, Rs, fp.dt_s, args[0])
                 d2[name] += dd
             finals[name].append(float(np.linalg.norm(final - truth)))
     m = float(np.mean(measured))

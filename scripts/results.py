@@ -220,7 +220,7 @@ def page() -> int:
     manifest = json.loads(manifest_path.read_text())
     digest = {"commit": manifest["commit"], "started": manifest["started"], "finished": manifest["finished"],
               "cores": manifest["cores"], "load_before": manifest["load_before"], "load_after": manifest["load_after"],
-              "drives": {}, "bench": {}, "haversine": None, "speed": manifest.get("speed")}
+              "drives": {}, "bench": {}, "haversine": None, "speed": manifest.get("speed"), "filter_replay": {}}
     for entry in manifest["runs"]:
         report = json.loads((OUT / entry["file"]).read_text())
         if entry["kind"] == "haversine":
@@ -245,8 +245,9 @@ def page() -> int:
             for rows in report["drives"].values():
                 for row in rows:
                     if row["mode"] != "paper" and (OUT / row.get("file", "")).is_file():
-                        row["final_minus_measurement_m"] = final_minus_measurement(
-                            json.loads((OUT / row["file"]).read_text())["series"])
+                        evaluation = json.loads((OUT / row["file"]).read_text())  # read once, large
+                        row["final_minus_measurement_m"] = final_minus_measurement(evaluation["series"])
+                        digest["filter_replay"][Path(row["file"]).stem] = replay(evaluation)
             continue
         drive = digest["drives"].setdefault(entry["drive"], {"setups": {}, "variants": {}, "primary": entry["setup"]})
         setup = drive["setups"].setdefault(entry["setup"], {"label": entry["setup_label"], "modes": {}})
@@ -256,9 +257,6 @@ def page() -> int:
         else:
             drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
     digest["peer"] = digest_peer(PEER, OUT) if PEER.is_dir() else {}
-    digest["filter_replay"] = {Path(row["file"]).stem: replay(json.loads((OUT / row["file"]).read_text()))
-                               for rows in (digest.get("suite") or {}).get("drives", {}).values() for row in rows
-                               if row["mode"] != "paper" and (OUT / row.get("file", "")).is_file()}
     if manifest.get("suite_only"):
         carry_over(digest, json.loads(DIGEST.read_text()))
     DIGEST.parent.mkdir(parents=True, exist_ok=True)
@@ -556,11 +554,12 @@ def render_page(d: dict) -> str:
     if carried:
         measured = sorted({drive for key in (("diagnostics",) if d.get("speed") else ("bench", "diagnostics"))
                            for drive in d.get(key) or {}})
+        sections = "the Table 3 check" + ("" if d.get("speed") else ", \"Camera rate\" and \"Speed\"")
         add("")
         add(f"Only the evaluations of every drive (`python scripts/results.py run --suite-only`: the sections from "
             f"\"Every drive at once\" to \"Every drive, both modes, per step\" and the comparison with the peer) were "
             f"measured with that commit. The sensitivity rows, \"Where the refined measurement's error comes "
-            f"from\", the Table 3 check, \"Camera rate\" and \"Speed\" were measured with commit "
+            f"from\" and {sections} were measured with commit "
             f"`{carried['commit']}` from {carried['started']} to {carried['finished']}, on "
             f"{', '.join(measured) or 'no drive'}: a drive of the data root missing from them has not been "
             "measured there yet.")
