@@ -155,7 +155,11 @@ def main(argv: list[str]) -> int:
         return 2
     results = {}
     for path in paths:
-        r = results[path.stem] = replay(json.loads(path.read_text()))
+        try:
+            r = results[path.stem] = replay(json.loads(path.read_text()))
+        except (ValueError, KeyError, TypeError, IndexError) as exc:
+            print(f"filter_replay: {path}: not an evaluation's JSON with series and params ({exc!r})", file=sys.stderr)
+            return 2
         print(f"{path.stem}: {r['n_series']} series, final measurements {r['final_measurement_mean_m']:.4f} m, "
               f"recorded final estimate {r['recorded_final_estimate_mean_m']:.4f} m")
         for f in r["filters"]:

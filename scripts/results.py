@@ -258,7 +258,7 @@ def page() -> int:
             drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
     digest["peer"] = digest_peer(PEER, OUT) if PEER.is_dir() else {}
     if manifest.get("suite_only"):
-        carry_over(digest, json.loads(DIGEST.read_text()))
+        carry_over(digest, json.loads(DIGEST.read_text()) if DIGEST.is_file() else {})
     DIGEST.parent.mkdir(parents=True, exist_ok=True)
     DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
     PAGE.write_text(render_page(digest))
@@ -295,6 +295,8 @@ def carry_over(digest: dict, previous: dict) -> None:
     """A ``run --suite-only`` digest: the sections that run did not measure (the paper's mode with one change
     per variant, the Table 3 check, camera rate, speed, the refined error's sources) as ``previous`` has them,
     with the commit and time that measured them."""
+    if not previous:  # no earlier digest: nothing to carry, the page shows what this run measured
+        return
     carried = previous.get("carried_over") or {k: previous.get(k) for k in ("commit", "started", "finished", "speed")}
     digest["carried_over"] = carried
     for key in CARRIED_SECTIONS:  # a section measured by the run at hand (``--speed-only``) stays

@@ -68,3 +68,10 @@ def test_a_series_ending_on_a_fallback_is_counted_and_kept_apart():
 def test_no_evaluations_is_a_clear_error(tmp_path, capsys):
     assert filter_replay.main([str(tmp_path)]) == 2
     assert str(tmp_path) in capsys.readouterr().err
+
+
+def test_a_file_that_is_not_an_evaluation_is_named(tmp_path, capsys):
+    (tmp_path / "broken_refined.json").write_text('{"series": []}')
+    assert filter_replay.main([str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "broken_refined.json" in err and len(err.strip().splitlines()) == 1
