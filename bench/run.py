@@ -23,7 +23,6 @@ the drive has one, else the left camera itself (the 1 s exclusion keeps a query 
 
 from __future__ import annotations
 
-import json
 import multiprocessing as mp
 import os
 import tempfile
@@ -52,13 +51,6 @@ from visloc.sources import load_gray, open_source
 from visloc.workspace import Workspace
 
 LEVERS = ("paper", "faiss_nn", "gate", "gate_shortlist", "fast")
-LEVER_TEXT = {
-    "paper": "paper: full-res SIFT, +-20 s window, GEMM brute force",
-    "faiss_nn": "+ exact faiss k-NN instead of GEMM (same candidates)",
-    "gate": "+ filter gate instead of the +-20 s window",
-    "gate_shortlist": "+ VLAD shortlist of the gate (exact counts on it)",
-    "fast": "+ SIFT at image scale 0.5 (own store): the fast path",
-}
 
 
 @dataclass(frozen=True)
@@ -393,7 +385,3 @@ def _targets(result: dict) -> dict:
                         "value": f"{sc['n_images']} images, max {sc['candidates_ms']['max']:.0f} ms, peak RSS "
                                  f"{sc['peak_rss_mb']:.0f} MB"}
     return out
-
-
-def write_json(path: Path, result: dict) -> None:
-    Path(path).write_text(json.dumps(result, indent=1, default=lambda o: o.item() if hasattr(o, "item") else str(o)))

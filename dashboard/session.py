@@ -44,11 +44,6 @@ class SessionLog:
             self._last = (control, value, tab, time.strftime("%H:%M:%S", self._clock()))
         return True
 
-    @property
-    def n_tabs(self) -> int:
-        with self._lock:
-            return len(self._tab_of)
-
     def line(self) -> str:
         """E.g. "Shared by 2 open tabs · last change: τ1 → 0.85 from tab 2 at 14:02:11"."""
         with self._lock:

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from conftest import REPO, require_drive, run_cli, write_csv_drive
-from test_cli import error_lines
+from helpers import error_lines
 from visloc.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED
 from visloc.pose import pose_measurement
@@ -100,6 +100,9 @@ def test_the_fast_measurement_equals_the_exact_one_on_the_same_candidates(store,
     np.testing.assert_array_equal(fast.east_north_m, exact.east_north_m)
     np.testing.assert_array_equal(fast.cov_m2, exact.cov_m2)
     assert fast.n_pnp_inliers == exact.n_pnp_inliers
+    # each path names its own count: essential-matrix inliers (exact), matches to stored 3D points (fast)
+    assert exact.n_verified_inliers == max(exact.candidate_inliers.values()) and exact.n_structure_matches is None
+    assert fast.n_structure_matches == max(fast.candidate_structure_matches.values()) and fast.n_verified_inliers is None
 
 
 def test_variants_keep_the_excluded_images_out_of_the_structure():

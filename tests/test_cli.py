@@ -2,7 +2,6 @@
 
 import hashlib
 import json
-import re
 import sqlite3
 
 import cv2
@@ -12,24 +11,7 @@ import pytest
 from visloc.cli import build_parser
 
 from conftest import run_cli, write_csv_drive
-
-
-# a progress line of a long command off a terminal (visloc.progress), printed before an error may stop it
-PROGRESS_LINE = re.compile(r"^[^:]+: \d+/\d+ [a-z ]+( \(\d+%\))?, (started|done in .+|.+ elapsed, about .+ left)$")
-
-
-def error_lines(stderr: str) -> list[str]:
-    """stderr without progress lines."""
-    return [line for line in stderr.strip().splitlines() if not PROGRESS_LINE.match(line)]
-
-
-def one_line_error(result, *fragments):
-    assert result.returncode == 2, result.stderr
-    lines = error_lines(result.stderr)
-    assert len(lines) == 1, result.stderr
-    assert lines[0].startswith("visloc: error: ")
-    for fragment in fragments:
-        assert fragment in lines[0], lines[0]
+from helpers import one_line_error
 
 
 def test_every_command_and_option_has_help_text():

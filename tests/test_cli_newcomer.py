@@ -17,7 +17,7 @@ from visloc.help_text import DEFAULT_DB
 from visloc.progress import duration_text, progress_reporter
 
 from conftest import make_fake_kitti, run_cli, write_csv_drive
-from test_cli import PROGRESS_LINE, error_lines, one_line_error
+from helpers import PROGRESS_LINE, error_lines, one_line_error
 
 COMMANDS = ("ingest", "localize", "evaluate", "evaluate-drives", "track", "dashboard", "bench", "upgrade", "info")
 

@@ -5,73 +5,39 @@ Screenshots go to ``out/screenshots/`` in the checkout, to be looked at.
 
 Machines running these tests are shared and busy (load 5-10 on 2 cores), so every wait is for a
 condition, with a generous timeout: ``SERVER_WORK_S`` where the server has work to do, and the
-pages' default timeout for playwright's own waits and actions.
+pages' default timeout for playwright's own waits and actions. The helpers that drive the page
+(``DashboardProcess``, ``open_page``, ``control`` ...) are in tests/helpers.py, shared with the
+other browser tests.
 """
 
 from __future__ import annotations
 
-import os
 import re
-import signal
-import subprocess
-import sys
-import threading
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from conftest import REPO, run_cli
+from conftest import run_cli
+from helpers import (
+    RUN_S,
+    SERVER_WORK_S,
+    DashboardProcess,
+    choose,
+    control,
+    dismiss_webgl_notice,
+    go_to_step,
+    new_page,
+    open_other_store,
+    open_page,
+    reset,
+    row,
+    run_number,
+    screenshot,
+    status_text,
+    wait_for,
+)
 
 pytestmark = [pytest.mark.browser, pytest.mark.kitti, pytest.mark.slow]
-
-SCREENSHOTS = REPO / "out" / "screenshots"
-URL_LINE = re.compile(r"visloc dashboard: (http://\S+)")
-SERVER_WORK_S = 120  # a wait for the server to do something (apply controls, draw a step, open a store)
-RUN_S = 600  # a wait for a matching run over a whole drive
-PAGE_TIMEOUT_MS = 120_000  # playwright's default for every wait and action on a page
-
-
-class DashboardProcess:
-    """``visloc dashboard`` started as a user starts it; ``url`` is the URL it printed."""
-
-    def __init__(self, *args: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "visloc", "dashboard", *args], cwd=REPO,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
-        self.output: list[str] = []
-        found = threading.Event()
-        self.url = None
-
-        def read() -> None:
-            for line in self.proc.stdout:
-                self.output.append(line)
-                m = URL_LINE.search(line)
-                if m and self.url is None:
-                    self.url = m.group(1)
-                    found.set()
-
-        threading.Thread(target=read, daemon=True).start()
-        if not found.wait(180):  # Python, numpy, OpenCV and viser import slowly on a busy machine
-            self.stop()
-            raise AssertionError("dashboard printed no URL:\n" + "".join(self.output))
-
-    @property
-    def port(self) -> int:
-        return int(self.url.rsplit(":", 1)[1])
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def stop(self) -> None:
-        if self.alive():
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(30)  # a grace period for a clean exit, then it is killed
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
 
 
 @pytest.fixture(scope="module")
@@ -81,57 +47,6 @@ def dashboard(kitti_evaluation):
     proc = DashboardProcess("--db", str(tmp / "kitti.sqlite"), "--port", "8340")
     yield proc
     proc.stop()
-
-
-def status_text(page) -> str:
-    return page.locator("text=/^(⚠|Ready|Matching|Loading|Starting)/").first.inner_text()
-
-
-def row(page, name: str) -> str:
-    """The value in the step table's row ``name``."""
-    return page.locator("tr", has=page.get_by_text(name, exact=True)).first.locator("td").nth(1).inner_text()
-
-
-def control(page, label: str):
-    return page.get_by_text(label, exact=True).locator("xpath=../../..")
-
-
-def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.25):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(poll_s)
-    raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
-
-
-def run_number(page) -> int:
-    m = re.search(r"Ready \(run (\d+),", status_text(page))
-    return int(m.group(1)) if m else 0
-
-
-def new_page(browser):
-    page = browser.new_page(viewport={"width": 1400, "height": 900})
-    page.set_default_timeout(PAGE_TIMEOUT_MS)
-    return page
-
-
-def open_page(browser, url: str):
-    page = new_page(browser)
-    page.goto(url)
-    page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()  # the GUI arrives over the websocket
-    wait_for(lambda: run_number(page) > 0, 2 * RUN_S, "the first run to be ready")
-    page.get_by_text("Step", exact=True).first.wait_for()
-    return page
-
-
-def dismiss_webgl_notice(page) -> None:
-    # Software rendering (swiftshader) makes viser show a notice that would cover the scene
-    notice = page.get_by_text("Software WebGL rendering detected")
-    if notice.count():
-        notice.first.locator("xpath=../..").locator("button").first.click()
-        notice.first.wait_for(state="hidden")
 
 
 def figure(page):
@@ -162,28 +77,6 @@ def settled(locator, what: str) -> bytes:
         return shots[-1] if shots[-1] == shots[-2] else None
 
     return wait_for(still, SERVER_WORK_S, what, poll_s=0.5)
-
-
-def screenshot(page, name: str) -> Path:
-    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
-    path = SCREENSHOTS / name
-    page.screenshot(path=str(path))
-    return path
-
-
-def reset(page) -> None:
-    before = run_number(page)
-    page.get_by_role("button", name="Paper's parameters").click()
-    wait_for(lambda: run_number(page) > before, RUN_S, "the reset run")
-
-
-def go_to_step(page, step: int) -> None:
-    """Type a step into the slider's number box, as a user may; ``step`` counts from 0, the slider
-    and the panel ("Step k of N") from 1."""
-    box = control(page, "Step").locator("input:not([type=hidden])")
-    box.fill(str(step + 1))
-    box.press("Enter")
-    page.get_by_text(re.compile(rf"^Step {step + 1} of \d+$")).wait_for()
 
 
 def test_page_loads_with_its_controls_and_panels(dashboard, browser):
@@ -324,22 +217,6 @@ def test_two_tabs_see_the_same_session(dashboard, browser):
         b.close()
 
 
-def open_other_store(page, path: Path | str):
-    """Type a store's path under Data, press Open, and return the error the page answers with
-    under Open (it stays there; the status line above moves on with the next run).
-
-    The page answers the typing ("Open reads PATH") before Open is pressed: viser's client sends
-    at most one control change per 50 ms and drops the ones in between, so a click right after
-    the typing could otherwise reach the server before the path does."""
-    box = control(page, "Other store").locator("input, textarea").first
-    box.fill(str(path))
-    page.get_by_text(f"Open reads {path}", exact=True).wait_for()
-    page.get_by_role("button", name="Open", exact=True).click()
-    message = page.get_by_text(re.compile("^⚠ " + re.escape(str(path)))).first
-    message.wait_for()
-    return message
-
-
 def test_a_bad_store_is_reported_in_the_page_and_the_server_lives_on(dashboard, browser, tmp_path):
     page = open_page(browser, dashboard.url)
     try:
@@ -390,11 +267,6 @@ def test_bad_port_is_a_one_line_error():
     result = run_cli("dashboard", "--port", "70000")
     assert result.returncode == 2
     assert result.stderr.strip() == "visloc: error: --port 70000: must be in 1..65535"
-
-
-def choose(page, label: str, option: str) -> None:
-    control(page, label).locator("input").first.click()
-    page.get_by_role("option", name=option, exact=True).click()
 
 
 def test_switching_to_the_refined_mode_measures_metric_poses(dashboard, browser):

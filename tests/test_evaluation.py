@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from visloc import PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, SiftParams, Workspace, evaluate, open_csv
-from visloc.report import evaluation_json, save_error_plot, series_tables, summary_text, write_json
+from visloc.report import (PAPER_DATABASE, PAPER_QUERIES, evaluation_json, save_error_plot, series_tables, summary_text,
+                           write_json)
 
 from conftest import write_csv_drive
 
@@ -68,6 +69,11 @@ def test_reports_are_written(drives, tmp_path):
     summary = result.summary()
     text = summary_text(summary)
     assert "final estimate error (m)" in text and "series evaluated: 1" in text
+    assert "paper on this drive" not in text  # not the paper's drive: no comparison
+    # on the paper's drive and protocol, its numbers (Table 3's measurement errors, averaged, and Figure 4's)
+    paper = {**summary, "params": {**summary["params"], "database": PAPER_DATABASE, "queries": PAPER_QUERIES}}
+    assert ("the paper on this drive and protocol (its Table 3 and Figure 4): measurement about 18 m (Haversine), "
+            "final estimate 1.85 m") in summary_text(paper).splitlines()
     tables = series_tables(result.series[0], db.frame)
     assert "Table 2" in tables and "Table 3" in tables and tables.count("\n") > 10
     write_json(tmp_path / "r.json", evaluation_json(result))

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 from fault_table import Fault, params
-from test_dashboard import (
+from helpers import (
     DashboardProcess,
     control,
     dismiss_webgl_notice,

@@ -19,8 +19,7 @@ import pytest
 
 from fault_table import Fault, params
 from conftest import REPO, run_cli, write_csv_drive
-from test_cli import error_lines, one_line_error
-from test_ingest import assert_no_half_images, snapshot, wait_for_rows
+from helpers import assert_no_half_images, error_lines, one_line_error, snapshot, wait_for_rows
 
 FAULTS = [
     Fault("killed-sift-worker", "ingest",

@@ -16,8 +16,7 @@ import pytest
 
 from fault_table import Fault, params
 from conftest import REPO, run_cli, write_csv_drive
-from test_cli import one_line_error
-from test_store import make_version_1_store
+from helpers import make_version_1_store, one_line_error
 
 FAULTS = [
     Fault("read-only-medium", "store file",

@@ -196,9 +196,13 @@ def test_measurement_gives_back_the_known_query_position_within_centimetres():
     assert np.linalg.norm(m.east_north_m - truth) < 0.05
     assert m.n_pnp_inliers > 100 and m.sigma_m < 0.1 and m.heading_deg == pytest.approx(90 - np.degrees(0.02), abs=0.2)
     assert len(cache) > 0
+    # the exact path verifies: its count is essential-matrix inliers, the camera-rate path's count stays unset
+    assert m.n_verified_inliers == max(m.candidate_inliers.values()) >= params.min_verified_inliers
+    assert m.n_structure_matches is None and m.candidate_structure_matches == {}
     # the paper's measurement of the same retrieval is the best match's geotag, 5 m off here
     paper = geotag_measurement(retrieval_over(5), geotags)
     assert paper.source == GEOTAG and paper.cov_m2 is None
+    assert paper.n_verified_inliers is None and paper.n_structure_matches is None  # nothing verified or matched
     np.testing.assert_array_equal(paper.east_north_m, geotags[2])
     # deterministic: the same inputs give the same measurement, with or without the cache
     again = PoseMeasurer(geotags, geometry, CAMERA, params).measure(Query(dq, 0.0, keypoints_f32=xq), retrieval_over(5))

@@ -2,10 +2,8 @@
 
 import os
 import signal
-import sqlite3
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
@@ -17,19 +15,7 @@ from visloc.params import SiftParams
 from visloc.sources import open_csv
 
 from conftest import REPO, write_csv_drive
-
-
-def snapshot(path):
-    """(frame -> (n_keypoints, keypoint bytes, descriptor bytes)) of a store, read with plain sqlite3."""
-    conn = sqlite3.connect(path)
-    rows = conn.execute("SELECT frame, n_keypoints, keypoints_f32, descriptors_u8 FROM images").fetchall()
-    conn.close()
-    return {r[0]: r[1:] for r in rows}
-
-
-def assert_no_half_images(snap):
-    for n, kp, desc in snap.values():
-        assert n > 0 and len(kp) == n * 6 * 4 and len(desc) == n * 128
+from helpers import assert_no_half_images, snapshot, wait_for_rows
 
 
 def test_reingest_skips_everything_stored(tmp_path, csv_drive):
@@ -73,23 +59,6 @@ def test_ctrl_c_commits_finished_images_and_resume_completes(tmp_path, csv_drive
 def _ingest_process(csv_path, db_path):
     return subprocess.Popen([sys.executable, "-m", "visloc", "ingest", str(csv_path), "--db", str(db_path),
                              "--workers", "1"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-def wait_for_rows(db_path, at_least, proc, timeout_s=120):
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if db_path.exists():
-            try:
-                conn = sqlite3.connect(db_path, timeout=0.1)
-                n = conn.execute("SELECT count(*) FROM images").fetchone()[0]
-                conn.close()
-                if n >= at_least:
-                    return n
-            except sqlite3.OperationalError:
-                pass  # schema not created yet, or locked for a moment
-        assert proc.poll() is None, "ingest ended before it could be interrupted"
-        time.sleep(0.005)
-    raise AssertionError("ingest made no progress")
 
 
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])

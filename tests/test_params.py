@@ -33,7 +33,10 @@ def test_out_of_range_is_refused_naming_the_parameter(cls, kwargs, name):
 
 @pytest.mark.parametrize("tau1,tau2", [(1.0, -1.0), (1e-9, 1.0), (0.8, 0.97)])
 def test_bounds_are_inclusive_as_the_paper_states(tau1, tau2):
-    MatchParams(tau1, tau2)
+    """tau1 in (0, 1], tau2 in [-1, 1]: the closed ends are accepted and kept as given (the open end,
+    tau1 = 0, is refused in test_out_of_range_is_refused_naming_the_parameter)."""
+    params = MatchParams(tau1=tau1, tau2=tau2)
+    assert (params.tau1, params.tau2) == (tau1, tau2)
 
 
 def test_paper_preset_holds_table_1():

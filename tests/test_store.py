@@ -9,6 +9,8 @@ import pytest
 from visloc.db import (CameraRecord, EmptyStoreError, FeatureStore, ImageRecord, NotAStoreError, SettingsMismatchError,
                 StoreError)
 
+from helpers import features, make_version_1_store
+
 
 def record(frame: int, **kw) -> ImageRecord:
     base = dict(source="drive", camera="image_01", frame=frame, path=f"/x/{frame}.png", timestamp_s=100.0 + frame,
@@ -16,11 +18,6 @@ def record(frame: int, **kw) -> ImageRecord:
                 height_px=32, sift_ms=12.5)
     base.update(kw)
     return ImageRecord(**base)
-
-
-def features(n: int, seed: int):
-    rng = np.random.default_rng(seed)
-    return rng.random((n, 6), dtype=np.float32) * 100, rng.integers(0, 256, (n, 128), dtype=np.uint8)
 
 
 def sha(path):
@@ -142,34 +139,6 @@ def test_pair_counts_cache_round_trip_per_threshold(memory_store):
     assert memory_store.pair_counts([1], 0.8, 0.97) == {(1, 2): (17, 25.0), (1, 3): (0, 30.5)}
     assert memory_store.pair_counts([1], 0.9, 0.97) == {(1, 2): (30, 26.0)}
     assert memory_store.pair_counts([2], 0.8, 0.97) == {}
-
-
-def make_version_1_store(path):
-    """A store exactly as schema version 1 wrote it: one image, one cached count, no attitude columns."""
-    conn = sqlite3.connect(path)
-    conn.executescript("""
-        CREATE TABLE visloc_schema (version INTEGER, created_at TEXT);
-        INSERT INTO visloc_schema VALUES (1, '2025-01-01T00:00:00+00:00');
-        CREATE TABLE settings (key TEXT PRIMARY KEY, value_json TEXT);
-        INSERT INTO settings VALUES ('sift', '{"n_features": 0}');
-        CREATE TABLE cameras (source TEXT, camera TEXT, p_rect_json TEXT, width_px INTEGER, height_px INTEGER,
-                              PRIMARY KEY (source, camera));
-        INSERT INTO cameras VALUES ('drive', 'image_01', '[[1,0,0,0],[0,1,0,0],[0,0,1,0]]', 64, 32);
-        CREATE TABLE images (id INTEGER PRIMARY KEY, source TEXT NOT NULL, camera TEXT NOT NULL,
-            frame INTEGER NOT NULL, path TEXT, timestamp_s FLOAT NOT NULL, lat_deg FLOAT NOT NULL,
-            lon_deg FLOAT NOT NULL, alt_m FLOAT, heading_deg FLOAT, width_px INTEGER, height_px INTEGER,
-            sift_ms FLOAT, n_keypoints INTEGER NOT NULL, keypoints_f32 BLOB, descriptors_u8 BLOB, created_at TEXT);
-        CREATE UNIQUE INDEX idx_images_source_camera_frame ON images (source, camera, frame);
-        CREATE TABLE pair_counts (query_image_id INTEGER, db_image_id INTEGER, tau1 FLOAT, tau2 FLOAT,
-            n_correspondences INTEGER, match_ms FLOAT, PRIMARY KEY (query_image_id, db_image_id, tau1, tau2));
-        INSERT INTO pair_counts VALUES (1, 1, 0.8, 0.97, 42, 3.5);
-    """)
-    kp, desc = features(7, 3)
-    conn.execute("INSERT INTO images VALUES (1, 'drive', 'image_01', 0, '/x/0.png', 100.0, 49.0, 8.4, 116.0, 250.0,"
-                 " 64, 32, 12.5, 7, ?, ?, '2025-01-01')", [kp.tobytes(), desc.tobytes()])
-    conn.commit()
-    conn.close()
-    return kp, desc
 
 
 def test_a_version_1_store_is_migrated_in_place_keeping_its_data(tmp_path):

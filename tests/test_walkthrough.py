@@ -20,7 +20,7 @@ import threading
 
 import geojson
 import pytest
-from test_dashboard import control, dismiss_webgl_notice, new_page, run_number, screenshot, wait_for
+from helpers import control, dismiss_webgl_notice, new_page, run_number, screenshot, wait_for
 
 from conftest import REPO
 

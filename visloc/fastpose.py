@@ -183,8 +183,8 @@ class FastPoseMeasurer:
                 continue
             usable.append(i)
             pairs_of[i], lookups[i], neighbours_used[i] = self.matcher.pairs(i), self._lookup(s), s.neighbours
-        base = dict(n_verified_inliers=best, candidate_inliers={int(c): int(n) for c, n in
-                                                                zip(retrieval.candidates, retrieval.counts)})
+        base = dict(n_structure_matches=best, candidate_structure_matches={
+            int(c): int(n) for c, n in zip(retrieval.candidates, retrieval.counts)})
         if not usable:
             return fallback(f"no candidate has {self.min_matches} matches to stored structure the query allows "
                             f"(best {best})", **base)

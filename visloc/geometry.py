@@ -98,10 +98,6 @@ class CameraModel:
         """From a rectified projection matrix (its baseline column is already in ``T_camera_imu``)."""
         return cls(K=np.asarray(P_rect, float)[:, :3], T_camera_imu=T_camera_imu)
 
-    @property
-    def focal_px(self) -> float:
-        return float(0.5 * (self.K[0, 0] + self.K[1, 1]))
-
 
 def projection_matrix(K: np.ndarray, T_world_camera: np.ndarray) -> np.ndarray:
     """3x4 P = K [R | t] of T_camera_world: pixels of world points."""

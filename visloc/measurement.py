@@ -36,7 +36,13 @@ class Measurement:
                          geometry, the best match by count for a geotag).
     view_indices:        database images the query was posed against; neighbour_indices: those
                          triangulated with them.
-    n_verified_inliers:  essential-matrix inliers of the best verified candidate.
+    n_verified_inliers:  the exact refined path (``visloc.pose``): essential-matrix inliers of the best
+                         verified candidate; None where nothing was verified (the paper's measurement, the
+                         camera-rate path, a query without keypoints). candidate_inliers: the same per
+                         verified candidate (database index -> inliers).
+    n_structure_matches: the camera-rate path (``visloc.fastpose``): the best candidate's query matches to
+                         its stored 3D points (the count that ranks its candidates; no two-view
+                         verification); None elsewhere. candidate_structure_matches: the same per candidate.
     n_correspondences_3d, n_pnp_inliers, reprojection_rms_px: the pose's support.
     up_m, heading_deg:   the pose's altitude in the local frame and compass heading (geometry only).
     absolute_sigma_m:    geometry: the stated accuracy of the geotags it rests on (per axis, m), the map's own
@@ -56,7 +62,8 @@ class Measurement:
     db_index: int | None = None
     view_indices: tuple[int, ...] = ()
     neighbour_indices: tuple[int, ...] = ()
-    n_verified_inliers: int = 0
+    n_verified_inliers: int | None = None
+    n_structure_matches: int | None = None
     n_correspondences_3d: int = 0
     n_pnp_inliers: int = 0
     reprojection_rms_px: float | None = None
@@ -69,6 +76,7 @@ class Measurement:
     compute_ms: float = 0.0
     structure_ms: float = 0.0
     candidate_inliers: dict[int, int] = field(default_factory=dict, repr=False)
+    candidate_structure_matches: dict[int, int] = field(default_factory=dict, repr=False)
 
     @property
     def sigma_m(self) -> float | None:

@@ -5,11 +5,12 @@ For a query whose retrieval has ranked the database candidates by correspondence
 1. **Verification.** The ``top_k`` candidates are matched to the query again (Lowe's
    ratio alone) and re-ranked by their inliers under an essential matrix (RANSAC,
    both cameras' intrinsics).
-2. **Structure.** Each verified candidate used as a *view* is triangulated with its
-   nearest database neighbours, up to ``neighbours_per_side`` before and after it within
+2. **Structure.** Each verified candidate used as a *view* is triangulated with database
+   neighbours before and after it: on each side, for each of ``neighbour_baselines_m``, the
+   image whose distance from the view is nearest that baseline (``neighbours_of``), within
    ``max_neighbour_gap`` frames, among the images the retrieval allows (so the exclusion
-   window holds for them too) and at least ``min_baseline_m`` away. Their poses come from
-   the geotags and attitudes, their scale from the geotags: no query information.
+   window holds for them too), posed, and at least ``min_baseline_m`` away. Their poses come
+   from the geotags and attitudes, their scale from the geotags: no query information.
 3. **Views on both sides.** The query is posed against the ``n_views`` best views; if
    they all lie on one side of that first pose (all behind it, or all ahead) and a
    verified candidate lies on the other side, the weakest view is swapped for it and the

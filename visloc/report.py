@@ -83,6 +83,11 @@ def is_paper_protocol(summary: dict) -> bool:
     return tuple(n.replace("_sync/", "/") for n in names) == (PAPER_DATABASE, PAPER_QUERIES)
 
 
+def _paper_measurement_m() -> float:
+    """The paper's mean measurement error over its Table 3's steps (m, Haversine)."""
+    return sum(PAPER_TABLE3_MEASUREMENT_ERROR_M) / len(PAPER_TABLE3_MEASUREMENT_ERROR_M)
+
+
 def summary_text(summary: dict) -> str:
     """An evaluation's summary for the terminal; errors are WGS84 geodesic distances to the geotags."""
     labels = summary["steps"]
@@ -107,8 +112,8 @@ def summary_text(summary: dict) -> str:
             for k, v in summary["final_error_m_by_steps_ahead"].items()),
     ]
     if is_paper_protocol(summary):
-        lines.append(f"the paper on this drive and protocol (its Table 3 and Figure 4): measurement about 18 m "
-                     f"(Haversine), final estimate {PAPER_FINAL_ERROR_M} m")
+        lines.append(f"the paper on this drive and protocol (its Table 3 and Figure 4): measurement about "
+                     f"{_paper_measurement_m():.0f} m (Haversine), final estimate {PAPER_FINAL_ERROR_M} m")
     if _measures_pose(summary):
         src = summary["measurement_source_fraction"]
         nees = summary["measurement_nees"] or {}

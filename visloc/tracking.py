@@ -159,10 +159,6 @@ class ConstantVelocityKalman:
         assert self.F.shape == (STATE_DIM, STATE_DIM) and self.Q.shape == (STATE_DIM, STATE_DIM)
         assert self.R.shape == (MEAS_DIM, MEAS_DIM) and H.shape == (MEAS_DIM, STATE_DIM)
 
-    @property
-    def initialised(self) -> bool:
-        return self.x is not None
-
     def prediction(self) -> tuple[np.ndarray, np.ndarray] | None:
         """The next step's predicted position (east_m, north_m) and its 2x2 covariance (m^2);
         None before the first measurement."""

@@ -112,20 +112,6 @@ class Workspace:
                                n_without_attitude=lacking[key]))
         return out
 
-    def database_source(self, query_source: str, db_camera: str, db_source: str | None = None) -> str:
-        """The source to use as the database for queries of ``query_source``: ``db_source`` if given,
-        else the query's own source if it holds ``db_camera``, else the only source that does."""
-        if db_source:
-            return db_source
-        datasets = self.datasets()
-        if any(d.source == query_source and d.camera == db_camera for d in datasets):
-            return query_source
-        with_camera = sorted({d.source for d in datasets if d.camera == db_camera})
-        if len(with_camera) == 1:
-            return with_camera[0]
-        have = ", ".join(d.name for d in datasets) or "nothing"
-        raise InputError(f"{self.path}: choose the database with --db-source (it holds {have})")
-
     # -- building it ---------------------------------------------------------------------------
 
     def skipped_frames(self) -> list[SkippedFrame]:

@@ -1,0 +1,254 @@
+"""Helpers shared by several test modules: checks of the command line's output, snapshots of a store
+being ingested, an old store written by hand, and driving the dashboard in a browser.
+
+Fixtures live in conftest.py; a test module imports these as ``from helpers import ...``."""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import sqlite3
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from conftest import REPO
+
+
+# -- the command line --------------------------------------------------------------------------------------
+
+# a progress line of a long command off a terminal (visloc.progress), printed before an error may stop it
+PROGRESS_LINE = re.compile(r"^[^:]+: \d+/\d+ [a-z ]+( \(\d+%\))?, (started|done in .+|.+ elapsed, about .+ left)$")
+
+
+def error_lines(stderr: str) -> list[str]:
+    """stderr without progress lines."""
+    return [line for line in stderr.strip().splitlines() if not PROGRESS_LINE.match(line)]
+
+
+def one_line_error(result, *fragments):
+    assert result.returncode == 2, result.stderr
+    lines = error_lines(result.stderr)
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("visloc: error: ")
+    for fragment in fragments:
+        assert fragment in lines[0], lines[0]
+
+
+# -- a store being ingested, read with plain sqlite3 -----------------------------------------------------
+
+def snapshot(path):
+    """(frame -> (n_keypoints, keypoint bytes, descriptor bytes)) of a store, read with plain sqlite3."""
+    conn = sqlite3.connect(path)
+    rows = conn.execute("SELECT frame, n_keypoints, keypoints_f32, descriptors_u8 FROM images").fetchall()
+    conn.close()
+    return {r[0]: r[1:] for r in rows}
+
+
+def assert_no_half_images(snap):
+    for n, kp, desc in snap.values():
+        assert n > 0 and len(kp) == n * 6 * 4 and len(desc) == n * 128
+
+
+def wait_for_rows(db_path, at_least, proc, timeout_s=120):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if db_path.exists():
+            try:
+                conn = sqlite3.connect(db_path, timeout=0.1)
+                n = conn.execute("SELECT count(*) FROM images").fetchone()[0]
+                conn.close()
+                if n >= at_least:
+                    return n
+            except sqlite3.OperationalError:
+                pass  # schema not created yet, or locked for a moment
+        assert proc.poll() is None, "ingest ended before it could be interrupted"
+        time.sleep(0.005)
+    raise AssertionError("ingest made no progress")
+
+
+# -- stores as older versions wrote them ------------------------------------------------------------------
+
+def features(n: int, seed: int):
+    rng = np.random.default_rng(seed)
+    return rng.random((n, 6), dtype=np.float32) * 100, rng.integers(0, 256, (n, 128), dtype=np.uint8)
+
+
+def make_version_1_store(path):
+    """A store exactly as schema version 1 wrote it: one image, one cached count, no attitude columns."""
+    conn = sqlite3.connect(path)
+    conn.executescript("""
+        CREATE TABLE visloc_schema (version INTEGER, created_at TEXT);
+        INSERT INTO visloc_schema VALUES (1, '2025-01-01T00:00:00+00:00');
+        CREATE TABLE settings (key TEXT PRIMARY KEY, value_json TEXT);
+        INSERT INTO settings VALUES ('sift', '{"n_features": 0}');
+        CREATE TABLE cameras (source TEXT, camera TEXT, p_rect_json TEXT, width_px INTEGER, height_px INTEGER,
+                              PRIMARY KEY (source, camera));
+        INSERT INTO cameras VALUES ('drive', 'image_01', '[[1,0,0,0],[0,1,0,0],[0,0,1,0]]', 64, 32);
+        CREATE TABLE images (id INTEGER PRIMARY KEY, source TEXT NOT NULL, camera TEXT NOT NULL,
+            frame INTEGER NOT NULL, path TEXT, timestamp_s FLOAT NOT NULL, lat_deg FLOAT NOT NULL,
+            lon_deg FLOAT NOT NULL, alt_m FLOAT, heading_deg FLOAT, width_px INTEGER, height_px INTEGER,
+            sift_ms FLOAT, n_keypoints INTEGER NOT NULL, keypoints_f32 BLOB, descriptors_u8 BLOB, created_at TEXT);
+        CREATE UNIQUE INDEX idx_images_source_camera_frame ON images (source, camera, frame);
+        CREATE TABLE pair_counts (query_image_id INTEGER, db_image_id INTEGER, tau1 FLOAT, tau2 FLOAT,
+            n_correspondences INTEGER, match_ms FLOAT, PRIMARY KEY (query_image_id, db_image_id, tau1, tau2));
+        INSERT INTO pair_counts VALUES (1, 1, 0.8, 0.97, 42, 3.5);
+    """)
+    kp, desc = features(7, 3)
+    conn.execute("INSERT INTO images VALUES (1, 'drive', 'image_01', 0, '/x/0.png', 100.0, 49.0, 8.4, 116.0, 250.0,"
+                 " 64, 32, 12.5, 7, ?, ?, '2025-01-01')", [kp.tobytes(), desc.tobytes()])
+    conn.commit()
+    conn.close()
+    return kp, desc
+
+
+# -- the dashboard in a browser ----------------------------------------------------------------------------
+# Machines running these tests are shared and busy, so every wait is for a condition, with a generous
+# timeout: SERVER_WORK_S where the server has work to do, and the pages' default timeout for
+# playwright's own waits and actions.
+
+SCREENSHOTS = REPO / "out" / "screenshots"
+URL_LINE = re.compile(r"visloc dashboard: (http://\S+)")
+SERVER_WORK_S = 120  # a wait for the server to do something (apply controls, draw a step, open a store)
+RUN_S = 600  # a wait for a matching run over a whole drive
+PAGE_TIMEOUT_MS = 120_000  # playwright's default for every wait and action on a page
+
+
+class DashboardProcess:
+    """``visloc dashboard`` started as a user starts it; ``url`` is the URL it printed."""
+
+    def __init__(self, *args: str):
+        self.proc = subprocess.Popen([sys.executable, "-m", "visloc", "dashboard", *args], cwd=REPO,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                     env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        self.output: list[str] = []
+        found = threading.Event()
+        self.url = None
+
+        def read() -> None:
+            for line in self.proc.stdout:
+                self.output.append(line)
+                m = URL_LINE.search(line)
+                if m and self.url is None:
+                    self.url = m.group(1)
+                    found.set()
+
+        threading.Thread(target=read, daemon=True).start()
+        if not found.wait(180):  # Python, numpy, OpenCV and viser import slowly on a busy machine
+            self.stop()
+            raise AssertionError("dashboard printed no URL:\n" + "".join(self.output))
+
+    @property
+    def port(self) -> int:
+        return int(self.url.rsplit(":", 1)[1])
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def stop(self) -> None:
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(30)  # a grace period for a clean exit, then it is killed
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def status_text(page) -> str:
+    return page.locator("text=/^(⚠|Ready|Matching|Loading|Starting)/").first.inner_text()
+
+
+def row(page, name: str) -> str:
+    """The value in the step table's row ``name``."""
+    return page.locator("tr", has=page.get_by_text(name, exact=True)).first.locator("td").nth(1).inner_text()
+
+
+def control(page, label: str):
+    return page.get_by_text(label, exact=True).locator("xpath=../../..")
+
+
+def wait_for(predicate, timeout_s: float, what: str, poll_s: float = 0.25):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(poll_s)
+    raise AssertionError(f"timed out after {timeout_s:.0f} s waiting for {what}")
+
+
+def run_number(page) -> int:
+    m = re.search(r"Ready \(run (\d+),", status_text(page))
+    return int(m.group(1)) if m else 0
+
+
+def new_page(browser):
+    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page.set_default_timeout(PAGE_TIMEOUT_MS)
+    return page
+
+
+def open_page(browser, url: str):
+    page = new_page(browser)
+    page.goto(url)
+    page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()  # the GUI arrives over the websocket
+    wait_for(lambda: run_number(page) > 0, 2 * RUN_S, "the first run to be ready")
+    page.get_by_text("Step", exact=True).first.wait_for()
+    return page
+
+
+def dismiss_webgl_notice(page) -> None:
+    # Software rendering (swiftshader) makes viser show a notice that would cover the scene
+    notice = page.get_by_text("Software WebGL rendering detected")
+    if notice.count():
+        notice.first.locator("xpath=../..").locator("button").first.click()
+        notice.first.wait_for(state="hidden")
+
+
+def screenshot(page, name: str) -> Path:
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    path = SCREENSHOTS / name
+    page.screenshot(path=str(path))
+    return path
+
+
+def reset(page) -> None:
+    before = run_number(page)
+    page.get_by_role("button", name="Paper's parameters").click()
+    wait_for(lambda: run_number(page) > before, RUN_S, "the reset run")
+
+
+def go_to_step(page, step: int) -> None:
+    """Type a step into the slider's number box, as a user may; ``step`` counts from 0, the slider
+    and the panel ("Step k of N") from 1."""
+    box = control(page, "Step").locator("input:not([type=hidden])")
+    box.fill(str(step + 1))
+    box.press("Enter")
+    page.get_by_text(re.compile(rf"^Step {step + 1} of \d+$")).wait_for()
+
+
+def open_other_store(page, path: Path | str):
+    """Type a store's path under Data, press Open, and return the error the page answers with
+    under Open (it stays there; the status line above moves on with the next run).
+
+    The page answers the typing ("Open reads PATH") before Open is pressed: viser's client sends
+    at most one control change per 50 ms and drops the ones in between, so a click right after
+    the typing could otherwise reach the server before the path does."""
+    box = control(page, "Other store").locator("input, textarea").first
+    box.fill(str(path))
+    page.get_by_text(f"Open reads {path}", exact=True).wait_for()
+    page.get_by_role("button", name="Open", exact=True).click()
+    message = page.get_by_text(re.compile("^⚠ " + re.escape(str(path)))).first
+    message.wait_for()
+    return message
+
+
+def choose(page, label: str, option: str) -> None:
+    control(page, label).locator("input").first.click()
+    page.get_by_role("option", name=option, exact=True).click()
