@@ -1,133 +1,170 @@
-"""The store's tables: creating them, and migrating a store of an older schema version in place.
+"""The store's schema, kept as its history: each table, column and index is defined once, in the
+step of ``HISTORY`` that brought it, and ``upgrade`` is the one function that applies them.
 
-Schema versions: 1 had no attitudes and no camera extrinsics. Version 2 adds them as NULL
-columns (``ALTER TABLE ... ADD COLUMN``), every existing row and cached count kept. Version 3
-adds each image's stated geotag accuracy (``position_accuracy_m``) the same way. Version 4 adds
-the tables of database structure (``structures``) and of global vectors (``global_vectors``,
-``arrays``), which ``visloc ingest`` fills; every image and cached count is kept.
+``HISTORY[n - 1]`` takes a store from schema version n - 1 to n:
 
-Two tables are made when first needed, in any version: ``skipped_frames`` (frames ingest left
-out) and ``self_checks`` (how well the database poses its own images).
+1  the first store: its schema version, settings, cameras, images and their two indexes, and the
+   cache of correspondence counts (``pair_counts``; the very first stores of version 1 lacked it).
+2  attitudes (images: roll_rad, pitch_rad, yaw_rad) and camera extrinsics (cameras:
+   t_camera_imu_json), NULL in rows written before.
+3  each image's stated geotag accuracy (images: position_accuracy_m), NULL in rows written before.
+4  database structure (``structures``), global vectors (``global_vectors``, ``arrays``), the frames
+   ingest skipped (``skipped_frames``) and self-checks (``self_checks``). The last two were once
+   made when first needed, so a store of version 4 written then may lack them.
+
+A new store is the whole history applied to an empty file. Opening a store for writing applies
+whatever of the history it lacks (a store of an older version: every later step; any store: a
+table that was once made when first needed) and records ``SCHEMA_VERSION``; every row is kept.
+A column added to an existing table is appended (``ALTER TABLE ... ADD COLUMN``); in a table made
+in the same run it takes its place (``after``) in the ``CREATE TABLE``, so a new store's
+tables read as they always have: the large BLOB columns last.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
+from dataclasses import dataclass
 
 import sqlite_utils
 
-SCHEMA_VERSION = 4
-# columns added by each version after the first: table -> (column, SQL type)
-MIGRATIONS = {
-    2: [("images", "roll_rad", "REAL"), ("images", "pitch_rad", "REAL"), ("images", "yaw_rad", "REAL"),
-        ("cameras", "t_camera_imu_json", "TEXT")],
-    3: [("images", "position_accuracy_m", "REAL")],
-    4: [],
-}
-REQUIRED_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # pair_counts, a cache, is added when missing
+
+@dataclass(frozen=True)
+class Table:
+    """A table: columns as (name, declaration) in order; ``key``: a primary key of several columns."""
+
+    name: str
+    columns: tuple[tuple[str, str], ...]
+    key: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Column:
+    """A column added to ``table`` (NULL in the rows it holds); placed after ``after`` (None: last)
+    when the table is made in the same run."""
+
+    table: str
+    name: str
+    sql_type: str
+    after: str | None = None
+
+
+@dataclass(frozen=True)
+class Index:
+    """An index of ``table`` over ``columns``, named as sqlite-utils names it."""
+
+    table: str
+    columns: tuple[str, ...]
+    unique: bool = False
+
+    @property
+    def name(self) -> str:
+        return f"idx_{self.table}_{'_'.join(self.columns)}"
+
+
+Change = Table | Column | Index
+
+HISTORY: tuple[tuple[Change, ...], ...] = (
+    (  # 0 -> 1
+        Table("visloc_schema", (("version", "INTEGER"), ("created_at", "TEXT"))),
+        Table("settings", (("key", "TEXT PRIMARY KEY"), ("value_json", "TEXT"))),
+        Table("cameras", (("source", "TEXT"), ("camera", "TEXT"), ("p_rect_json", "TEXT"), ("width_px", "INTEGER"),
+                          ("height_px", "INTEGER")), key=("source", "camera")),
+        Table("images", (("id", "INTEGER PRIMARY KEY"), ("source", "TEXT NOT NULL"), ("camera", "TEXT NOT NULL"),
+                         ("frame", "INTEGER NOT NULL"), ("path", "TEXT"), ("timestamp_s", "REAL NOT NULL"),
+                         ("lat_deg", "REAL NOT NULL"), ("lon_deg", "REAL NOT NULL"), ("alt_m", "REAL"),
+                         ("heading_deg", "REAL"), ("width_px", "INTEGER"), ("height_px", "INTEGER"),
+                         ("sift_ms", "REAL"), ("n_keypoints", "INTEGER NOT NULL"), ("keypoints_f32", "BLOB"),
+                         ("descriptors_u8", "BLOB"), ("created_at", "TEXT"))),
+        Table("pair_counts", (("query_image_id", "INTEGER"), ("db_image_id", "INTEGER"), ("tau1", "REAL"),
+                              ("tau2", "REAL"), ("n_correspondences", "INTEGER"), ("match_ms", "REAL")),
+              key=("query_image_id", "db_image_id", "tau1", "tau2")),
+        Index("images", ("source", "camera", "frame"), unique=True),
+        Index("images", ("source", "camera", "timestamp_s")),
+    ),
+    (  # 1 -> 2
+        Column("images", "roll_rad", "REAL", after="sift_ms"),
+        Column("images", "pitch_rad", "REAL", after="roll_rad"),
+        Column("images", "yaw_rad", "REAL", after="pitch_rad"),
+        Column("cameras", "t_camera_imu_json", "TEXT"),
+    ),
+    (  # 2 -> 3
+        Column("images", "position_accuracy_m", "REAL", after="yaw_rad"),
+    ),
+    (  # 3 -> 4
+        Table("structures", (("image_id", "INTEGER"), ("variant", "TEXT"), ("params_json", "TEXT"),
+                             ("neighbour_ids_json", "TEXT"), ("n_points", "INTEGER"), ("rows_i32", "BLOB"),
+                             ("points_f64", "BLOB"), ("cov_f64", "BLOB"), ("reason", "TEXT"), ("build_ms", "REAL"),
+                             ("created_at", "TEXT")), key=("image_id", "variant")),
+        Table("global_vectors", (("name", "TEXT"), ("image_id", "INTEGER"), ("vector_f32", "BLOB")),
+              key=("name", "image_id")),
+        Table("arrays", (("key", "TEXT PRIMARY KEY"), ("dtype", "TEXT"), ("shape_json", "TEXT"), ("data", "BLOB"))),
+        Table("skipped_frames", (("source", "TEXT"), ("camera", "TEXT"), ("frame", "INTEGER"), ("path", "TEXT"),
+                                 ("reason", "TEXT"), ("skipped_at", "TEXT")), key=("source", "camera", "frame")),
+        Table("self_checks", (("image_id", "INTEGER"), ("params_json", "TEXT"), ("error_east_m", "REAL"),
+                              ("error_north_m", "REAL"), ("cov_ee_m2", "REAL"), ("cov_en_m2", "REAL"),
+                              ("cov_nn_m2", "REAL"), ("lever_m", "REAL"), ("side", "TEXT"), ("reason", "TEXT"),
+                              ("checked_at", "TEXT")), key=("image_id", "params_json")),
+    ),
+)
+SCHEMA_VERSION = len(HISTORY)
+REQUIRED_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # a store lacking one is damaged, never repaired
 
 
 def now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
 
 
-def migrate(db: sqlite_utils.Database, version: int) -> None:
-    """Bring a store of an older schema version to ``SCHEMA_VERSION`` in one transaction."""
-    with db.atomic():
-        for target in range(version + 1, SCHEMA_VERSION + 1):
-            for table, column, sql_type in MIGRATIONS[target]:
-                if column not in db[table].columns_dict:
-                    db.execute(f"ALTER TABLE [{table}] ADD COLUMN [{column}] {sql_type}")
-        if version < 4:
-            _create_v4_tables(db)
-        db.execute("UPDATE visloc_schema SET version = ?", [SCHEMA_VERSION])
+def lacking(db: sqlite_utils.Database, target: int = SCHEMA_VERSION) -> list[Change]:
+    """The changes of the history's first ``target`` steps that the store does not hold, in order."""
+    tables = set(db.table_names())
+    indexes = {r[0] for r in db.execute("SELECT name FROM sqlite_master WHERE type = 'index'")}
+    columns: dict[str, set[str]] = {}
+
+    def holds(change: Change) -> bool:
+        if isinstance(change, Table):
+            return change.name in tables
+        if isinstance(change, Index):
+            return change.name in indexes
+        if change.table not in tables:
+            return False
+        if change.table not in columns:
+            columns[change.table] = set(db[change.table].columns_dict)
+        return change.name in columns[change.table]
+
+    return [change for step in HISTORY[:target] for change in step if not holds(change)]
 
 
-def create_schema(db: sqlite_utils.Database) -> None:
-    """Every table of a new store, in one transaction."""
-    with db.atomic():
-        db["visloc_schema"].create({"version": int, "created_at": str})
-        db["visloc_schema"].insert({"version": SCHEMA_VERSION, "created_at": now_iso()})
-        db["settings"].create({"key": str, "value_json": str}, pk="key")
-        db["cameras"].create(
-            {"source": str, "camera": str, "p_rect_json": str, "width_px": int, "height_px": int,
-             "t_camera_imu_json": str},
-            pk=("source", "camera"),
-        )
-        db["images"].create(
-            {
-                "id": int,
-                "source": str,
-                "camera": str,
-                "frame": int,
-                "path": str,
-                "timestamp_s": float,
-                "lat_deg": float,
-                "lon_deg": float,
-                "alt_m": float,
-                "heading_deg": float,
-                "width_px": int,
-                "height_px": int,
-                "sift_ms": float,
-                "roll_rad": float,
-                "pitch_rad": float,
-                "yaw_rad": float,
-                "position_accuracy_m": float,
-                "n_keypoints": int,
-                "keypoints_f32": bytes,
-                "descriptors_u8": bytes,
-                "created_at": str,
-            },
-            pk="id",
-            not_null={"source", "camera", "frame", "timestamp_s", "lat_deg", "lon_deg", "n_keypoints"},
-        )
-        create_pair_counts(db)
-        _create_v4_tables(db)
-        db["images"].create_index(["source", "camera", "frame"], unique=True)
-        db["images"].create_index(["source", "camera", "timestamp_s"])
+def upgrade(db: sqlite_utils.Database, version: int, target: int = SCHEMA_VERSION) -> None:
+    """Bring a store of schema ``version`` (0: a new, empty store) to ``target``, inside the caller's
+    transaction: apply what it lacks of the history's first ``target`` steps, then record ``target``."""
+    todo = lacking(db, target)
+    made = {change.name for change in todo if isinstance(change, Table)}
+    for change in todo:
+        if isinstance(change, Table):
+            db.execute(_create_table(change, [c for c in todo if isinstance(c, Column) and c.table == change.name]))
+        elif isinstance(change, Index):
+            db.execute(f"CREATE {'UNIQUE ' if change.unique else ''}INDEX {_quoted([change.name])}\n"
+                       f"    ON {_quoted([change.table])} ({_quoted(change.columns)})")
+        elif change.table not in made:
+            db.execute(f"ALTER TABLE [{change.table}] ADD COLUMN [{change.name}] {change.sql_type}")
+    if version == 0:
+        db.execute("INSERT INTO visloc_schema (version, created_at) VALUES (?, ?)", [target, now_iso()])
+    elif version < target:
+        db.execute("UPDATE visloc_schema SET version = ?", [target])
 
 
-def create_pair_counts(db: sqlite_utils.Database) -> None:
-    db["pair_counts"].create(
-        {"query_image_id": int, "db_image_id": int, "tau1": float, "tau2": float,
-         "n_correspondences": int, "match_ms": float},
-        pk=("query_image_id", "db_image_id", "tau1", "tau2"),
-    )
+def _create_table(table: Table, added: list[Column]) -> str:
+    """``CREATE TABLE`` for ``table`` with the columns ``added`` in their places, laid out as sqlite-utils does."""
+    columns = list(table.columns)
+    for column in added:
+        names = [name for name, _ in columns]
+        at = len(columns) if column.after is None else names.index(column.after) + 1
+        columns.insert(at, (column.name, column.sql_type))
+    lines = [f"   {_quoted([name])} {declaration}" for name, declaration in columns]
+    if table.key:
+        lines.append(f"   PRIMARY KEY ({_quoted(table.key)})")
+    return f"CREATE TABLE {_quoted([table.name])} (\n" + ",\n".join(lines) + "\n)"
 
 
-def _create_v4_tables(db: sqlite_utils.Database) -> None:
-    """Structure and global vectors (inside the caller's transaction)."""
-    if "structures" not in db.table_names():
-        db["structures"].create(
-            {"image_id": int, "variant": str, "params_json": str, "neighbour_ids_json": str, "n_points": int,
-             "rows_i32": bytes, "points_f64": bytes, "cov_f64": bytes, "reason": str, "build_ms": float,
-             "created_at": str},
-            pk=("image_id", "variant"),
-        )
-    if "global_vectors" not in db.table_names():
-        db["global_vectors"].create({"name": str, "image_id": int, "vector_f32": bytes}, pk=("name", "image_id"))
-    if "arrays" not in db.table_names():
-        db["arrays"].create({"key": str, "dtype": str, "shape_json": str, "data": bytes}, pk="key")
-
-
-def ensure_vector_tables(db: sqlite_utils.Database) -> None:
-    """The optional tables of global vectors and named arrays (large databases)."""
-    if "global_vectors" not in db.table_names():
-        with db.atomic():
-            db["global_vectors"].create({"name": str, "image_id": int, "vector_f32": bytes}, pk=("name", "image_id"))
-            db["arrays"].create({"key": str, "dtype": str, "shape_json": str, "data": bytes}, pk="key")
-
-
-def ensure_skipped_frames(db: sqlite_utils.Database) -> None:
-    """The table of frames ingest skipped as bad (inside the caller's transaction); made when first needed."""
-    if "skipped_frames" not in db.table_names():
-        db["skipped_frames"].create({"source": str, "camera": str, "frame": int, "path": str, "reason": str,
-                                     "skipped_at": str}, pk=("source", "camera", "frame"))
-
-
-def ensure_self_checks(db: sqlite_utils.Database) -> None:
-    """The table of self-checks (inside the caller's transaction); made when first needed."""
-    if "self_checks" not in db.table_names():
-        db["self_checks"].create({"image_id": int, "params_json": str, "error_east_m": float, "error_north_m": float,
-                                  "cov_ee_m2": float, "cov_en_m2": float, "cov_nn_m2": float, "lever_m": float,
-                                  "side": str, "reason": str, "checked_at": str}, pk=("image_id", "params_json"))
+def _quoted(names: tuple[str, ...] | list[str]) -> str:
+    return ", ".join(f'"{name}"' for name in names)

@@ -1,9 +1,9 @@
 """The ``self_checks`` table: how well the database poses its own images (``visloc.selfcheck``).
 
 One row per (image, settings): the pose's error against the image's own geotag, its covariance
-without the lever term, the lever and the side, or why there is no pose. The table is made when
-the first self-check is stored (an older store simply has none: its measurements use the default
-lever gain until ``visloc ingest`` runs the self-check).
+without the lever term, the lever and the side, or why there is no pose. A store read as it is may
+lack the table (one written before it was part of the schema): its measurements use the default
+lever gain until ``visloc ingest`` runs the self-check.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Sequence
 
 from visloc.db.records import SelfCheckRecord
-from visloc.db.schema import ensure_self_checks, now_iso
+from visloc.db.schema import now_iso
 from visloc.db.store import FeatureStore
 
 COLUMNS = ("image_id", "params_json", "error_east_m", "error_north_m", "cov_ee_m2", "cov_en_m2", "cov_nn_m2",
@@ -29,7 +29,6 @@ class SelfCheckTable:
         if not records:
             return
         with self.db.atomic():
-            ensure_self_checks(self.db)
             self.db["self_checks"].insert_all(
                 [{**{c: getattr(r, c) for c in COLUMNS}, "checked_at": now_iso()} for r in records], replace=True)
 

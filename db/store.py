@@ -27,12 +27,17 @@ Tables
                    (the VLAD encoder that made it), for a shortlist search that never
                    loads the descriptors.
 ``arrays``         named numpy arrays (e.g. that encoder's codebook).
+``skipped_frames`` (since version 4) the frames ingest skipped as bad, and why.
+``self_checks``    (since version 4) how well the database poses its own images
+                   (``visloc.db.selfchecks``).
+
+Every table, column and index is defined once, in the schema's history (``visloc.db.schema``).
 
 Writes happen in transactions (``FeatureStore.add_images`` commits a batch at
 once), the journal is in WAL mode, and an interrupted write rolls back: a store
 never holds half an image.
 
-Opening a store of an older schema version migrates it in place (``visloc.db.schema``);
+Opening a store of an older schema version for writing migrates it in place (``visloc.db.schema``);
 ``visloc ingest`` then fills what the new columns lack from the source without
 re-extracting any feature.
 """
@@ -50,8 +55,7 @@ from visloc.db.blobs import array_from_blob
 from visloc.db.connection import Database, connect
 from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, EmptyStoreError, ImageRecord,
                                NotAStoreError, SettingsMismatchError, SkippedFrame, StoredImage, StoreError)
-from visloc.db.schema import (REQUIRED_TABLES, SCHEMA_VERSION, create_pair_counts, create_schema,
-                              ensure_skipped_frames, migrate, now_iso)
+from visloc.db.schema import REQUIRED_TABLES, SCHEMA_VERSION, lacking, now_iso, upgrade
 
 
 class FeatureStore:
@@ -95,12 +99,9 @@ class FeatureStore:
             # another process may be creating this store right now: take the write lock (waiting for
             # it), then look again
             with db.atomic():
-                tables = set(db.table_names())
-                if not tables:
-                    create_schema(db)
-            if not tables:
-                self._finish_writable(db, on_disk)
-                return
+                if not db.table_names():
+                    upgrade(db, 0)  # a new store: the whole schema history
+            tables = set(db.table_names())
         if not tables:
             raise EmptyStoreError(f"{label}: empty database file (build it with 'visloc ingest')")
         if "visloc_schema" not in tables:
@@ -112,27 +113,22 @@ class FeatureStore:
         if older and self.read_only:
             raise NotAStoreError(f"{label}: visloc store schema version {version}; reading it needs version "
                                  f"{SCHEMA_VERSION}: upgrade it first with 'visloc upgrade --db {label}'")
-        if older:
-            migrate(db, version)
-            self.migrated_from = version
-            version = SCHEMA_VERSION
-        if version != SCHEMA_VERSION:
+        if not older and version != SCHEMA_VERSION:
             raise NotAStoreError(
                 f"{label}: visloc store schema version {version}, this visloc reads version {SCHEMA_VERSION}"
             )
         missing = REQUIRED_TABLES - tables
         if missing:
             raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}")
-        if not self.read_only:
-            self._finish_writable(db, on_disk)
-
-    @staticmethod
-    def _finish_writable(db: sqlite_utils.Database, on_disk: bool) -> None:
+        if self.read_only:
+            return
+        if older or lacking(db):  # an older version, or a table once made when first needed
+            with db.atomic():
+                upgrade(db, version)
+            if older:
+                self.migrated_from = version
         if on_disk and db.journal_mode != "wal":
             db.enable_wal()
-        if "pair_counts" not in db.table_names():
-            with db.atomic():
-                create_pair_counts(db)
 
     def close(self) -> None:
         self.db.close()
@@ -237,13 +233,12 @@ class FeatureStore:
         before = self.image_count()
         with self.db.atomic():
             self.db["images"].insert_all(rows, ignore=True)
-            if skipped or "skipped_frames" in self.db.table_names():
-                ensure_skipped_frames(self.db)
+            if skipped:
                 self.db["skipped_frames"].insert_all(
                     [{**vars(f), "skipped_at": now_iso()} for f in skipped], replace=True)
-                for r in rows:
-                    self.db.execute("DELETE FROM skipped_frames WHERE source = ? AND camera = ? AND frame = ?",
-                                    [r["source"], r["camera"], r["frame"]])
+            for r in rows:
+                self.db.execute("DELETE FROM skipped_frames WHERE source = ? AND camera = ? AND frame = ?",
+                                [r["source"], r["camera"], r["frame"]])
         return self.image_count() - before
 
     def skipped_frames(self, source: str | None = None, camera: str | None = None) -> list[SkippedFrame]:

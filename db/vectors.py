@@ -10,7 +10,6 @@ from collections.abc import Sequence
 import numpy as np
 
 from visloc.db.records import StoreError
-from visloc.db.schema import ensure_vector_tables
 from visloc.db.store import FeatureStore
 
 
@@ -23,7 +22,6 @@ class VectorTable:
 
     def add_global_vectors(self, name: str, image_ids: Sequence[int], vectors_f32: np.ndarray) -> None:
         """Store one float32 vector per image under ``name`` (replacing what was there), one transaction."""
-        ensure_vector_tables(self.db)
         v = np.ascontiguousarray(vectors_f32, np.float32)
         if v.ndim != 2 or v.shape[0] != len(image_ids):
             raise StoreError(f"{self.label}: global vectors must be ({len(image_ids)}, D), got {v.shape}")
@@ -58,7 +56,6 @@ class VectorTable:
         return ids, out
 
     def put_array(self, key: str, array: np.ndarray) -> None:
-        ensure_vector_tables(self.db)
         a = np.ascontiguousarray(array)
         with self.db.atomic():
             self.db["arrays"].upsert({"key": key, "dtype": a.dtype.str, "shape_json": json.dumps(list(a.shape)),
