@@ -33,7 +33,7 @@ from visloc.dashboard.gui import Handles, build_gui, paper_values
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionLog
-from visloc.dashboard.state import Controls, Run, Shown, discover_stores, first_choices
+from visloc.dashboard.state import CONTROLLED, Controls, Run, Shown, discover_stores, first_choices
 
 PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
 
@@ -80,14 +80,24 @@ class DashboardApp:
             handle.on_update(on_update)
 
         for handle, field, convert in (
-            (g.mode, "method", str), (g.tau1, "tau1", float), (g.tau2, "tau2", float), (g.rate, "rate_hz", float),
-            (g.start, "start_s", float), (g.exclusion, "exclusion_s", float), (g.window, "window_s", float),
-            (g.r, "r_sigma_m", float), (g.q, "q_sigma_m_s2", float), (g.p0, "p0_sigma", float),
-            (g.gate, "gate_chi2", float), (g.step, "step", int), (g.play, "play", bool),
+            (g.mode, "method", str), (g.rate, "rate_hz", float), (g.start, "start_s", float),
+            (g.step, "step", int), (g.play, "play", bool),
             (g.speed, "speed", lambda v: float(v.rstrip("x"))), (g.follow, "follow", bool),
             (g.latlon, "latlon", bool), (g.db, "db_name", str), (g.queries, "query_name", str),
         ):
             records(handle, field, convert)
+
+        def records_param(handle, name: str, control) -> None:
+            def on_update(event) -> None:
+                with self._lock:  # a new dict: a copy of the controls taken earlier keeps its own
+                    self.controls.params = {**self.controls.params, name: control.from_shown(float(handle.value))}
+                self._changed(event, handle.label, handle.value)
+                self.request_apply()
+
+            handle.on_update(on_update)
+
+        for _, name, spec, _ in CONTROLLED:
+            records_param(g.params[name], name, spec.control)
         g.play.on_update(lambda e: self._changed(e, "Play", "on" if g.play.value else "off"))
         g.store.on_update(lambda _: self._ask_for_store(g.store.value, only_if_new=True))
         g.store_path.on_update(lambda _: self._store_typed(g.store_path.value.strip()))
@@ -152,7 +162,10 @@ class DashboardApp:
 
     def _reset_to_paper(self) -> None:
         with self._lock:  # every control moves before the next apply looks
-            for name, value in paper_values().items():
+            values = paper_values()
+            for name, value in values.pop("params").items():
+                self.gui.params[name].value = value
+            for name, value in values.items():
                 getattr(self.gui, name).value = value
             self.controls.rerun += 1
         self.request_apply()
@@ -207,8 +220,7 @@ class DashboardApp:
             self._start_matching(c, match_key)
         if run is None or not run.matches.retrievals:
             return
-        track_key = (run.match_key, len(run.matches), run.partial, c.r_sigma_m, c.q_sigma_m_s2, c.p0_sigma,
-                     c.gate_chi2)
+        track_key = (run.match_key, len(run.matches), run.partial, c.filter_key())
         if track_key != run.track_key:
             self._track(run, c, track_key)
         k = int(np.clip(c.step - 1, 0, len(run.records) - 1))  # the slider says 1..N
@@ -226,9 +238,8 @@ class DashboardApp:
         method = visloc.METHODS.get(method_name)
         if method is None:
             return
-        g = self.gui
-        for handle, unused in ((g.gate, not method.measures_pose), (g.tau1, method.camera_rate),
-                               (g.tau2, method.camera_rate), (g.window, method.camera_rate)):
+        for _, name, spec, _ in CONTROLLED:  # each parameter declares the methods that use it
+            handle, unused = self.gui.params[name], method.name not in spec.methods
             if handle.disabled != unused:
                 handle.disabled = unused
 
@@ -294,8 +305,8 @@ class DashboardApp:
         db, queries, workspace = s.db, s.queries, s.workspace
         try:
             method = visloc.method_named(c.method)
-            match = visloc.MatchParams(tau1=c.tau1, tau2=c.tau2)
-            retrieval = visloc.RetrievalParams(window_s=c.window_s, exclusion_s=c.exclusion_s)
+            match = c.params_for(visloc.PAPER_MATCH)
+            retrieval = c.params_for(visloc.PAPER_RETRIEVAL)
             indices = visloc.drive_query_indices(queries.timestamps_s, c.start_s, 1.0 / c.rate_hz)
         except visloc.VislocError as exc:
             s.failed_key = match_key
@@ -371,7 +382,7 @@ class DashboardApp:
         except visloc.VislocError as exc:
             self._show_error(str(exc))
             return
-        gate = c.gate_chi2 if run.matches.method.measures_pose else 0.0
+        gate = c.params_for(visloc.REFINED).gate_chi2 if run.matches.method.measures_pose else 0.0
         run.records = visloc.track_drive(run.matches, s.queries, s.db, filter_params, gate_chi2=gate)
         run.track_key = track_key
         self.page.draw_run(run)

@@ -4,7 +4,8 @@ and the help fold ("What am I looking at?"). Plain strings and one pure function
 
 from __future__ import annotations
 
-# hover hints of the controls, by handle name (see visloc.dashboard.gui)
+# hover hints of the controls, by handle name (see visloc.dashboard.gui); a parameter's control has its hint
+# where the parameter is declared (visloc.params)
 HINTS = {
     "step": "Which query of the drive run is shown (1 = the first). The table, plots, map, 3D view and images "
             "all follow it",
@@ -16,26 +17,8 @@ HINTS = {
     "mode": "paper: the measurement is the best-matching database image's geotag. refined: a metric pose "
             "solved from the database's own geometry (PnP), the geotag only as fallback. refined-fast: the same "
             "pose at camera rate, on the 3D points stored at ingest (choose 10 Hz and Play)",
-    "tau1": "Lowe's ratio test, equation (1): a query feature's nearest database feature counts only if "
-            "d1²/d2² < τ1² (d1, d2: distances to the nearest and second-nearest). Lower = stricter, fewer "
-            "correspondences. Not used by refined-fast",
-    "tau2": "Cosine test, equation (2): the pair also needs cosine similarity > τ2. Higher = stricter. "
-            "Not used by refined-fast",
-    "r": "R = σ² I: how far (m) the filter expects a geotag measurement to be off. The paper's 0.0001° is "
-         "11.12 m. Refined poses bring their own R",
-    "q": "Process noise Q: how hard (m/s²) the filter expects the car to accelerate between queries "
-         "(constant-velocity model, white acceleration)",
-    "p0": "P0 = σ² I: the filter's initial uncertainty, σ in m for the position and m/s for the velocity. "
-          "The paper's 1000·I is σ = 31.6",
-    "gate": "Refined modes only: a measurement whose squared Mahalanobis distance to the filter's prediction "
-            "exceeds this is skipped (the step only predicts). 13.82 = 99.9 % for 2 degrees of freedom; "
-            "0 = off. Unitless",
     "rate": "One query every 1/rate s; also the filter's time step Δt",
     "start": "Time after the first frame (s) where the run starts",
-    "exclusion": "Database images closer in time to the query than this (s) are not allowed as matches, so "
-                 "the query cannot match a picture taken from the same place at the same moment",
-    "window": "Paper and refined modes: search database images within ± this many seconds of the previous "
-              "best match. refined-fast searches a shortlist instead",
     "reset": "τ1 0.8, τ2 0.97, R 0.0001° (11.12 m), P0 1000·I, 1 Hz, paper mode",
     "store": "The store file (built by 'visloc ingest') the page reads; it is never changed",
     "store_path": "Path of another store file, then press Open",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,21 +12,29 @@ import visloc
 from visloc.dashboard.explain import HINTS, help_html
 from visloc.dashboard.panels import legend_html, map_legend_html, placeholder, status_html
 from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, css
+from visloc.dashboard.state import CONTROLLED
 
 RATES_HZ = ("0.5", "1", "2", "5", "10")
 SPEEDS = ("0.5x", "1x", "2x", "5x")
 PANEL_WIDTH_PX = 460
 
 
+def _decimals(step: float) -> int:
+    return max(0, -math.floor(math.log10(step) + 1e-9))
+
+
+def shown_initial(spec, default) -> float:
+    """A controlled parameter's first value as its slider shows it, rounded to the slider's step."""
+    c = spec.control
+    value = c.initial if c.initial is not None else default
+    return round(float(c.to_shown(value)), _decimals(c.step))
+
+
 def paper_values() -> dict[str, object]:
-    """The controls' values for the paper's parameters (Table 1), by handle name."""
-    m, f = visloc.PAPER_MATCH, visloc.PAPER_FILTER
-    return {
-        "mode": visloc.PAPER_METHOD.name, "gate": visloc.REFINED.gate_chi2, "tau1": m.tau1, "tau2": m.tau2,
-        "r": round(float(np.sqrt(f.meas_var_m2)), 2), "q": round(float(np.sqrt(f.accel_var_m2_s4)), 2),
-        "p0": round(float(np.sqrt(f.init_var)), 1), "rate": "1", "start": 0.0,
-        "exclusion": visloc.PAPER_EVAL_RETRIEVAL.exclusion_s, "window": visloc.PAPER_RETRIEVAL.window_s,
-    }
+    """The controls' values for the paper's parameters (Table 1): the mode, rate and start by handle
+    name, and every parameter control under ``params``."""
+    return {"mode": visloc.PAPER_METHOD.name, "rate": "1", "start": 0.0,
+            "params": {name: shown_initial(spec, default) for _, name, spec, default in CONTROLLED}}
 
 
 @dataclass
@@ -40,16 +49,9 @@ class Handles:
     follow: viser.GuiCheckboxHandle
     latlon: viser.GuiCheckboxHandle
     mode: viser.GuiDropdownHandle
-    tau1: viser.GuiSliderHandle
-    tau2: viser.GuiSliderHandle
-    r: viser.GuiSliderHandle
-    q: viser.GuiSliderHandle
-    p0: viser.GuiSliderHandle
-    gate: viser.GuiSliderHandle
     rate: viser.GuiDropdownHandle
     start: viser.GuiSliderHandle
-    exclusion: viser.GuiSliderHandle
-    window: viser.GuiSliderHandle
+    params: dict[str, viser.GuiSliderHandle]  # every parameter control, by parameter name (state.CONTROLLED)
     reset: viser.GuiButtonHandle
     geojson: viser.GuiButtonHandle
     csv: viser.GuiButtonHandle
@@ -68,6 +70,19 @@ class Handles:
     run_summary: viser.GuiMarkdownHandle
     map_badge: viser.GuiHtmlHandle
     map: viser.GuiImageHandle
+
+
+def _param_sliders(gui, folder: str, shown: dict[str, float]) -> dict[str, viser.GuiSliderHandle]:
+    """A slider per parameter the engine declares in ``folder``; one the paper's method does not use starts
+    disabled."""
+    out = {}
+    for _, name, spec, _ in CONTROLLED:
+        c = spec.control
+        if c.folder == folder:
+            out[name] = gui.add_slider(c.label, min=c.low, max=c.high, step=c.step, initial_value=shown[name],
+                                       hint=c.hint or spec.help,
+                                       disabled=visloc.PAPER_METHOD.name not in spec.methods)
+    return out
 
 
 def _plots(gui) -> tuple[viser.GuiUplotHandle, viser.GuiUplotHandle]:
@@ -119,25 +134,14 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         latlon = gui.add_checkbox("Show lat/lon", False, hint=h["latlon"])
     with gui.add_folder("Matching (re-matches in the background)"):
         mode = gui.add_dropdown("Mode", tuple(visloc.METHODS), initial_value=paper["mode"], hint=h["mode"])
-        tau1 = gui.add_slider("τ1 (Lowe ratio)", min=0.5, max=1.0, step=0.01, initial_value=paper["tau1"],
-                              hint=h["tau1"])
-        tau2 = gui.add_slider("τ2 (cosine)", min=0.8, max=1.0, step=0.005, initial_value=paper["tau2"],
-                              hint=h["tau2"])
+        params = _param_sliders(gui, "matching", paper["params"])
     with gui.add_folder("Filter (instant)"):
-        r = gui.add_slider("R: meas. σ (m)", min=0.1, max=40.0, step=0.01, initial_value=paper["r"], hint=h["r"])
-        q = gui.add_slider("Q: accel. σ (m/s²)", min=0.0, max=5.0, step=0.05, initial_value=paper["q"], hint=h["q"])
-        p0 = gui.add_slider("P0: initial σ (m, m/s)", min=1.0, max=100.0, step=0.1, initial_value=paper["p0"],
-                            hint=h["p0"])
-        gate = gui.add_slider("Gate χ² (refined)", min=0.0, max=50.0, step=0.01, initial_value=paper["gate"],
-                              hint=h["gate"], disabled=True)  # the paper's mode has no gate
+        params |= _param_sliders(gui, "filter", paper["params"])
     with gui.add_folder("Queries"):
         rate = gui.add_dropdown("Query rate (Hz)", RATES_HZ, initial_value=paper["rate"], hint=h["rate"])
         start = gui.add_slider("Start time (s)", min=0.0, max=1.0, step=0.1, initial_value=paper["start"],
                                hint=h["start"])
-        exclusion = gui.add_slider("Exclusion (s)", min=0.0, max=3.0, step=0.1, initial_value=paper["exclusion"],
-                                   hint=h["exclusion"])
-        window = gui.add_slider("Search window ± (s)", min=1.0, max=60.0, step=1.0, initial_value=paper["window"],
-                                hint=h["window"])
+        params |= _param_sliders(gui, "queries", paper["params"])
     reset = gui.add_button("Paper's parameters", hint=h["reset"])
     with gui.add_folder("Export this run"):
         geojson = gui.add_button("Download GeoJSON", hint=h["geojson"], disabled=True)
@@ -169,7 +173,9 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         gui.add_html(map_legend_html())
     panel.dock_left()
     panel.set_width(PANEL_WIDTH_PX)
-    return Handles(status, progress, session, step, prev_next, play, speed, follow, latlon, mode, tau1, tau2, r, q,
-                   p0, gate, rate, start, exclusion, window, reset, geojson, csv, store, store_path_box, open_button,
-                   store_message, db, queries, store_info, step_badge, figure, numbers, counts_plot, error_plot,
-                   run_summary, map_badge, map_image)
+    return Handles(status=status, progress=progress, session=session, step=step, prev_next=prev_next, play=play,
+                   speed=speed, follow=follow, latlon=latlon, mode=mode, rate=rate, start=start, params=params,
+                   reset=reset, geojson=geojson, csv=csv, store=store, store_path=store_path_box, open=open_button,
+                   store_message=store_message, db=db, queries=queries, store_info=store_info, step_badge=step_badge,
+                   figure=figure, numbers=numbers, counts_plot=counts_plot, error_plot=error_plot,
+                   run_summary=run_summary, map_badge=map_badge, map=map_image)

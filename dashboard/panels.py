@@ -84,14 +84,12 @@ def stale_badge_html(note: str | None) -> str:
 
 def stale_note(shown_key: tuple, asked_key: tuple) -> str:
     """What the shown run was made with where it differs from the run being matched, e.g.
-    "previous run (τ1 0.8) — re-matching for τ1 0.85…". Keys: ``Controls.match_key``."""
-    names = ("data", "mode", "τ1", "τ2", "rate (Hz)", "start (s)", "exclusion (s)", "window (s)", "rerun")
-    old = [(n, a) for n, a, b in zip(names, shown_key, asked_key) if a != b and n not in ("data", "rerun")]
-    new = [(n, b) for n, a, b in zip(names, shown_key, asked_key) if a != b and n not in ("data", "rerun")]
-    if not old:
+    "previous run (τ1 0.8) — re-matching for τ1 0.85…". Keys: ``Controls.match_key``, (what, value) pairs."""
+    differ = [(old, new) for old, new in zip(shown_key, asked_key) if old != new and old[0] not in ("data", "rerun")]
+    if not differ:
         return "previous run — re-matching…"
     say = lambda pairs: ", ".join(f"{n} {v:g}" if isinstance(v, float) else f"{n} {v}" for n, v in pairs)
-    return f"previous run ({say(old)}) — re-matching for {say(new)}…"
+    return f"previous run ({say(o for o, _ in differ)}) — re-matching for {say(n for _, n in differ)}…"
 
 
 def _fmt(value: float | None, fmt: str = ".2f", unit: str = " m") -> str:

@@ -11,31 +11,38 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
 import visloc
 
 STORE_SUFFIXES = (".sqlite", ".sqlite3", ".db")
 
 
+# the parameters with a dashboard control, as declared in the engine: (class, name, spec, default)
+CONTROLLED = visloc.dashboard_controls()
+
+
+def short_label(spec) -> str:
+    """A control's label without its parenthesis: "τ1 (Lowe ratio)" -> "τ1"."""
+    return spec.control.label.split(" (")[0]
+
+
+def initial_params() -> dict[str, float]:
+    """Every controlled parameter's first value, in the parameter's units."""
+    return {name: float(spec.control.initial if spec.control.initial is not None else default)
+            for _, name, spec, default in CONTROLLED}
+
+
 @dataclass
 class Controls:
-    """What the user asked for."""
+    """What the user asked for. ``params``: every controlled parameter by name, in its own units (a
+    variance where the slider shows a standard deviation); replaced whole, never changed in place."""
 
     store_request: tuple[int, str]  # (how many times a store was asked for, its path)
     db_name: str | None = None
     query_name: str | None = None
     method: str = visloc.PAPER_METHOD.name
-    tau1: float = visloc.PAPER_MATCH.tau1
-    tau2: float = visloc.PAPER_MATCH.tau2
     rate_hz: float = 1.0
     start_s: float = 0.0
-    exclusion_s: float = visloc.PAPER_EVAL_RETRIEVAL.exclusion_s
-    window_s: float = visloc.PAPER_RETRIEVAL.window_s
-    r_sigma_m: float = float(np.sqrt(visloc.PAPER_FILTER.meas_var_m2))
-    q_sigma_m_s2: float = float(np.sqrt(visloc.PAPER_FILTER.accel_var_m2_s4))
-    p0_sigma: float = float(np.sqrt(visloc.PAPER_FILTER.init_var))
-    gate_chi2: float = visloc.REFINED.gate_chi2
+    params: dict[str, float] = field(default_factory=initial_params)
     step: int = 1  # the Step slider: 1..N
     play: bool = False
     speed: float = 1.0
@@ -43,14 +50,25 @@ class Controls:
     latlon: bool = False  # show latitude and longitude beside the local metres
     rerun: int = 0  # "Paper's parameters" asks for a fresh run even when nothing else changed
 
+    def _labelled(self, folder: str) -> tuple:
+        return tuple((short_label(spec), self.params[name]) for _, name, spec, _ in CONTROLLED
+                     if spec.control.folder == folder)
+
     def match_key(self, data_key: tuple) -> tuple:
-        """What a drive run's retrievals and measurements depend on."""
-        return (data_key, self.method, self.tau1, self.tau2, self.rate_hz, self.start_s, self.exclusion_s,
-                self.window_s, self.rerun)
+        """What a drive run's retrievals and measurements depend on, as (what, value) pairs."""
+        return (("data", data_key), ("mode", self.method), *self._labelled("matching"), ("rate (Hz)", self.rate_hz),
+                ("start (s)", self.start_s), *self._labelled("queries"), ("rerun", self.rerun))
+
+    def filter_key(self) -> tuple:
+        """What the filter over a run's measurements depends on (besides the run)."""
+        return self._labelled("filter")
+
+    def params_for(self, base):
+        """``base`` (a parameter object) with the controls' values of its fields."""
+        return base.replace(**{name: self.params[name] for cls, name, _, _ in CONTROLLED if isinstance(base, cls)})
 
     def filter_params(self) -> visloc.FilterParams:
-        return visloc.FilterParams(dt_s=1.0 / self.rate_hz, meas_var_m2=self.r_sigma_m ** 2,
-                                   accel_var_m2_s4=self.q_sigma_m_s2 ** 2, init_var=self.p0_sigma ** 2)
+        return self.params_for(visloc.PAPER_FILTER.replace(dt_s=1.0 / self.rate_hz))
 
 
 @dataclass

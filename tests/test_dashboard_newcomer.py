@@ -13,11 +13,12 @@ import csv
 import io
 import json
 import re
+from dataclasses import replace
 import shutil
 import sqlite3
 
 import pytest
-from test_dashboard import (
+from helpers import (
     RUN_S,
     SERVER_WORK_S,
     DashboardProcess,
@@ -97,12 +98,17 @@ def test_pure_parts_say_what_they_show():
     from visloc.dashboard import mapview, panels
     from visloc.dashboard.session import SessionLog
 
+    from visloc.dashboard.state import Controls
+
     data = ("store", "x", "y")
-    assert panels.stale_note((data, "paper", 0.8, 0.97, 1.0, 0.0, 1.0, 20.0, 0),
-                             (data, "paper", 0.85, 0.97, 1.0, 0.0, 1.0, 20.0, 0)) == \
+    asked = Controls(store_request=(1, "store"))
+    tau1 = replace(asked, params={**asked.params, "tau1": 0.85})
+    assert panels.stale_note(asked.match_key(data), tau1.match_key(data)) == \
         "previous run (τ1 0.8) — re-matching for τ1 0.85…"
-    assert panels.stale_note((data, "paper", 0.8, 0.97, 1.0, 0.0, 1.0, 20.0, 0),
-                             (data, "paper", 0.8, 0.97, 1.0, 0.0, 1.0, 20.0, 1)) == "previous run — re-matching…"
+    assert panels.stale_note(asked.match_key(data), replace(asked, rerun=1).match_key(data)) == \
+        "previous run — re-matching…"
+    assert panels.stale_note(asked.match_key(data), replace(asked, method="refined").match_key(data)) == \
+        "previous run (mode paper) — re-matching for mode refined…"
     log = SessionLog()
     one, two = log.connected(101), log.connected(102)
     assert (one, two) == (1, 2) and log.line() == "Shared by 2 open tabs · no change made yet"

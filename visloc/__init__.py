@@ -64,6 +64,7 @@ from visloc.params import (
     SiftParams,
     TRACK,
     TrackParams,
+    dashboard_controls,
 )
 from visloc.pose import PoseMeasurer, StructureCache, pose_measurement
 from visloc.viewpose import DatabaseGeometry
@@ -90,7 +91,7 @@ __all__ = [
     # parameters and methods
     "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",
     "PAPER_SIFT", "REFINED", "REFINED_FAST_METHOD", "REFINED_METHOD", "TRACK", "TrackParams", "FastParams", "FilterParams", "MatchParams", "Method", "RefinedParams",
-    "RetrievalParams", "SiftParams", "method_named",
+    "RetrievalParams", "SiftParams", "dashboard_controls", "method_named",
     # pipeline stages
     "Features", "Query", "extract_sift", "make_sift", "extract_queries",
     "MatchCancelled", "NearestTwo", "PairCountCache", "backend_counter", "brute_force_counter", "cancellable",

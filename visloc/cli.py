@@ -19,8 +19,10 @@ from visloc.errors import VislocError
 from visloc.help_text import DEFAULT_DB, DEFAULT_FAST_DB, examples
 from visloc.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
 from visloc.methods import METHODS
-from visloc.params import (MAX_DT_S, MAX_VARIANCE, MIN_DT_S, MIN_VARIANCE, PAPER_EVAL_RETRIEVAL, PAPER_FILTER,
-                           PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, RetrievalParams)
+from visloc.param_flags import add_param_flags
+from visloc.params import (FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, TRACK,
+                           FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams,
+                           TrackParams)
 
 
 
@@ -36,18 +38,7 @@ def _version() -> str:
 # -- argument groups --------------------------------------------------------------
 
 def _add_sift(p: argparse.ArgumentParser) -> None:
-    g = p.add_argument_group("SIFT (must equal the store's settings)")
-    d = PAPER_SIFT
-    g.add_argument("--sift-features", type=int, default=d.n_features, help="keypoints kept per image, 0 = all (default %(default)s)")
-    g.add_argument("--sift-octave-layers", type=int, default=d.n_octave_layers,
-                   help="layers per octave of SIFT's scale space (default %(default)s)")
-    g.add_argument("--sift-contrast", type=float, default=d.contrast_threshold, help="contrast threshold (default %(default)s)")
-    g.add_argument("--sift-edge", type=float, default=d.edge_threshold, help="edge threshold (default %(default)s)")
-    g.add_argument("--sift-sigma", type=float, default=d.sigma,
-                   help="Gaussian blur of the first octave's image, pixels (default %(default)s)")
-    g.add_argument("--sift-scale", type=float, default=d.image_scale,
-                   help="run SIFT on the image resized by this factor in [0.1, 1]; keypoints stay in full-resolution "
-                        "pixels (default %(default)s)")
+    add_param_flags(p.add_argument_group("SIFT (must equal the store's settings)"), SiftParams, PAPER_SIFT)
 
 
 EXCLUSION_AUTO_HELP = ("ignore database images closer in time to the query than this, s (default: 1 when the database "
@@ -57,41 +48,30 @@ EXCLUSION_AUTO_HELP = ("ignore database images closer in time to the query than 
 
 def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams, *, auto_exclusion: bool = False) -> None:
     g = p.add_argument_group("matching, retrieval and filter (defaults: the paper's Table 1)")
-    g.add_argument("--tau1", type=float, default=PAPER_MATCH.tau1, help="Lowe ratio threshold, eq. (1), in (0, 1] (default %(default)s)")
-    g.add_argument("--tau2", type=float, default=PAPER_MATCH.tau2, help="cosine similarity threshold, eq. (2), in [-1, 1] (default %(default)s)")
-    g.add_argument("--window-s", type=float, default=retrieval.window_s, help="search +-this around the previous best match, s (default %(default)s)")
-    if auto_exclusion:
-        g.add_argument("--exclusion-s", type=float, default=None, help=EXCLUSION_AUTO_HELP)
-    else:
-        g.add_argument("--exclusion-s", type=float, default=retrieval.exclusion_s,
-                       help="ignore database images closer in time to the query than this, s (default %(default)s; "
-                            "0 on a database of the queries' own drive prints a warning)")
-    f = PAPER_FILTER
-    g.add_argument("--dt-s", type=float, default=f.dt_s, help=f"time between queries, s, in [{MIN_DT_S:g}, {MAX_DT_S:g}] (default %(default)s)")
-    g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2, help=f"R: measurement variance, m^2, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] "
-                        "(default %(default).1f = (0.0001 deg)^2)")
-    g.add_argument("--accel-var-m2-s4", type=float, default=f.accel_var_m2_s4, help=f"Q: white acceleration variance, m^2/s^4, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] "
-                        "(default %(default)s)")
-    g.add_argument("--init-var", type=float, default=f.init_var, help=f"P0 = this * I, m^2 and m^2/s^2, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}]; R = 0 needs P0 "
-                        "and Q > 0 (default %(default)s)")
+    add_param_flags(g, MatchParams, PAPER_MATCH)
+    add_param_flags(g, RetrievalParams, retrieval,
+                    automatic={"exclusion_s": EXCLUSION_AUTO_HELP} if auto_exclusion else None)
+    add_param_flags(g, FilterParams, PAPER_FILTER)
 
 
-def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True) -> None:
+def _method_presets(part: str) -> list[tuple[str, object]]:
+    """(label, parameters) of ``part`` ("pose" or "shortlist") in every method that has it; the fast
+    retrieval's own for ``--fast``."""
+    out = [(m.name, getattr(m, part)) for m in METHODS.values() if getattr(m, part) is not None]
+    return out + ([("--fast", FAST)] if part == "shortlist" else [])
+
+
+def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True, exclude: tuple[str, ...] = ()) -> None:
     g = p.add_argument_group("method (paper: the paper's; refined: a metric pose from the database, see the README)")
     if choose_mode:  # a plain string checked by commands.method_of, so a bad value is a one-line error naming --mode
         g.add_argument("--mode", default="paper", metavar="{" + ",".join(METHODS) + "}",
                        help="paper: the best match's geotag; refined: a metric pose from the database's geometry; "
                             "refined-fast: the refined pose on the store's stored structure, at camera rate "
                             "(default %(default)s)")
-    r = REFINED
-    g.add_argument("--top-k", type=int, default=r.top_k,
-                   help="refined: candidates re-ranked by essential-matrix inliers (default %(default)s)")
-    g.add_argument("--geotag-sigma-m", type=float, default=r.geotag_sigma_m,
-                   help="refined: accuracy (standard deviation per axis, m) assumed for database geotags whose "
-                        "source states none (default %(default)s)")
-    g.add_argument("--gate-chi2", type=float, default=r.gate_chi2,
-                   help="refined: Mahalanobis gate on y' S^-1 y, 2 dof; 0 = off (default %(default)s = 99.9%%)")
-    g.add_argument("--seed", type=int, default=r.seed, help="refined: RANSAC seed (default %(default)s)")
+    add_param_flags(p.add_argument_group("refined and refined-fast methods (default: each method's own)"),
+                    RefinedParams, presets=_method_presets("pose"), exclude=exclude)
+    add_param_flags(p.add_argument_group("fast retrieval: --fast and refined-fast (default: each method's own)"),
+                    FastParams, presets=_method_presets("shortlist"), exclude=exclude)
 
 
 def _add_source(p: argparse.ArgumentParser, camera_help: str, camera_default: str, *, multiple: bool = False) -> None:
@@ -290,7 +270,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
     p.set_defaults(func=commands.cmd_bench)
 
-    t = TRACK
     p = _command(sub, "track", help="localize every frame of a drive in order, at the camera's rate",
                        description="Localize every frame of a drive in order, as a vehicle would: SIFT, retrieval, "
                                    "the refined measurement and the filter (its time step the frame interval). By "
@@ -306,32 +285,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="database drive/dataset in the store (default: the frames' own drive, ingested first)")
     p.add_argument("--exact", action="store_true",
                    help="the exact refined path (the paper's retrieval, every candidate verified; seconds per frame)")
-    p.add_argument("--exclusion-s", type=float, default=None, help=EXCLUSION_AUTO_HELP)
-    p.add_argument("--stride", type=int, default=t.stride, help="localize every stride-th frame (default %(default)s)")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: the whole drive)")
-    p.add_argument("--query-scale", type=float, default=t.query_image_scale,
-                   help="camera-rate path: SIFT image scale of the frames, in [0.1, 1] (default %(default)s)")
-    p.add_argument("--query-keypoints", type=int, default=t.query_max_keypoints,
-                   help="camera-rate path: SIFT keeps the frame's strongest keypoints, at most this many; 0 = all "
-                        "(default %(default)s)")
-    p.add_argument("--shortlist", type=int, default=t.shortlist_size,
-                   help="camera-rate path: candidates matched per frame (default %(default)s)")
+    add_param_flags(p.add_argument_group("the run"), TrackParams, TRACK, automatic={"exclusion_s": EXCLUSION_AUTO_HELP})
     p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
     p.add_argument("--json", type=Path, default=None, help="write the summary and every frame as JSON")
     _add_exports(p)
-    f = PAPER_FILTER
-    g = p.add_argument_group("filter and refined method")
-    g.add_argument("--meas-var-m2", type=float, default=f.meas_var_m2,
-                   help="R for a frame whose pose fails and falls back to a geotag, m^2 (default %(default).1f)")
-    g.add_argument("--accel-var-m2-s4", type=float, default=f.accel_var_m2_s4,
-                   help=f"Q: white acceleration variance, m^2/s^4, 0 or in [{MIN_VARIANCE:g}, {MAX_VARIANCE:g}] "
-                        "(default %(default)s)")
-    g.add_argument("--init-var", type=float, default=f.init_var, help="P0 = this * I (default %(default)s)")
-    g.add_argument("--geotag-sigma-m", type=float, default=REFINED.geotag_sigma_m,
-                   help="accuracy assumed for database geotags whose source states none, m (default %(default)s)")
-    g.add_argument("--gate-chi2", type=float, default=REFINED.gate_chi2,
-                   help="Mahalanobis gate, 2 dof; 0 = off (default %(default)s)")
-    g.add_argument("--seed", type=int, default=REFINED.seed, help="RANSAC seed (default %(default)s)")
+    add_param_flags(p.add_argument_group("filter (its time step: the frame interval)"), FilterParams, PAPER_FILTER,
+                    exclude=("dt_s",))
+    _add_mode(p, choose_mode=False)
     _add_sift(p)
     _add_bad_frames(p)
     p.set_defaults(func=commands.cmd_track)

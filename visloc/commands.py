@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 from visloc.bench.run import BenchParams, run_bench
@@ -19,9 +17,11 @@ from visloc.errors import InputError, ParameterError
 from visloc.export_flags import require_exports, write_exports
 from visloc.database import same_drive
 from visloc.evaluation import evaluate, series_schedule
-from visloc.methods import METHODS, Method, build_localizer, method_named
+from visloc.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
 from visloc.outputs import require_output_folder, require_writable_output
-from visloc.params import FAST, REFINED, FilterParams, MatchParams, RetrievalParams, SiftParams, TrackParams
+from visloc.param_flags import params_from_flags
+from visloc.params import (FAST, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, FilterParams,
+                           MatchParams, RetrievalParams, SiftParams)
 from visloc.queries import extract_queries
 from visloc.progress import progress_reporter
 from visloc.records import step_record
@@ -36,54 +36,28 @@ from visloc.workspace import STORE_SCHEMA_VERSION, Workspace
 
 # -- arguments -> parameters ------------------------------------------------------------------
 
-# the flag setting each parameter (visloc.cli), so that a refused value is reported by the flag the user typed
-FLAGS = {"n_features": "--sift-features", "n_octave_layers": "--sift-octave-layers",
-         "contrast_threshold": "--sift-contrast", "edge_threshold": "--sift-edge", "sigma": "--sift-sigma",
-         "image_scale": "--sift-scale", "tau1": "--tau1", "tau2": "--tau2", "window_s": "--window-s",
-         "exclusion_s": "--exclusion-s", "dt_s": "--dt-s", "meas_var_m2": "--meas-var-m2",
-         "accel_var_m2_s4": "--accel-var-m2-s4", "init_var": "--init-var", "top_k": "--top-k",
-         "geotag_sigma_m": "--geotag-sigma-m", "gate_chi2": "--gate-chi2", "seed": "--seed",
-         "query_image_scale": "--query-scale", "query_max_keypoints": "--query-keypoints",
-         "shortlist_size": "--shortlist", "stride": "--stride"}
-
-
-@contextmanager
-def flags_named() -> Iterator[None]:
-    """Parameters built from flags: a ``ParameterError`` is re-raised starting with the flags at fault."""
-    try:
-        yield
-    except ParameterError as exc:
-        flags = [FLAGS[n] for n in getattr(exc, "params", ()) if n in FLAGS]
-        if not flags:
-            raise
-        raise ParameterError(f"{' and '.join(flags)}: {exc}") from None
-
-
 def sift_params(a: argparse.Namespace) -> SiftParams:
-    with flags_named():
-        return SiftParams(n_features=a.sift_features, n_octave_layers=a.sift_octave_layers,
-                          contrast_threshold=a.sift_contrast, edge_threshold=a.sift_edge, sigma=a.sift_sigma,
-                          image_scale=a.sift_scale)
+    return params_from_flags(a, PAPER_SIFT)
 
 
 def method_params(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, FilterParams]:
     """The method's parameters from the flags; an automatic ``--exclusion-s`` (None) is 0 here, until
     ``exclusion_for`` has seen the database."""
-    with flags_named():
-        return (MatchParams(tau1=a.tau1, tau2=a.tau2),
-                RetrievalParams(window_s=a.window_s, exclusion_s=a.exclusion_s or 0.0),
-                FilterParams(dt_s=a.dt_s, meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4,
-                             init_var=a.init_var))
+    return (params_from_flags(a, PAPER_MATCH), params_from_flags(a, PAPER_RETRIEVAL),
+            params_from_flags(a, PAPER_FILTER))
 
 
-def refined_params(a: argparse.Namespace, base=REFINED, **more):
-    """``base`` with the refined flags; a geotag accuracy of 0 needs P0 > 0 (see ``FilterParams``)."""
-    with flags_named():
-        pose = base.replace(geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed, **more)
-    if a.geotag_sigma_m == 0 and a.init_var == 0:
+def with_method_flags(a: argparse.Namespace, method: Method, init_var: float) -> Method:
+    """``method`` with the refined and fast-retrieval flags the user gave. Flags of a part the method
+    lacks are still checked, so a bad value is refused in any mode. A geotag accuracy of 0 needs P0 > 0
+    (see ``FilterParams``)."""
+    pose = params_from_flags(a, method.pose or REFINED)
+    shortlist = params_from_flags(a, method.shortlist or FAST)
+    if pose.geotag_sigma_m == 0 and init_var == 0:
         raise ParameterError("--geotag-sigma-m 0 with --init-var 0: a geotag fallback's measurement variance R = 0 "
                              "on P0 = 0 makes the innovation covariance S = P + R singular; give either a value > 0")
-    return pose
+    return method.replace(pose=pose if method.pose is not None else None,
+                          shortlist=shortlist if method.shortlist is not None else None)
 
 
 def method_of(a: argparse.Namespace, mode: str | None = None) -> Method:
@@ -94,12 +68,9 @@ def method_of(a: argparse.Namespace, mode: str | None = None) -> Method:
         method = method_named(name)
     except ParameterError:
         raise InputError(f"--mode {name!r}: must be one of {', '.join(METHODS)}") from None
-    if method.pose is not None:
-        method = method.replace(pose=refined_params(a, method.pose, top_k=a.top_k))
-    else:  # the refined flags are still checked, so a bad value is refused in either mode
-        with flags_named():
-            REFINED.replace(top_k=a.top_k, geotag_sigma_m=a.geotag_sigma_m, gate_chi2=a.gate_chi2, seed=a.seed)
-    return method.replace(shortlist=FAST) if getattr(a, "fast", False) and not method.camera_rate else method
+    if getattr(a, "fast", False) and not method.camera_rate:
+        method = method.replace(shortlist=FAST)
+    return with_method_flags(a, method, a.init_var)
 
 
 def stored_for(ws: Workspace, db, method: Method) -> dict:
@@ -379,12 +350,9 @@ def cmd_bench(a: argparse.Namespace) -> int:
 
 def cmd_track(a: argparse.Namespace) -> int:
     sift = sift_params(a)
-    with flags_named():
-        params = TrackParams(fast=not a.exact, query_image_scale=a.query_scale,
-                             query_max_keypoints=a.query_keypoints, shortlist_size=a.shortlist,
-                             exclusion_s=a.exclusion_s or 0.0, stride=a.stride)
-        base = FilterParams(meas_var_m2=a.meas_var_m2, accel_var_m2_s4=a.accel_var_m2_s4, init_var=a.init_var)
-    pose = refined_params(a)
+    params = params_from_flags(a, TRACK.replace(fast=not a.exact), exclude=("exclusion_s",))
+    base = params_from_flags(a, PAPER_FILTER, exclude=("dt_s",))
+    method = with_method_flags(a, REFINED_METHOD if a.exact else REFINED_FAST_METHOD, base.init_var)
     require_output(a.json, "--json", a.db)
     require_exports(a, a.db)
     seq = open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
@@ -404,10 +372,11 @@ def cmd_track(a: argparse.Namespace) -> int:
     db = ws.load_database(source, db_camera, sift)
     params = params.replace(exclusion_s=exclusion_for(a.exclusion_s, db, seq.timestamps_s, seq.lat_deg, seq.lon_deg,
                                                       seq.name))
-    localizer, query_sift = track_localizer(ws, db, seq.camera_model, filt, params, pose, query_what=seq.name)
+    localizer, query_sift = track_localizer(ws, db, seq.camera_model, filt, params, method, query_what=seq.name)
     progress = progress_reporter(f"track {seq.name}", "frames")
     progress(0, len(indices))
-    run = run_track(localizer, seq, query_sift, db, params, indices=indices, progress=progress)
+    run = run_track(localizer, seq, query_sift, db, params, indices=indices, progress=progress,
+                    path_params={"method": method.as_dict()})
     print(track_text(run.summary()))
     if a.json:
         write_json(a.json, run.as_json())

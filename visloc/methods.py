@@ -30,7 +30,7 @@ from visloc.geometry import CameraModel
 from visloc.localizer import Localizer
 from visloc.matching import Counter, PairCountCache, backend_counter, brute_force_counter
 from visloc.measurement import GeotagMeasurer, MemoisedMeasurer
-from visloc.params import FAST, REFINED, TRACK, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
+from visloc.params import FAST, REFINED, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
 from visloc.pose import PoseMeasurer, StructureCache
 from visloc.retrieval import ShortlistRetriever, WindowRetriever, build_global_index
 from visloc.structure import seeded_structure_cache
@@ -92,10 +92,11 @@ class Method:
 
 PAPER_METHOD = Method("paper")
 REFINED_METHOD = Method("refined", pose=REFINED)
-REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=TRACK.pnp_px),
-                             shortlist=FAST.replace(shortlist_size=TRACK.shortlist_size,
-                                                    lost_shortlist_size=TRACK.lost_shortlist_size), camera_rate=True,
-                             min_matches=TRACK.min_matches)
+# the camera-rate path: keypoints found at a reduced scale are less precise (PnP at 3 px); few candidates
+# per frame inside the gate, more for a frame without one
+REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=3.0),
+                             shortlist=FAST.replace(shortlist_size=3, lost_shortlist_size=16), camera_rate=True,
+                             min_matches=20)
 METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD, REFINED_FAST_METHOD)}
 
 

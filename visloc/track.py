@@ -27,9 +27,9 @@ from visloc.geometry import CameraModel
 from visloc.localizer import Localizer, StepResult
 from visloc.measurement import GEOMETRY
 from visloc.matching import MatchCancelled
-from visloc.methods import REFINED_FAST_METHOD, REFINED_METHOD, build_localizer
-from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, REFINED, FilterParams, RefinedParams,
-                           RetrievalParams, SiftParams, TrackParams)
+from visloc.methods import REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer
+from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK, FilterParams, RetrievalParams,
+                           SiftParams, TrackParams)
 from visloc.queries import extract_queries
 from visloc.structure import seeded_structure_cache
 from visloc.runs import latency_ms
@@ -53,24 +53,22 @@ def track_filter(seq: Sequence, params: TrackParams, base: FilterParams = PAPER_
 
 
 def track_localizer(ws: Workspace, db: GeoDatabase, query_camera: CameraModel | None, filter_params: FilterParams,
-                    params: TrackParams = TrackParams(), pose: RefinedParams = REFINED, *,
+                    params: TrackParams = TRACK, method: Method | None = None, *,
                     query_what: str = "the query camera") -> tuple[Localizer, SiftParams]:
-    """The localizer of a track over ``db`` and the SIFT settings its frames are described with."""
+    """The localizer of a track over ``db`` and the SIFT settings its frames are described with.
+
+    ``method``: the refined method to run, a preset with the user's changes (default: refined-fast when
+    ``params.fast``, else refined)."""
+    method = method or (REFINED_FAST_METHOD if params.fast else REFINED_METHOD)
     store_sift = ws.sift_params
-    structures = ws.load_structure(db, pose)
-    if not params.fast:
-        method = REFINED_METHOD.replace(pose=pose)
-        loc = build_localizer(method, db, PAPER_MATCH, RetrievalParams(window_s=WINDOW_S, exclusion_s=params.exclusion_s),
-                              filter_params, query_camera=query_camera, query_what=query_what,
-                              structures=seeded_structure_cache(structures))
+    structures = ws.load_structure(db, method.pose)
+    retrieval = RetrievalParams(window_s=WINDOW_S, exclusion_s=params.exclusion_s)
+    if not method.camera_rate:
+        loc = build_localizer(method, db, PAPER_MATCH, retrieval, filter_params, query_camera=query_camera,
+                              query_what=query_what, structures=seeded_structure_cache(structures))
         return loc, store_sift
-    method = REFINED_FAST_METHOD.replace(pose=pose.replace(pnp_px=params.pnp_px),
-                                         shortlist=REFINED_FAST_METHOD.shortlist.replace(
-                                             shortlist_size=params.shortlist_size,
-                                             lost_shortlist_size=params.lost_shortlist_size),
-                                         min_matches=params.min_matches)
-    loc = build_localizer(method, db, PAPER_MATCH, RetrievalParams(window_s=WINDOW_S, exclusion_s=params.exclusion_s),
-                          filter_params, query_camera=query_camera, query_what=query_what, stored=structures,
+    loc = build_localizer(method, db, PAPER_MATCH, retrieval, filter_params, query_camera=query_camera,
+                          query_what=query_what, stored=structures,
                           shortlist_index=ws.load_database_index(db, method.shortlist))
     return loc, store_sift.replace(image_scale=params.query_image_scale, n_features=params.query_max_keypoints)
 

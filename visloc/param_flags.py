@@ -1,0 +1,114 @@
+"""Command-line flags made from the parameters' declarations (``visloc.params``), and back.
+
+``add_param_flags`` adds one flag per declared field of a parameter class that has a flag, with
+its help, unit, valid range and default from the declaration; ``changes_from_flags`` reads back
+the values the user gave; ``flags_named`` re-raises a refused value naming the flag typed.
+A new declared parameter gets its flag, its ``--help`` line and its message without a change here.
+"""
+
+from __future__ import annotations
+
+import argparse
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
+
+from visloc.errors import ParameterError
+from visloc.params import PARAMETER_CLASSES, Spec, declared, flag_of
+
+# flag of every declared parameter, by field name (a name two classes share has one flag)
+FLAGS = {name: flag for cls in PARAMETER_CLASSES for name, spec, _ in declared(cls)
+         if (flag := flag_of(name, spec)) is not None}
+
+
+def dest_of(flag: str) -> str:
+    return flag.lstrip("-").replace("-", "_")
+
+
+def _distances(text: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected distances separated by commas, e.g. 2,5,10") from None
+
+
+def _shown(value) -> str:
+    if isinstance(value, tuple):
+        return ",".join(f"{v:g}" for v in value)
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
+
+
+def help_of(spec: Spec, default_text: str | None) -> str:
+    """A flag's help: what it does, its valid values and unit, its default."""
+    text = f"{spec.help}; {spec.rule()}"
+    text = text.replace("%", "%%")  # argparse formats help with %
+    return text if default_text is None else f"{text} (default {default_text})"
+
+
+def add_param_flags(group, cls, preset=None, *, presets: Iterable[tuple[str, object]] = (),
+                    exclude: Iterable[str] = (), automatic: dict[str, str] | None = None) -> None:
+    """One flag per declared field of ``cls`` that has one.
+
+    preset:    the parameter object whose values are the defaults; None: the flags default to None, "the
+               method's own", and ``presets`` (label, parameter object) say what that is per method
+    exclude:   fields this command sets itself
+    automatic: field -> help of a flag whose default (None) the command chooses from the data
+    """
+    automatic = automatic or {}
+    presets = list(presets)
+    for name, spec, _ in declared(cls):
+        flag = flag_of(name, spec)
+        if flag is None or name in exclude:
+            continue
+        kwargs: dict = {"dest": dest_of(flag), "default": None}
+        if spec.kind == "bool":
+            kwargs["action"] = argparse.BooleanOptionalAction
+        elif spec.kind == "choice":
+            kwargs["choices"] = spec.choices
+        else:
+            kwargs["type"] = {"integer": int, "distances": _distances}.get(spec.kind, float)
+        if name in automatic:
+            kwargs["help"] = automatic[name]
+        elif preset is not None:
+            kwargs["default"] = getattr(preset, name)
+            kwargs["help"] = help_of(spec, _shown(kwargs["default"]))
+        else:
+            values = [(label, getattr(p, name)) for label, p in presets]
+            if len({_shown(v) for _, v in values}) <= 1:
+                default_text = _shown(values[0][1]) if values else None
+            else:
+                default_text = "the method's: " + ", ".join(f"{label} {_shown(v)}" for label, v in values)
+            kwargs["help"] = help_of(spec, default_text)
+        group.add_argument(flag, **kwargs)
+
+
+def changes_from_flags(a: argparse.Namespace, cls, exclude: Iterable[str] = ()) -> dict:
+    """The fields of ``cls`` the user set by flag (a flag left at None is left to the preset)."""
+    out = {}
+    for name, spec, _ in declared(cls):
+        flag = flag_of(name, spec)
+        if flag is None or name in exclude:
+            continue
+        value = getattr(a, dest_of(flag), None)
+        if value is not None:
+            out[name] = value
+    return out
+
+
+@contextmanager
+def flags_named() -> Iterator[None]:
+    """Parameters built from flags: a ``ParameterError`` is re-raised starting with the flags at fault."""
+    try:
+        yield
+    except ParameterError as exc:
+        flags = [FLAGS[n] for n in getattr(exc, "params", ()) if n in FLAGS]
+        if not flags:
+            raise
+        raise ParameterError(f"{' and '.join(flags)}: {exc}") from None
+
+
+def params_from_flags(a: argparse.Namespace, base, exclude: Iterable[str] = ()):
+    """``base`` with the values the user gave by flag; a refused value names its flag."""
+    with flags_named():
+        return base.replace(**changes_from_flags(a, type(base), exclude))

@@ -1,0 +1,147 @@
+"""Parameters beyond the paper: the refined measurement and the filter's gate, the fast retrieval, and a
+continuous run at the camera's rate. Every field is declared once (``visloc.params.declare``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from visloc.params.declare import MAX_C_INT, Control, Params, param
+from visloc.params.paper import MAX_GEOTAG_SIGMA_M, MAX_SECONDS
+
+REFINED_BOTH = ("refined", "refined-fast")
+FAST_RETRIEVAL = ("refined-fast", "--fast")
+
+
+def _refined(default, help: str, **spec):
+    return param(default, help, methods=REFINED_BOTH, **spec)
+
+
+@dataclass(frozen=True)
+class RefinedParams(Params):
+    """Metric position from the geotagged database (the refined mode), and the filter's gating.
+
+    Verification, then structure triangulated from each verified view and its neighbours (poses
+    refined by bundle adjustment with priors first, ``visloc.bundle``), then PnP; its uncertainty;
+    the filter's gate. The camera-rate path reads the structure stored at ingest, made with these.
+    """
+
+    top_k: int = _refined(8, "candidates (by correspondence count) verified by two-view geometry",
+                          kind="integer", low=1)
+    ratio: float = _refined(0.8, "Lowe ratio of the geometric matching (equation (1) alone: the paper's cosine "
+                                 "test rejects too many true matches for geometry)", low=0, high=1, open_low=True)
+    essential_px: float = _refined(1.0, "RANSAC threshold of the essential matrix", unit="px", low=0, open_low=True)
+    min_verified_inliers: int = _refined(20, "essential-matrix inliers a candidate needs to count as verified",
+                                         kind="integer", low=5)
+    n_views: int = _refined(2, "verified candidates the query is posed against", kind="integer", low=1)
+    both_sides: bool = _refined(True, "choose the views on both sides of the query where the database has both "
+                                      "(best first otherwise)", kind="bool")
+    neighbour_baselines_m: tuple[float, ...] = _refined(
+        (2.0, 5.0, 10.0), "a view's structure comes from triangulating it with database images before and after it "
+                          "at about these distances (comma-separated)", unit="m", kind="distances")
+    max_neighbour_gap: int = _refined(50, "... and at most this many frames from it", kind="integer", low=1)
+    min_baseline_m: float = _refined(1.0, "a neighbour must be at least this far from the view (else: a stopped car)",
+                                     unit="m", low=0)
+    triangulation_px: float = _refined(1.0, "largest reprojection error of a triangulated point", unit="px", low=0,
+                                       open_low=True)
+    min_parallax_deg: float = _refined(0.5, "smallest angle between the two rays of a triangulated point",
+                                       unit="deg", low=0)
+    max_depth_m: float = _refined(80.0, "farthest triangulated point kept", unit="m", low=0, open_low=True)
+    refine_poses: bool = _refined(True, "before triangulating, refine the poses of the view and its neighbours by "
+                                        "bundle adjustment, with priors that keep each near its geotag and attitude",
+                                  kind="bool")
+    relative_geotag_sigma_m: float = _refined(
+        0.05, "position prior of a pose in that adjustment: how well neighbouring geotags agree with each other over "
+              "a few metres, per axis (loosened where the images move the poses farther)",
+        unit="m", low=0, open_low=True)
+    attitude_prior_per_heading_spread: float = _refined(
+        2.0, "the attitude prior is this many times the database's heading spread (how far its headings stray from "
+             "its course over ground)", low=0, open_low=True)
+    min_attitude_prior_deg: float = _refined(0.2, "... and never tighter than this", unit="deg", low=0, open_low=True)
+    pnp_px: float = _refined(2.0, "PnP RANSAC inlier threshold (refined-fast: 3, for keypoints found at a reduced "
+                                  "scale)", unit="px", low=0, open_low=True)
+    pnp_iterations: int = _refined(1000, "PnP RANSAC iterations", kind="integer", low=1)
+    min_pnp_inliers: int = _refined(15, "fewer PnP inliers than this: fall back to the geotag", kind="integer", low=6)
+    max_offset_m: float = _refined(30.0, "a pose farther than this from the geotag of the view it was solved against "
+                                         "is rejected", unit="m", low=0, open_low=True)
+    max_view_spread_m: float = _refined(
+        1.5, "the query is also posed against each view alone; a view whose pose lies farther than this from the "
+             "others' is dropped, and a measurement whose views still disagree by more is rejected",
+        unit="m", low=0, open_low=True)
+    max_heading_diff_deg: float = _refined(45.0, "a pose facing more than this away from its views is rejected",
+                                           unit="deg", low=0, open_low=True)
+    geotag_sigma_m: float = _refined(
+        1.0, "accuracy (standard deviation per axis) assumed for database geotags whose source states none; stated "
+             "accuracies (OXTS pos_accuracy, a CSV's accuracy_m) are used as they are",
+        unit="m", low=0, high=MAX_GEOTAG_SIGMA_M)
+    gate_chi2: float = _refined(
+        13.82, "a measurement whose squared Mahalanobis distance y' S^-1 y to the prediction exceeds this is not "
+               "applied (2 degrees of freedom; 13.82 = 99.9 %); 0 disables gating", low=0,
+        control=Control("Gate χ² (refined)", 0.0, 50.0, 0.01, "filter",
+                        hint="Refined modes only: a measurement whose squared Mahalanobis distance to the filter's "
+                             "prediction exceeds this is skipped (the step only predicts). 13.82 = 99.9 % for 2 "
+                             "degrees of freedom; 0 = off. Unitless"))
+    reinit_after_gated: int = _refined(2, "this many gated measurements in a row restart the track at the last of "
+                                          "them; 0 never restarts", kind="integer", low=0)
+    seed: int = _refined(0, "seed of every RANSAC", kind="integer", low=0, high=MAX_C_INT)
+
+
+REFINED = RefinedParams()
+
+NN_BACKENDS = ("gemm", "faiss", "batched")
+_CODEBOOK = "set when the store's global vectors are built; not a query-time setting"
+
+
+@dataclass(frozen=True)
+class FastParams(Params):
+    """The fast retrieval: the filter's gate, a global-vector (VLAD) shortlist, exact counts on the
+    shortlist. Used by ``--fast`` and by the camera-rate method (refined-fast)."""
+
+    gate_sigmas: float = param(3.0, "gate radius in standard deviations of the predicted position (largest axis)",
+                               low=0, open_low=True, methods=FAST_RETRIEVAL)
+    gate_min_radius_m: float = param(20.0, "the gate is never narrower than this", unit="m", low=0,
+                                     methods=FAST_RETRIEVAL)
+    shortlist_size: int = param(8, "candidates matched exactly, the most similar by global vector inside the gate "
+                                   "(0: all in the gate)", kind="integer", low=0, methods=FAST_RETRIEVAL,
+                                flag="--shortlist")
+    lost_shortlist_size: int = param(0, "the same for a query without a usable gate (first query, lost track), which "
+                                        "searches every allowed image; 0: --shortlist", kind="integer", low=0,
+                                     methods=FAST_RETRIEVAL, flag="--lost-shortlist")
+    nn_backend: str = param("batched", "exact nearest-two search: batched (every shortlisted image in one GEMM), "
+                                       "faiss, or gemm (per image, the paper path's)", kind="choice",
+                            choices=NN_BACKENDS, methods=FAST_RETRIEVAL)
+    n_words: int = param(32, "k-means words of the VLAD codebook; " + _CODEBOOK, kind="integer", low=1,
+                         methods=FAST_RETRIEVAL, flag=None)
+    pca_dim: int = param(0, "dimension of the global vectors after PCA (0: no PCA); " + _CODEBOOK, kind="integer",
+                         low=0, methods=FAST_RETRIEVAL, flag=None)
+    train_descriptors: int = param(100_000, "descriptors sampled from the database to train the codebook; "
+                                   + _CODEBOOK, kind="integer", low=1, methods=FAST_RETRIEVAL, flag=None)
+    seed: int = param(0, "seed of sampling, k-means and PCA; " + _CODEBOOK, kind="integer", low=0,
+                      methods=FAST_RETRIEVAL, flag=None)
+
+
+FAST = FastParams()
+
+TRACK_ONLY = ("track",)
+
+
+@dataclass(frozen=True)
+class TrackParams(Params):
+    """A continuous run: every frame of a drive in order, at the camera's rate. The method's own
+    settings (shortlist, PnP threshold) are the refined-fast preset's (``visloc.methods``)."""
+
+    fast: bool = param(True, "the camera-rate refined path (stored structure, the filter's gate, a global-vector "
+                             "shortlist, matching against 3D points only); False: the exact refined path (--exact)",
+                       kind="bool", methods=TRACK_ONLY, flag=None)
+    query_image_scale: float = param(0.75, "camera-rate path: SIFT runs on the frame resized by this factor (the "
+                                           "database keeps its full-resolution features and structure)",
+                                     low=0.1, high=1, methods=TRACK_ONLY, flag="--query-scale")
+    query_max_keypoints: int = param(1500, "camera-rate path: SIFT keeps at most this many keypoints of a frame, the "
+                                           "strongest (0: all)", kind="integer", low=0, high=MAX_C_INT,
+                                     methods=TRACK_ONLY, flag="--query-keypoints")
+    exclusion_s: float = param(0.0, "database images closer in time to the frame than this are not used (0: off)",
+                               unit="s", low=0, high=MAX_SECONDS, methods=TRACK_ONLY)
+    stride: int = param(1, "localize every stride-th frame (1: every frame); the filter's time step follows",
+                        kind="integer", low=1, methods=TRACK_ONLY)
+
+
+TRACK = TrackParams()
