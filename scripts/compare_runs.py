@@ -1,11 +1,13 @@
 """Compare two `visloc evaluate --json` outputs number by number, leaving out what is timed.
 
-    python scripts/compare_runs.py BEFORE.json AFTER.json
+    python scripts/compare_runs.py BEFORE.json AFTER.json [--ignore KEY ...]
 
 Every value of BEFORE (summary and every step of every series) must be in AFTER and equal to
 it exactly: the same numbers, bit for bit. Timings (latency_ms, measurement_ms,
-measurement_latency_ms, structure_build_ms) are wall-clock measurements and differ from run to
-run, so they are left out. Prints what differs and exits 1, or prints a count and exits 0.
+measurement_latency_ms, structure_build_ms, wall_s, sustained_hz and the other timed keys below)
+are wall-clock measurements and differ from run to run, so they are left out, as is every key
+given with --ignore (a record whose meaning changed on purpose, e.g. a parameter listing).
+Prints what differs and exits 1, or prints a count and exits 0.
 """
 
 from __future__ import annotations
@@ -15,7 +17,8 @@ import math
 import sys
 from pathlib import Path
 
-TIMED = {"latency_ms", "measurement_ms", "measurement_latency_ms", "structure_build_ms"}
+TIMED = {"latency_ms", "measurement_ms", "measurement_latency_ms", "structure_build_ms", "wall_s", "sustained_hz",
+         "stages_ms", "latency_p50_ms", "latency_p95_ms", "build_ms"}
 
 
 def differences(before, after, path: str = "") -> list[str]:
@@ -49,7 +52,8 @@ def count_values(value) -> int:
     return 1
 
 
-def main(before_path: str, after_path: str) -> int:
+def main(before_path: str, after_path: str, ignore: list[str] | None = None) -> int:
+    TIMED.update(ignore or [])
     before, after = (json.loads(Path(p).read_text()) for p in (before_path, after_path))
     found = differences(before, after)
     for line in found[:40]:
@@ -63,7 +67,10 @@ def main(before_path: str, after_path: str) -> int:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) != 3:
+    args = sys.argv[1:]
+    ignored = [args[i + 1] for i, a in enumerate(args[:-1]) if a == "--ignore"]
+    paths = [a for i, a in enumerate(args) if a != "--ignore" and (i == 0 or args[i - 1] != "--ignore")]
+    if len(paths) != 2:
         print(__doc__.strip().splitlines()[2].strip(), file=sys.stderr)
         sys.exit(2)
-    sys.exit(main(sys.argv[1], sys.argv[2]))
+    sys.exit(main(paths[0], paths[1], ignored))
