@@ -15,9 +15,9 @@ import numpy as np
 
 from visloc.params import PAPER_FILTER, TrackParams
 from visloc.progress import progress_reporter
-from visloc.sources import Sequence
-from visloc.track import TrackRun, run_track, track_filter, track_localizer
-from visloc.workspace import Workspace
+from visloc.sources.drives import Sequence
+from visloc.protocols.track import TrackRun, run_track, track_filter, track_localizer
+from visloc.store.workspace import Workspace
 
 EXCLUSION_S = 1.0
 

@@ -14,7 +14,7 @@ the drive has one, else the left camera itself (the 1 s exclusion keeps a query 
    timed), retrieval, geometry (the measurement; 0 in the paper's mode), filter.
    Percentiles per stage, and the speed ratio paper / fast.
 3. **Ingest**: images per second of bare OpenCV SIFT in a process pool against
-   ``visloc.ingest`` into a fresh store, same images, same number of processes.
+   ``visloc.store.ingest`` into a fresh store, same images, same number of processes.
 2b. **Refined paths** (``visloc.bench.refined``): the exact refined path and the camera-rate one,
    run as ``visloc track`` runs on the same frames: latency, speed ratio, errors.
 4. **Scale**: a synthetic database of ``--synthetic-images`` images; time for a lost query
@@ -36,19 +36,20 @@ import numpy as np
 
 from visloc.bench.refined import refined_fast, refined_fast_targets
 from visloc.bench.synthetic import SyntheticSpec, build_store, lost_query, peak_rss_mb
-from visloc.evaluation import evaluate, series_schedule
-from visloc.features import extract_sift, make_sift
+from visloc.protocols.evaluation import evaluate, series_schedule
+from visloc.features.sift import extract_sift, make_sift
 from visloc.errors import InputError, ParameterError
 from visloc.geo import geodesic_distance_m
-from visloc.matching import backend_counter
-from visloc.methods import PAPER_METHOD, build_localizer
+from visloc.retrieval.matching import backend_counter
+from visloc.tracking.methods import PAPER_METHOD, build_localizer
 from visloc.progress import progress_reporter
 from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_SIFT, FastParams, SiftParams
-from visloc.queries import extract_queries
-from visloc.retrieval import build_global_index
-from visloc.runs import run_queries
-from visloc.sources import load_gray, open_source
-from visloc.workspace import Workspace
+from visloc.sources.queries import extract_queries
+from visloc.retrieval.retrievers import build_global_index
+from visloc.tracking.runs import run_queries
+from visloc.sources.drives import load_gray, open_source
+from visloc.store.workspace import Workspace
+from visloc.store.build import build_global_vectors, build_structure, ingest_sequence
 
 LEVERS = ("paper", "faiss_nn", "gate", "gate_shortlist", "fast")
 
@@ -116,14 +117,14 @@ def _ensure_store(path: Path, sequences: dict, sift: SiftParams, workers: int, s
     for seq in {s.name: s for s in sequences.values()}.values():
         if ws.stored_frame_count(seq.source, seq.camera) < len(seq):
             say(f"building {path} ({seq.name}, SIFT {sift.as_dict()})")
-            ws.ingest(seq, sift, workers=workers, progress=progress_reporter(f"ingest {seq.name}", "images"),
+            ingest_sequence(ws, seq, sift, workers=workers, progress=progress_reporter(f"ingest {seq.name}", "images"),
                       vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
                       structure_progress=progress_reporter(f"structure {seq.name}", "images"),
                       self_check_progress=progress_reporter(f"self-check {seq.name}", "images"))
         else:  # a store from before structure was kept: add what ingest now stores
-            ws.build_global_vectors(seq.source, seq.camera,
+            build_global_vectors(ws, seq.source, seq.camera,
                                     progress=progress_reporter(f"global vectors {seq.name}", "images"))
-            ws.build_structure(seq.source, seq.camera, progress=progress_reporter(f"structure {seq.name}", "images"))
+            build_structure(ws, seq.source, seq.camera, progress=progress_reporter(f"structure {seq.name}", "images"))
 
 
 def _load_store(path: Path, sequences: dict):
@@ -262,11 +263,11 @@ def _ingest_bench(seq_by_key: dict, sift: SiftParams, n_images: int, workers: in
         with tempfile.TemporaryDirectory() as tmp:
             ws = Workspace(Path(tmp) / "ingest.sqlite", create=True)
             t0 = time.perf_counter()
-            report = ws.ingest(seq, sift, workers=workers, limit=n_images, structure=False)  # SIFT and storing
+            report = ingest_sequence(ws, seq, sift, workers=workers, limit=n_images, structure=False)  # SIFT and storing
             runs["ingest_images_per_s"].append(report.n_added / (time.perf_counter() - t0))
             t0 = time.perf_counter()  # then what ingest adds: global vectors and structure
-            ws.build_global_vectors(seq.source, seq.camera)
-            ws.build_structure(seq.source, seq.camera)
+            build_global_vectors(ws, seq.source, seq.camera)
+            build_structure(ws, seq.source, seq.camera)
             runs["structure_ms_per_image"].append((time.perf_counter() - t0) * 1000.0 / report.n_added)
     bare, ing = float(np.median(runs["bare_sift_images_per_s"])), float(np.median(runs["ingest_images_per_s"]))
     out = {"n_images": len(paths), "workers": workers, "sift": sift.as_dict(), "runs": runs,

@@ -26,10 +26,10 @@ from pathlib import Path
 import numpy as np
 
 from visloc.db import ImageRecord, StructureRecord
-from visloc.matching import count_correspondences_with
+from visloc.retrieval.matching import count_correspondences_with
 from visloc.params import PAPER_MATCH
-from visloc.vlad import GlobalEncoder, fit_pca, shortlist, train_codebook
-from visloc.workspace import Workspace
+from visloc.features.vlad import GlobalEncoder, fit_pca, shortlist, train_codebook
+from visloc.store.workspace import Workspace
 
 LANDMARKS_PER_PLACE = 16
 VISIBLE_PLACES = 2

@@ -108,7 +108,7 @@ class SkippedFrame:
 
 @dataclass(frozen=True)
 class SelfCheckRecord:
-    """One database image posed from its neighbours as a query would be (``visloc.selfcheck``).
+    """One database image posed from its neighbours as a query would be (``visloc.pose.selfcheck``).
 
     params_json:    the settings it was made with (JSON); a self-check made with other settings is not used
     error_*_m:      the pose minus the image's own geotag, metres east and north (None: no pose, see reason)

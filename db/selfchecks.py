@@ -1,4 +1,4 @@
-"""The ``self_checks`` table: how well the database poses its own images (``visloc.selfcheck``).
+"""The ``self_checks`` table: how well the database poses its own images (``visloc.pose.selfcheck``).
 
 One row per (image, settings): the pose's error against the image's own geotag, its covariance
 without the lever term, the lever and the side, or why there is no pose. A store read as it is may

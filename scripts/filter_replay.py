@@ -29,7 +29,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from visloc.geo import LocalFrame  # noqa: E402
 from visloc.params import FilterParams, RefinedParams  # noqa: E402
-from visloc.tracking import run_filter  # noqa: E402
+from visloc.tracking.kalman import run_filter  # noqa: E402
 
 ACCEL_SCALES = (0.25, 4.0, 16.0)
 JERK_VARS_M2_S6 = (0.1, 1.0, 10.0)

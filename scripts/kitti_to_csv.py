@@ -5,7 +5,7 @@
 Writes OUT_DIR/geotags.csv (file,timestamp,lat,lon,alt,heading,roll_deg,pitch_deg,accuracy_m),
 OUT_DIR/calibration.json (the camera's K and its pose on the vehicle, T_vehicle_camera = inverse of
 KITTI's T_camera_imu) and symlinks every image into OUT_DIR/images/ (the CSV names them relative to
-its folder). The values are what visloc's own KITTI reader (``visloc.sources.open_kitti``) makes of
+its folder). The values are what visloc's own KITTI reader (``visloc.sources.drives.open_kitti``) makes of
 the drive, so ``visloc ingest OUT_DIR/geotags.csv`` stores what ``visloc ingest ROOT --drive ...
 --camera ...`` does. Numbers are written at full precision (repr): geotags, timestamps, accuracies
 and intrinsics read back bit for bit; what changes unit on the way (radians to degrees, yaw to
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from visloc.calibration import CALIBRATION_FILE, calibration_dict, inverse_pose, write_calibration
+from visloc.sources.calibration import CALIBRATION_FILE, calibration_dict, inverse_pose, write_calibration
 from visloc.errors import InputError
-from visloc.sources import KITTI_CAMERAS, Frame, load_gray, open_kitti
+from visloc.sources.drives import KITTI_CAMERAS, Frame, load_gray, open_kitti
 
 COLUMNS = ("file", "timestamp", "lat", "lon", "alt", "heading", "roll_deg", "pitch_deg", "accuracy_m")
 CSV_NAME = "geotags.csv"

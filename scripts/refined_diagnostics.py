@@ -32,9 +32,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from visloc import InputError, Workspace  # noqa: E402
 from visloc.params import REFINED, MatchParams, RetrievalParams  # noqa: E402
-from visloc.pose import PoseMeasurer  # noqa: E402
-from visloc.retrieval import WindowRetriever  # noqa: E402
-from visloc.sources import default_data_root, resolve_drive  # noqa: E402
+from visloc.pose.refined import PoseMeasurer  # noqa: E402
+from visloc.retrieval.retrievers import WindowRetriever  # noqa: E402
+from visloc.sources.drives import default_data_root, resolve_drive  # noqa: E402
 
 
 def oxts(folder: Path) -> tuple[np.ndarray, np.ndarray]:

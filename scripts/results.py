@@ -32,7 +32,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from visloc.errors import InputError  # noqa: E402
-from visloc.suite import drive_protocols, drives_of  # noqa: E402
+from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
 from results_camera_rate import digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
 from filter_replay import render_filter_replay, replay  # noqa: E402
 from results_peer import digest_peer, render_peer  # noqa: E402

@@ -18,7 +18,7 @@ PEER_VARIANT, PEER_THRESHOLD = "counts", "12.0"  # the peer's default variant an
 
 
 def protocol_key(query_camera: str, db_camera: str) -> str | None:
-    """The evaluate-drives protocol key of a (query, database) camera pair, as visloc.suite names it."""
+    """The evaluate-drives protocol key of a (query, database) camera pair, as visloc.protocols.suite names it."""
     if (query_camera, db_camera) == ("image_00", "image_01"):
         return "stereo"
     return f"same_{query_camera}" if query_camera == db_camera else None

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from visloc.db import FeatureStore
-from visloc.sources import default_data_root
+from visloc.sources.drives import default_data_root
 
 REPO = Path(__file__).resolve().parent.parent
 KITTI_DRIVE = "2011_09_26_drive_0001"

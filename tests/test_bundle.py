@@ -1,10 +1,10 @@
-"""Bundle adjustment of posed database cameras with priors on their poses (visloc.bundle)."""
+"""Bundle adjustment of posed database cameras with priors on their poses (visloc.geometry.bundle)."""
 
 import numpy as np
 import pytest
 
-from visloc.bundle import PosePriors, bundle_adjust, refine_database_poses, rotation_exp, rotation_log
-from visloc.geometry import project, rotation_from_rpy
+from visloc.geometry.bundle import PosePriors, bundle_adjust, refine_database_poses, rotation_exp, rotation_log
+from visloc.geometry.projective import project, rotation_from_rpy
 
 K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
 R_IMU_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera z forward = imu x

@@ -13,15 +13,16 @@ import pytest
 
 from conftest import REPO, require_drive, run_cli, write_csv_drive
 from helpers import error_lines
-from visloc.fastpose import FastPoseMeasurer, StructureMatcher
+from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED
-from visloc.pose import pose_measurement
-from visloc.queries import extract_queries
-from visloc.retrieval import Retrieval
-from visloc.sources import open_source
-from visloc.structure import VARIANTS, ViewStructure, choose_variant, view_structures
-from visloc.matching import count_correspondences
-from visloc.workspace import Workspace
+from visloc.pose.refined import pose_measurement
+from visloc.sources.queries import extract_queries
+from visloc.retrieval.retrievers import Retrieval
+from visloc.sources.drives import open_source
+from visloc.pose.structure import VARIANTS, ViewStructure, choose_variant, view_structures
+from visloc.store.build import build_global_vectors, build_structure
+from visloc.retrieval.matching import count_correspondences
+from visloc.store.workspace import Workspace
 
 DRIVE = "2011_09_26_drive_0005"
 SOURCE = DRIVE + "_sync"
@@ -138,9 +139,9 @@ def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_struc
     db = ws.load_database(SOURCE, "image_00")
     assert ws.load_structure(db) == {} and ws.load_database_index(db) is None
     # what ingest does after SIFT, for a store that lacks it
-    assert ws.build_global_vectors(SOURCE, "image_00") == N_FRAMES
-    assert ws.build_structure(SOURCE, "image_00") == N_FRAMES
-    assert ws.build_structure(SOURCE, "image_00") == 0  # resumes: nothing left to do
+    assert build_global_vectors(ws, SOURCE, "image_00") == N_FRAMES
+    assert build_structure(ws, SOURCE, "image_00") == N_FRAMES
+    assert build_structure(ws, SOURCE, "image_00") == 0  # resumes: nothing left to do
     conn = sqlite3.connect(path)
     assert conn.execute("SELECT version FROM visloc_schema").fetchone() == (4,)
     assert conn.execute("SELECT * FROM images ORDER BY id").fetchall() == before
@@ -163,7 +164,7 @@ def test_an_interrupted_structure_build_resumes_where_it_stopped(store, tmp_path
     kept = conn.execute("SELECT image_id, variant, created_at FROM structures ORDER BY image_id, variant").fetchall()
     conn.close()
     ws = Workspace(path)
-    assert ws.build_structure(SOURCE, "image_00") == N_FRAMES - 25
+    assert build_structure(ws, SOURCE, "image_00") == N_FRAMES - 25
     conn = sqlite3.connect(path)
     again = conn.execute("SELECT image_id, variant, created_at FROM structures WHERE image_id <= 25 "
                          "ORDER BY image_id, variant").fetchall()

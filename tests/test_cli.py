@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from visloc.cli import build_parser
+from visloc.cli.parser import build_parser
 
 from conftest import run_cli, write_csv_drive
 from helpers import one_line_error

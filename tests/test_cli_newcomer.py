@@ -12,8 +12,8 @@ from importlib.metadata import version
 
 import pytest
 
-from visloc.cli import build_parser
-from visloc.help_text import DEFAULT_DB
+from visloc.cli.parser import build_parser
+from visloc.cli.help_text import DEFAULT_DB
 from visloc.progress import duration_text, progress_reporter
 
 from conftest import make_fake_kitti, run_cli, write_csv_drive

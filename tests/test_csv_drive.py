@@ -19,12 +19,12 @@ import pytest
 
 from visloc import (GEOMETRY, GEOTAG, REFINED_METHOD, FilterParams, MatchParams, RetrievalParams, SiftParams, Workspace,
                     match_drive, track_drive)
-from visloc.calibration import read_calibration
+from visloc.sources.calibration import read_calibration
 from visloc.db import SCHEMA_VERSION, FeatureStore
 from visloc.errors import InputError
-from visloc.features import extract_sift, undistort_keypoints
-from visloc.ingest import ingest
-from visloc.sources import load_gray, open_csv
+from visloc.features.sift import extract_sift, undistort_keypoints
+from visloc.store.ingest import ingest
+from visloc.sources.drives import load_gray, open_csv
 
 from conftest import REPO, require_drive, run_cli, write_csv_drive
 

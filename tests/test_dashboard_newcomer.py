@@ -80,7 +80,7 @@ def test_match_drive_hands_over_the_run_so_far_after_each_query(tmp_path):
 
     ws = visloc.Workspace(tmp_path / "s.sqlite", create=True)
     for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-        ws.ingest(visloc.open_csv(write_csv_drive(tmp_path / name, n_frames=10, offset_px=offset)),
+        visloc.ingest_sequence(ws, visloc.open_csv(write_csv_drive(tmp_path / name, n_frames=10, offset_px=offset)),
                   visloc.SiftParams(), workers=1)
     db, queries = ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
     indices = visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from visloc import (
+    ingest_sequence,
     PAPER_FILTER,
     PAPER_METHOD,
     FilterParams,
@@ -37,7 +38,7 @@ def workspace(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("drive")
     ws = Workspace(tmp / "s.sqlite", create=True)
     for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-        ws.ingest(open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
+        ingest_sequence(ws, open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
     return ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
 
 

@@ -5,8 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from visloc import PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, SiftParams, Workspace, evaluate, open_csv
-from visloc.report import (PAPER_DATABASE, PAPER_QUERIES, evaluation_json, save_error_plot, series_tables, summary_text,
+from visloc import (PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, SiftParams, Workspace, evaluate,
+                    ingest_sequence, open_csv)
+from visloc.results.report import (PAPER_DATABASE, PAPER_QUERIES, evaluation_json, save_error_plot, series_tables, summary_text,
                            write_json)
 
 from conftest import write_csv_drive
@@ -17,7 +18,7 @@ def drives(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("eval")
     ws = Workspace(tmp / "s.sqlite", create=True)
     for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-        ws.ingest(open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
+        ingest_sequence(ws, open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
     return tmp, ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera", SiftParams())
 
 

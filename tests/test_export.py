@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 import visloc
-from visloc.export import CSV_COLUMNS, points_from_track
+from visloc.results.export import CSV_COLUMNS, points_from_track
 
 ORIGIN = (49.011, 8.423)  # near KITTI's drives
 

@@ -9,16 +9,16 @@ import pytest
 from visloc.bench.synthetic import SyntheticSpec, database_image, query_image
 from visloc.db import ImageRecord, VectorTable
 from visloc.errors import ParameterError
-from visloc.features import Query, extract_sift
-from visloc.localizer import Localizer
-from visloc.matching import (backend_counter, backend_counts, brute_force_counter, brute_force_counts,
+from visloc.features.sift import Query, extract_sift
+from visloc.tracking.localizer import Localizer
+from visloc.retrieval.matching import (backend_counter, backend_counts, brute_force_counter, brute_force_counts,
                              count_correspondences, count_correspondences_with, count_many, nearest_two,
                              nearest_two_faiss)
-from visloc.measurement import GeotagMeasurer
+from visloc.pose.measurement import GeotagMeasurer
 from visloc.params import PAPER_FILTER, PAPER_MATCH, FastParams, MatchParams, RetrievalParams, SiftParams
-from visloc.retrieval import (ShortlistRetriever, WindowRetriever, build_global_index, gate_mask, gate_radius_m,
+from visloc.retrieval.retrievers import (ShortlistRetriever, WindowRetriever, build_global_index, gate_mask, gate_radius_m,
                               retrieve, shortlist_retrieve)
-from visloc.vlad import shortlist
+from visloc.features.vlad import shortlist
 
 from conftest import panorama
 
@@ -212,7 +212,7 @@ def test_scaled_sift_reports_full_resolution_pixels():
 
 
 def test_store_written_before_image_scale_still_matches(memory_store):
-    from visloc.ingest import check_sift_settings
+    from visloc.store.ingest import check_sift_settings
 
     memory_store.require_setting("sift", {"n_features": 0, "n_octave_layers": 3, "contrast_threshold": 0.04,
                                           "edge_threshold": 10.0, "sigma": 1.6})

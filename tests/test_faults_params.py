@@ -133,7 +133,7 @@ def test_a_singular_innovation_covariance_the_parameters_cannot_foresee_is_a_par
     import numpy as np
 
     from visloc.errors import ParameterError
-    from visloc.tracking import update
+    from visloc.tracking.kalman import update
 
     with pytest.raises(ParameterError, match="singular"):
         update(np.zeros(4), np.zeros((4, 4)), np.array([1.0, 2.0]), np.zeros((2, 2)))

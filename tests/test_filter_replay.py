@@ -16,7 +16,7 @@ import filter_replay  # noqa: E402
 
 from visloc.geo import LocalFrame  # noqa: E402
 from visloc.params import FilterParams, RefinedParams  # noqa: E402
-from visloc.tracking import run_filter  # noqa: E402
+from visloc.tracking.kalman import run_filter  # noqa: E402
 
 
 def evaluation(n_series: int = 6, fallback_last: bool = False) -> dict:

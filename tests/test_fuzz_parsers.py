@@ -21,8 +21,8 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from visloc.errors import VislocError
-from visloc.calibration import read_calibration, read_kitti_calibration, read_kitti_extrinsics
-from visloc.sources import _read_oxts, _read_timestamps, open_csv
+from visloc.sources.calibration import read_calibration, read_kitti_calibration, read_kitti_extrinsics
+from visloc.sources.drives import _read_oxts, _read_timestamps, open_csv
 
 FUZZ = settings(max_examples=300, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])

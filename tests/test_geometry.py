@@ -10,18 +10,18 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from visloc.geometry import (CameraModel, essential_inliers, imu_east_north_covariance, imu_pose_from_camera,
+from visloc.geometry.projective import (CameraModel, essential_inliers, imu_east_north_covariance, imu_pose_from_camera,
                              imu_poses, invert, project, rotation_from_rpy, solve_pnp, triangulate)
-from visloc.drive import filter_measurements
+from visloc.protocols.drive import filter_measurements
 from visloc.errors import InputError
-from visloc.features import Query
-from visloc.measurement import GEOMETRY, GEOTAG, geotag_measurement
+from visloc.features.sift import Query
+from visloc.pose.measurement import GEOMETRY, GEOTAG, geotag_measurement
 from visloc.params import FilterParams, RefinedParams
-from visloc.pose import PoseMeasurer, StructureCache, pose_measurement
-from visloc.viewpose import DatabaseGeometry
-from visloc.retrieval import Retrieval
-from visloc.tracking import run_filter
-from visloc.uncertainty import DEFAULT_LEVER_GAIN, LeverGain
+from visloc.pose.refined import PoseMeasurer, StructureCache, pose_measurement
+from visloc.pose.viewpose import DatabaseGeometry
+from visloc.retrieval.retrievers import Retrieval
+from visloc.tracking.kalman import run_filter
+from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain
 
 K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
 WIDTH_PX, HEIGHT_PX = 1242, 375
@@ -352,7 +352,7 @@ def test_filter_measurements_uses_each_measurements_own_covariance():
 
 
 def test_neighbours_are_chosen_by_distance_so_a_stopped_car_finds_its_baseline_where_it_last_moved():
-    from visloc.pose import neighbours_of
+    from visloc.pose.refined import neighbours_of
 
     east = [0.0, 1.0, 2.0, 3.0, 4.0] + [5.0] * 20 + [6.0, 7.0, 8.0]  # stands still for 2 s at 5 m
     T = np.array([camera_pose(e)[0] for e in east])

@@ -10,9 +10,9 @@ import pytest
 
 from visloc.db import FeatureStore, SettingsMismatchError
 from visloc.errors import InputError
-from visloc.ingest import ingest
+from visloc.store.ingest import ingest
 from visloc.params import SiftParams
-from visloc.sources import open_csv
+from visloc.sources.drives import open_csv
 
 from conftest import REPO, write_csv_drive
 from helpers import assert_no_half_images, snapshot, wait_for_rows
@@ -112,7 +112,7 @@ def test_other_sift_settings_are_refused_before_any_work(tmp_path, csv_drive):
 
 def test_reingest_fills_attitudes_and_extrinsics_a_version_1_store_lacks(tmp_path):
     from conftest import make_fake_kitti
-    from visloc.sources import open_kitti
+    from visloc.sources.drives import open_kitti
 
     make_fake_kitti(tmp_path / "kitti", n_frames=3)
     seq = open_kitti(tmp_path / "kitti", None, "image_01")
@@ -136,7 +136,7 @@ def test_reingest_fills_attitudes_and_extrinsics_a_version_1_store_lacks(tmp_pat
 
 def test_reingest_fills_the_geotag_accuracy_a_version_2_store_lacks(tmp_path):
     from conftest import make_fake_kitti
-    from visloc.sources import open_kitti
+    from visloc.sources.drives import open_kitti
 
     drive = make_fake_kitti(tmp_path / "kitti", n_frames=3)
     for i, record in enumerate(sorted((drive / "oxts" / "data").glob("*.txt"))):

@@ -21,12 +21,19 @@ MAX_MODULE_LINES = 450
 
 
 def modules() -> dict[str, Path]:
-    """Dotted module name -> file, for every module the wheel installs."""
+    """Dotted module name -> file, for every module the wheel installs (subpackages included)."""
     out = {}
     for folder, package in PACKAGES.items():
-        for path in sorted((REPO / folder).glob("*.py")):
-            out[package if path.stem == "__init__" else f"{package}.{path.stem}"] = path
+        for path in sorted((REPO / folder).rglob("*.py")):
+            parts = [package, *path.relative_to(REPO / folder).with_suffix("").parts]
+            out[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
     return out
+
+
+def packages() -> list[str]:
+    """Every package the wheel installs: the folders above and each subpackage of visloc/."""
+    subpackages = sorted(f"visloc.{p.parent.name}" for p in (REPO / "visloc").glob("*/__init__.py"))
+    return [*PACKAGES.values(), *subpackages]
 
 
 def imports_of(path: Path, name: str) -> set[str]:
@@ -56,7 +63,7 @@ def test_no_import_cycles_between_modules():
     def visit(node: str, stack: list[str]) -> None:
         state[node] = 1
         for nxt in sorted(graph[node]):
-            if nxt in PACKAGES.values() and node.startswith(nxt + "."):
+            if nxt in packages() and node.startswith(nxt + "."):
                 continue  # a module importing names from its own package's __init__ is resolved at import time
             if state.get(nxt) == 1:
                 cycles.append(stack[stack.index(nxt):] + [nxt] if nxt in stack else [node, nxt])
@@ -83,7 +90,7 @@ def test_sql_lives_only_in_the_store():
     # one door: only the workspace, and ingest (which fills a store through it), open a store
     users = sorted(name for name, path in modules().items()
                    if not name.startswith("visloc.db") and re.search(r"\bFeatureStore\b", path.read_text()))
-    assert users == ["visloc.ingest", "visloc.workspace"]
+    assert users == ["visloc.store.ingest", "visloc.store.workspace"]
 
 
 def test_the_dashboard_uses_only_the_public_api():
@@ -91,6 +98,43 @@ def test_the_dashboard_uses_only_the_public_api():
         if name.startswith("visloc.dashboard"):
             engine = {m for m in imports_of(path, name) if not m.startswith("visloc.dashboard")}
             assert engine <= {"visloc"}, (name, engine)
+
+
+# the pipeline's rings, lowest first: a module imports from its own ring or lower ones only, so no import
+# runs back up the pipeline (the dashboard reads the engine through its public face, ``visloc``, alone)
+RINGS = [
+    ("visloc.errors", "visloc.geo", "visloc.progress", "visloc.params", "visloc.db"),
+    ("visloc.geometry",), ("visloc.features",), ("visloc.sources",), ("visloc.retrieval",), ("visloc.pose",),
+    ("visloc.store",), ("visloc.tracking",), ("visloc.protocols",), ("visloc.results",), ("visloc.bench",),
+    ("visloc",), ("visloc.dashboard",), ("visloc.cli", "visloc.__main__"),
+]
+
+
+def ring_of(module: str) -> int:
+    best = max((prefix for ring in RINGS for prefix in ring if module == prefix or module.startswith(prefix + ".")
+                and prefix != "visloc"), key=len, default="visloc" if module == "visloc" else None)
+    assert best is not None, f"{module} is on no ring: add its subpackage to RINGS"
+    return next(k for k, ring in enumerate(RINGS) if best in ring)
+
+
+def test_no_import_runs_back_up_the_pipeline():
+    up = []
+    for name, path in modules().items():
+        for target in imports_of(path, name):
+            if ring_of(target) > ring_of(name) and not (name.startswith("visloc.dashboard") and target == "visloc"):
+                up.append(f"{name} -> {target}")
+    assert up == []
+
+
+def test_every_stage_of_the_pipeline_is_a_subpackage_that_says_what_it_holds_and_may_import():
+    stages = [p.parent for p in sorted((REPO / "visloc").glob("*/__init__.py"))]
+    assert {p.name for p in stages} >= {"sources", "features", "geometry", "retrieval", "pose", "store", "tracking",
+                                         "protocols", "results", "cli", "params"}
+    for folder in stages:
+        doc = ast.get_docstring(ast.parse((folder / "__init__.py").read_text())) or ""
+        assert "Imports" in doc, f"{folder.name}/__init__.py: say what the stage holds and what it may import"
+    loose = sorted(p.name for p in (REPO / "visloc").glob("*.py"))
+    assert loose == ["__init__.py", "__main__.py", "errors.py", "geo.py", "progress.py"], loose
 
 
 def test_no_private_name_is_imported_from_another_module():
@@ -110,7 +154,7 @@ def test_no_top_level_package_but_visloc(tmp_path):
     names = zipfile.ZipFile(wheel).namelist()
     top = {n.split("/", 1)[0] for n in names if not n.split("/", 1)[0].endswith(".dist-info")}
     assert top == {"visloc"}
-    for package in PACKAGES.values():
+    for package in packages():
         assert f"{package.replace('.', '/')}/__init__.py" in names
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from visloc.matching import correspondence_mask, correspondences, count_correspondences, nearest_two
+from visloc.retrieval.matching import correspondence_mask, correspondences, count_correspondences, nearest_two
 from visloc.params import MatchParams
 
 

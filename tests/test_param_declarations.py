@@ -10,9 +10,10 @@ from pathlib import Path
 
 import pytest
 
-from visloc import cli, commands
+from visloc.cli import commands
+from visloc.cli import parser as cli
 from visloc.errors import ParameterError
-from visloc.param_flags import FLAGS, add_param_flags, changes_from_flags, dest_of, params_from_flags
+from visloc.cli.param_flags import FLAGS, add_param_flags, changes_from_flags, dest_of, params_from_flags
 from visloc.params import (PARAMETER_CLASSES, PAPER_FILTER, Control, FastParams, FilterParams, MatchParams, Params,
                            RefinedParams, RetrievalParams, SiftParams, TrackParams, dashboard_controls, declared,
                            flag_of, param, parameter_table_markdown)

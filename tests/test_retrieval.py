@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 from visloc.errors import ParameterError
-from visloc.evaluation import series_schedule
-from visloc.features import Query
-from visloc.localizer import Localizer
-from visloc.matching import PairCountCache, brute_force_counter
-from visloc.measurement import GeotagMeasurer
+from visloc.protocols.evaluation import series_schedule
+from visloc.features.sift import Query
+from visloc.tracking.localizer import Localizer
+from visloc.retrieval.matching import PairCountCache, brute_force_counter
+from visloc.pose.measurement import GeotagMeasurer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
-from visloc.retrieval import WindowRetriever, candidate_mask, retrieve
+from visloc.retrieval.retrievers import WindowRetriever, candidate_mask, retrieve
 
 T = np.arange(0.0, 100.0, 1.0)  # database timestamps, one image per second
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from visloc.params import FilterParams
-from visloc.tracking import ConstantVelocityKalman, process_noise, run_filter, transition_matrix
+from visloc.tracking.kalman import ConstantVelocityKalman, process_noise, run_filter, transition_matrix
 
 
 def test_transition_and_process_noise_match_equation_6_and_the_white_acceleration_model():
@@ -127,7 +127,7 @@ def test_the_first_measurement_is_never_gated():
 def test_rts_smoother_agrees_with_filterpy(with_gap):
     from filterpy.kalman import rts_smoother
 
-    from visloc.tracking import rts_smooth
+    from visloc.tracking.kalman import rts_smooth
 
     params = FilterParams(dt_s=1.0, meas_var_m2=25.0, accel_var_m2_s4=0.5, init_var=1000.0)
     rng = np.random.default_rng(9)
@@ -150,7 +150,7 @@ def test_rts_smoother_agrees_with_filterpy(with_gap):
 
 
 def test_rts_smoother_by_hand_for_two_steps():
-    from visloc.tracking import rts_smooth
+    from visloc.tracking.kalman import rts_smooth
 
     params = FilterParams(dt_s=1.0, meas_var_m2=100.0, accel_var_m2_s4=0.0, init_var=1000.0)
     steps = run_filter([np.array([10.0, 20.0]), np.array([20.0, 20.0])], params)
@@ -258,14 +258,14 @@ def test_a_bad_measurement_that_got_in_does_not_lock_the_good_ones_out():
     assert all(np.linalg.norm(s.position_m - t) < 0.3 for s, t in zip(steps[5:], truth[5:]))
     assert np.linalg.norm(steps[-1].position_m - truth[-1]) <= np.linalg.norm(measured[-1] - truth[-1]) + 0.05
     # the smoother counts the retracted step as its prediction: the whole smoothed track is on the car
-    from visloc.tracking import rts_smooth
+    from visloc.tracking.kalman import rts_smooth
 
     smoothed = rts_smooth(steps, 1.0)
     assert max(np.linalg.norm(s.position_m - t) for s, t in zip(smoothed, truth)) < 0.1
 
 
 def test_the_smoother_runs_on_each_segment_between_restarts_on_its_own():
-    from visloc.tracking import rts_smooth
+    from visloc.tracking.kalman import rts_smooth
 
     truth = _drive(4) + _drive(4, start_m=40.0)
     R = 0.01 * np.eye(2)

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from visloc.bundle import heading_spread_rad
-from visloc.selfcheck import MIN_POSES_PER_SIDE, SelfCheckPose, lever_gain_from
-from visloc.uncertainty import (CHI2_2DOF_95, DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, calibration, chi2_2dof_quantile,
+from visloc.geometry.bundle import heading_spread_rad
+from visloc.pose.selfcheck import MIN_POSES_PER_SIDE, SelfCheckPose, lever_gain_from
+from visloc.pose.uncertainty import (CHI2_2DOF_95, DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, calibration, chi2_2dof_quantile,
                                 fit_lever_gain, nees)
 
 

@@ -31,23 +31,23 @@ browser dashboard ``visloc.dashboard``.
 Public API: the names below (the dashboard and scripts use only these).
 """
 
-from visloc.database import GeoDatabase, QuerySet
-from visloc.drive import DriveMatches, drive_query_indices, drive_summary, filter_measurements, match_drive, track_drive
+from visloc.store.database import GeoDatabase, QuerySet
+from visloc.protocols.drive import DriveMatches, drive_query_indices, drive_summary, filter_measurements, match_drive, track_drive
 from visloc.errors import InputError, ParameterError, VislocError
-from visloc.evaluation import Evaluation, evaluate, series_schedule, step_labels
-from visloc.export import (TrajectoryPoint, trajectory_csv, trajectory_format, trajectory_geojson,
+from visloc.protocols.evaluation import Evaluation, evaluate, series_schedule, step_labels
+from visloc.results.export import (TrajectoryPoint, trajectory_csv, trajectory_format, trajectory_geojson,
                            trajectory_points, trajectory_text, write_trajectory)
-from visloc.features import Features, Query, extract_sift, make_sift
-from visloc.figures import correspondence_figure
+from visloc.features.sift import Features, Query, extract_sift, make_sift
+from visloc.results.figures import correspondence_figure
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
-from visloc.geometry import CameraModel, PnPResult, Triangulation, essential_inliers, solve_pnp, triangulate
-from visloc.ingest import IngestReport
-from visloc.localizer import Localizer, StepResult, StepTimings
-from visloc.matching import (MatchCancelled, NearestTwo, PairCountCache, backend_counter, brute_force_counter,
+from visloc.geometry.projective import CameraModel, PnPResult, Triangulation, essential_inliers, solve_pnp, triangulate
+from visloc.store.ingest import IngestReport
+from visloc.tracking.localizer import Localizer, StepResult, StepTimings
+from visloc.retrieval.matching import (MatchCancelled, NearestTwo, PairCountCache, backend_counter, brute_force_counter,
                              cancellable, correspondence_mask, correspondences, count_correspondences, count_many,
                              nearest_two, nearest_two_faiss)
-from visloc.measurement import GEOMETRY, GEOTAG, GeotagMeasurer, Measurement, MemoisedMeasurer, geotag_measurement
-from visloc.methods import METHODS, PAPER_METHOD, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
+from visloc.pose.measurement import GEOMETRY, GEOTAG, GeotagMeasurer, Measurement, MemoisedMeasurer, geotag_measurement
+from visloc.tracking.methods import METHODS, PAPER_METHOD, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
 from visloc.params import (
     FAST,
     PAPER_EVAL_RETRIEVAL,
@@ -66,27 +66,29 @@ from visloc.params import (
     TrackParams,
     dashboard_controls,
 )
-from visloc.pose import PoseMeasurer, StructureCache, pose_measurement
-from visloc.viewpose import DatabaseGeometry
-from visloc.queries import extract_queries
-from visloc.records import RecordGeotags, StepRecord, record_geotags, step_record
-from visloc.retrieval import (Retrieval, ShortlistRetriever, WindowRetriever, build_global_index, candidate_mask,
+from visloc.pose.refined import PoseMeasurer, StructureCache, pose_measurement
+from visloc.pose.viewpose import DatabaseGeometry
+from visloc.sources.queries import extract_queries
+from visloc.protocols.records import RecordGeotags, StepRecord, record_geotags, step_record
+from visloc.retrieval.retrievers import (Retrieval, ShortlistRetriever, WindowRetriever, build_global_index, candidate_mask,
                               gate_mask, retrieve, shortlist_retrieve)
-from visloc.runs import TimedStep, latency_ms, run_queries
-from visloc.fastpose import FastPoseMeasurer, StructureMatcher
-from visloc.structure import ViewStructure, choose_variant, view_structures
-from visloc.track import TrackFrame, TrackRun, run_track, track_filter, track_localizer
-from visloc.sources import Frame, Sequence, default_data_root, load_gray, open_csv, open_kitti, open_source
-from visloc.tracking import (ConstantVelocityKalman, FilterStep, SmoothedStep, covariance_ellipse_m, rts_smooth,
+from visloc.tracking.runs import TimedStep, latency_ms, run_queries
+from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
+from visloc.pose.structure import ViewStructure, choose_variant, view_structures
+from visloc.protocols.track import TrackFrame, TrackRun, run_track, track_filter, track_localizer
+from visloc.sources.drives import Frame, Sequence, default_data_root, load_gray, open_csv, open_kitti, open_source
+from visloc.tracking.kalman import (ConstantVelocityKalman, FilterStep, SmoothedStep, covariance_ellipse_m, rts_smooth,
                              run_filter)
-from visloc.vlad import GlobalEncoder, GlobalIndex, shortlist
-from visloc.workspace import Dataset, Workspace
+from visloc.features.vlad import GlobalEncoder, GlobalIndex, shortlist
+from visloc.store.build import build_global_vectors, build_self_check, build_structure, ingest_sequence
+from visloc.store.workspace import Dataset, Workspace
 
 __version__ = "0.1.0"
 
 __all__ = [
     # data and the store
     "Dataset", "Frame", "GeoDatabase", "IngestReport", "QuerySet", "Sequence", "Workspace", "default_data_root",
+    "build_global_vectors", "build_self_check", "build_structure", "ingest_sequence",
     "load_gray", "open_csv", "open_kitti", "open_source",
     # parameters and methods
     "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",

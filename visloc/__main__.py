@@ -1,4 +1,4 @@
-from visloc.cli import main
+from visloc.cli.parser import main
 import sys
 
 sys.exit(main())

@@ -5,7 +5,7 @@ metadata) is everything the rest of visloc needs to know about it:
 
 * ``check(obj)`` validates every declared field of a parameter object and raises a
   ``ParameterError`` naming the parameter (``err.params`` holds its name);
-* the command line makes one flag per declared field with a ``flag`` (``visloc.cli``), its help
+* the command line makes one flag per declared field with a ``flag`` (``visloc.cli.parser``), its help
   text and default from here, and names the flag when a value is refused (``flag_of``);
 * the dashboard makes one control per field with a ``Control`` (``visloc.dashboard.gui``);
 * ``docs/parameters.md`` is ``parameter_table_markdown()`` (a test keeps them equal).
@@ -21,7 +21,7 @@ from dataclasses import MISSING, asdict, dataclass, fields, replace
 
 from visloc.errors import ParameterError
 
-METHODS_ALL = ("paper", "refined", "refined-fast")  # the named methods (visloc.methods)
+METHODS_ALL = ("paper", "refined", "refined-fast")  # the named methods (visloc.tracking.methods)
 MAX_C_INT = 2**31 - 1  # integers handed to OpenCV
 AUTO = "auto"  # a Spec's flag: "--" and the field's name with dashes
 MIN_VARIANCE, MAX_VARIANCE = 1e-12, 1e12  # a positive R, Q or P0, in its units (keeps the filter's numbers finite)

@@ -21,7 +21,7 @@ class RefinedParams(Params):
     """Metric position from the geotagged database (the refined mode), and the filter's gating.
 
     Verification, then structure triangulated from each verified view and its neighbours (poses
-    refined by bundle adjustment with priors first, ``visloc.bundle``), then PnP; its uncertainty;
+    refined by bundle adjustment with priors first, ``visloc.geometry.bundle``), then PnP; its uncertainty;
     the filter's gate. The camera-rate path reads the structure stored at ingest, made with these.
     """
 
@@ -127,7 +127,7 @@ TRACK_ONLY = ("track",)
 @dataclass(frozen=True)
 class TrackParams(Params):
     """A continuous run: every frame of a drive in order, at the camera's rate. The method's own
-    settings (shortlist, PnP threshold) are the refined-fast preset's (``visloc.methods``)."""
+    settings (shortlist, PnP threshold) are the refined-fast preset's (``visloc.tracking.methods``)."""
 
     fast: bool = param(True, "the camera-rate refined path (stored structure, the filter's gate, a global-vector "
                              "shortlist, matching against 3D points only); False: the exact refined path (--exact)",

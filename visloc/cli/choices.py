@@ -1,0 +1,210 @@
+"""What a command uses when the user leaves it out, and the store file's life around a command.
+
+* cameras: ``--camera`` given for a CSV drive is refused (a CSV drive has one camera, stored as
+  ``camera``); a KITTI camera left out is the preferred one the drive holds;
+* the database: a flag given wins; else the store's only source (or the query's own) and the
+  source's only camera; an ambiguous choice is one line listing what the store holds;
+* the exclusion window: left out, 1 s when the database holds images of the queries' own drive,
+  else 0; 0 asked for on such a database prints a warning;
+* the store file: a writing command makes its missing folder (one level, as ``out/``) and, failing
+  before any image is stored in a store it created, removes the file again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+import argparse
+from pathlib import Path
+
+from visloc.store.database import GeoDatabase, same_drive
+from visloc.errors import InputError
+from visloc.results.export import GEOJSON_SUFFIXES, write_trajectory
+from visloc.cli.outputs import require_writable_output
+from visloc.sources.drives import default_data_root, resolve_drive
+from visloc.store.workspace import Workspace
+
+CSV_CAMERA = "camera"  # the one camera of a CSV drive, as the store names it (visloc.sources.drives.open_csv)
+PAPER_DATABASE_CAMERA = {"image_00": ("image_01",)}  # the paper's protocol: left queries, right database
+
+
+def is_csv(source: Path | str | None) -> bool:
+    return source is not None and Path(source).suffix.lower() == ".csv"
+
+
+def refuse_camera_for_csv(source: Path | str | None, flag: str, value: str | Sequence[str] | None) -> None:
+    """A camera flag the user gave for a CSV drive is an error, not silently ignored."""
+    if value is None or not is_csv(source):
+        return
+    value = " ".join(value) if isinstance(value, (list, tuple)) else value
+    raise InputError(f"{flag} {value}: {source} is a CSV drive, which has one camera (stored as "
+                     f"'{CSV_CAMERA}'); leave {flag} out")
+
+
+def kitti_only_camera(source: Path | str | None, flag: str, value: str | None, default: str) -> str:
+    """A camera flag: refused for a CSV drive (whose one camera this returns), else its value or ``default``."""
+    refuse_camera_for_csv(source, flag, value)
+    return CSV_CAMERA if is_csv(source) else value or default
+
+
+def kitti_camera(root: Path | str | None, drive: str | None, camera: str | None,
+                 preferred: Sequence[str] = ("image_01", "image_00")) -> str:
+    """``camera`` if given; else the first of ``preferred`` the drive folder holds (the first when
+    none or when the drive cannot be found, so that opening it names the problem)."""
+    if camera is not None:
+        return camera
+    if is_csv(root):
+        return CSV_CAMERA
+    try:
+        folder = resolve_drive(default_data_root() if root is None else Path(root), drive)
+    except InputError:
+        return preferred[0]
+    return next((c for c in preferred if (folder / c / "data").is_dir()), preferred[0])
+
+
+def choose_database(ws: Workspace, query_source: str, *, db_source: str | None = None, db_camera: str | None = None,
+                    prefer: Sequence[str] = ()) -> tuple[str, str]:
+    """(source, camera) of the database in ``ws`` for queries of ``query_source``. ``db_source`` and
+    ``db_camera``, when given, win; else the query's own source if the store holds it (with
+    ``db_camera``), or the only source that fits; the source's only camera, or the first of ``prefer``
+    it holds. Anything else is ambiguous: an ``InputError`` listing what the store holds."""
+    datasets = ws.datasets()
+    held = ", ".join(d.name for d in datasets) or "nothing"
+    if not datasets:
+        raise InputError(f"{ws.path}: holds no images yet (build it with 'visloc ingest')")
+    if db_source is None:
+        sources = sorted({d.source for d in datasets if db_camera is None or d.camera == db_camera})
+        if query_source in sources:
+            db_source = query_source
+        elif len(sources) == 1:
+            db_source = sources[0]
+        elif not sources:
+            raise InputError(f"{ws.path}: no images of camera {db_camera} (it holds {held}); "
+                             "choose the database with --db-source and --db-camera")
+        else:
+            raise InputError(f"{ws.path}: choose the database with --db-source (it holds {held})")
+    if db_camera is None:
+        cameras = sorted(d.camera for d in datasets if d.source == db_source)
+        if not cameras:
+            raise InputError(f"{ws.path}: no images of --db-source {db_source} (it holds {held})")
+        if len(cameras) == 1:
+            db_camera = cameras[0]
+        else:
+            db_camera = next((c for c in prefer if c in cameras), None)
+            if db_camera is None:
+                raise InputError(f"{ws.path}: {db_source} has cameras {', '.join(cameras)}; choose one with "
+                                 f"--db-camera (it holds {held})")
+    return db_source, db_camera
+
+
+def only_camera(path: Path | str) -> str | None:
+    """The camera of a store holding exactly one (source, camera); None otherwise or if unreadable."""
+    try:
+        datasets = Workspace(path, read_only=True).datasets() if Path(path).is_file() else []
+    except InputError:
+        return None
+    return datasets[0].camera if len(datasets) == 1 else None
+
+
+# -- the store file around a writing command ---------------------------------------------------------
+
+SIDE_FILES = ("-wal", "-shm", "-journal")
+
+
+def _holds_images(path: Path) -> bool:
+    try:
+        return Workspace(path, read_only=True).image_count() > 0
+    except InputError:
+        return path.stat().st_size > 0 if path.exists() else False
+
+
+@contextmanager
+def store_for_writing(path: Path | str, flag: str = "--db") -> Iterator[None]:
+    """Around a command that creates or extends the store at ``path``: make its folder when missing
+    (the last folder only, as ``out/``); if the command fails while the store it created holds no
+    image, remove the file, its side files and the folder it made. A store that existed is kept."""
+    path = Path(path)
+    existed = path.exists()
+    parent = path.absolute().parent
+    made = None
+    if not parent.exists() and parent.parent.is_dir():
+        try:
+            parent.mkdir()
+        except OSError as exc:
+            raise InputError(f"{flag} {path}: cannot create folder {parent} ({exc.strerror or exc})") from None
+        made = parent
+    try:
+        yield
+    except BaseException:
+        if not existed and path.exists() and not _holds_images(path):
+            for suffix in ("", *SIDE_FILES):
+                Path(f"{path}{suffix}").unlink(missing_ok=True)
+        if made is not None:
+            try:
+                made.rmdir()  # only when empty
+            except OSError:
+                pass
+        raise
+
+
+def make_folder_of(path: Path | str, flag: str) -> None:
+    """Make the missing last folder of an output file (as ``out/``) for a command that writes it."""
+    parent = Path(path).absolute().parent
+    if not parent.exists() and parent.parent.is_dir():
+        try:
+            parent.mkdir()
+        except OSError as exc:
+            raise InputError(f"{flag} {path}: cannot create folder {parent} ({exc.strerror or exc})") from None
+
+
+def require_output(path: Path | str | None, flag: str, store: Path | str | None = None) -> None:
+    """``require_writable_output``, except that a file in the missing folder a writing command makes
+    for its ``store`` (as ``out/``) is accepted: the folder will exist when the file is written."""
+    if path is not None and store is not None:
+        parent = Path(path).absolute().parent
+        if not parent.exists() and parent == Path(store).absolute().parent and parent.parent.is_dir():
+            return
+    require_writable_output(path, flag)
+
+
+SAME_DRIVE_EXCLUSION_S = 1.0  # the evaluation's window: a same-drive query never sees its own second of driving
+
+
+def exclusion_for(asked_s: float | None, db: GeoDatabase, timestamps_s, lat_deg, lon_deg, what: str) -> float:
+    """The exclusion window of queries (``timestamps_s`` and their geotags) against ``db``: ``asked_s``
+    when given, else 1 s when the database holds images of the queries' own drive
+    (``visloc.store.database.same_drive``) and 0 otherwise. Says so on stdout; warns when a window of 0
+    was asked for on such a database."""
+    same = same_drive(db, timestamps_s, lat_deg, lon_deg)
+    if asked_s is None:
+        if not same:
+            return 0.0
+        print(f"exclusion {SAME_DRIVE_EXCLUSION_S:g} s: the database {db.source}/{db.camera} holds images of "
+              f"{what}'s own drive; a query must not be posed from its own image or its twin "
+              "(--exclusion-s 0 turns this off)")
+        return SAME_DRIVE_EXCLUSION_S
+    if same and asked_s == 0:
+        print(f"warning: --exclusion-s 0 with a database ({db.source}/{db.camera}) that holds images of {what}'s "
+              "own drive: a query may be posed from its own image or its twin, and its error then says nothing of "
+              "how well visloc localizes")
+    return float(asked_s)
+
+
+# -- trajectory files: --geojson FILE and --csv FILE ----------------------------------------------------
+
+def require_exports(a: argparse.Namespace, store: Path | None = None) -> None:
+    """``--geojson`` and ``--csv``: the right suffix and a writable place, before any work (``store``: of a
+    command that makes the store's missing folder, where the files may go)."""
+    for flag, path, suffixes in (("--geojson", a.geojson, GEOJSON_SUFFIXES), ("--csv", a.csv, (".csv",))):
+        if path is not None and Path(path).suffix.lower() not in suffixes:
+            raise InputError(f"{flag} {path}: the file name must end in {' or '.join(suffixes)}")
+        require_output(path, flag, store)
+
+
+def write_exports(a: argparse.Namespace, run, frame, name: str) -> None:
+    """The run's trajectories to the files ``--geojson`` and ``--csv`` name (``run``: series of records,
+    or a track's frames)."""
+    for path in (a.geojson, a.csv):
+        if path is not None:
+            write_trajectory(path, run, frame, name=name)
+            print(f"wrote {path}")

@@ -1,0 +1,340 @@
+"""The ``visloc`` command line: ingest, localize, evaluate, evaluate-drives, track, dashboard, bench, info.
+
+This module only parses; ``visloc.cli.commands`` does the work. Errors in input or
+parameters end the command with one line on stderr naming the file or parameter, and
+exit status 2; nothing already stored is lost.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sqlite3
+import sys
+from pathlib import Path
+
+from visloc.cli import commands
+from visloc.db import StoreError
+from visloc.errors import VislocError
+from visloc.cli.help_text import DEFAULT_DB, DEFAULT_FAST_DB, examples
+from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
+from visloc.tracking.methods import METHODS
+from visloc.cli.param_flags import add_param_flags
+from visloc.params import (FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, TRACK,
+                           FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams,
+                           TrackParams)
+
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("visloc")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+# -- argument groups --------------------------------------------------------------
+
+def _add_sift(p: argparse.ArgumentParser) -> None:
+    add_param_flags(p.add_argument_group("SIFT (must equal the store's settings)"), SiftParams, PAPER_SIFT)
+
+
+EXCLUSION_AUTO_HELP = ("ignore database images closer in time to the query than this, s (default: 1 when the database "
+                       "holds images of the queries' own drive, any camera, so that no query is posed from its own "
+                       "image or its twin; else 0. 0 turns it off, with a warning on such a database)")
+
+
+def _add_method(p: argparse.ArgumentParser, retrieval: RetrievalParams, *, auto_exclusion: bool = False) -> None:
+    g = p.add_argument_group("matching, retrieval and filter (defaults: the paper's Table 1)")
+    add_param_flags(g, MatchParams, PAPER_MATCH)
+    add_param_flags(g, RetrievalParams, retrieval,
+                    automatic={"exclusion_s": EXCLUSION_AUTO_HELP} if auto_exclusion else None)
+    add_param_flags(g, FilterParams, PAPER_FILTER)
+
+
+def _method_presets(part: str) -> list[tuple[str, object]]:
+    """(label, parameters) of ``part`` ("pose" or "shortlist") in every method that has it; the fast
+    retrieval's own for ``--fast``."""
+    out = [(m.name, getattr(m, part)) for m in METHODS.values() if getattr(m, part) is not None]
+    return out + ([("--fast", FAST)] if part == "shortlist" else [])
+
+
+def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True, exclude: tuple[str, ...] = ()) -> None:
+    g = p.add_argument_group("method (paper: the paper's; refined: a metric pose from the database, see the README)")
+    if choose_mode:  # a plain string checked by commands.method_of, so a bad value is a one-line error naming --mode
+        g.add_argument("--mode", default="paper", metavar="{" + ",".join(METHODS) + "}",
+                       help="paper: the best match's geotag; refined: a metric pose from the database's geometry; "
+                            "refined-fast: the refined pose on the store's stored structure, at camera rate "
+                            "(default %(default)s)")
+    add_param_flags(p.add_argument_group("refined and refined-fast methods (default: each method's own)"),
+                    RefinedParams, presets=_method_presets("pose"), exclude=exclude)
+    add_param_flags(p.add_argument_group("fast retrieval: --fast and refined-fast (default: each method's own)"),
+                    FastParams, presets=_method_presets("shortlist"), exclude=exclude)
+
+
+def _add_source(p: argparse.ArgumentParser, camera_help: str, camera_default: str, *, multiple: bool = False) -> None:
+    # --camera defaults to None, resolved by the command: given for a CSV drive it is an error
+    p.add_argument("source", nargs="?", type=Path, default=None,
+                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
+    p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001 (needed if the root holds several)")
+    p.add_argument("--camera", action="append" if multiple else "store", default=None,
+                   help=camera_help + f"{' (repeatable)' if multiple else ''}; KITTI only, a CSV drive has one "
+                        f"camera (default {camera_default})")
+
+
+def _add_sampling(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--sampling", choices=("stride", "time"), default="stride",
+                   help="stride: every round(dt/frame interval)-th frame, as the paper (every 10th on KITTI); "
+                        "time: the frame nearest to each multiple of dt (default %(default)s)")
+
+
+def _add_bad_frames(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("ingest: bad frames and limits")
+    g.add_argument("--skip-bad-frames", action="store_true",
+                   help="skip frames that cannot be described (unreadable, too large, no keypoints) instead of "
+                        "stopping; the store records which and why ('visloc info' lists them)")
+    g.add_argument("--max-image-mp", type=float, default=DEFAULT_MAX_IMAGE_MP,
+                   help="refuse images larger than this many megapixels, checked before decoding; SIFT needs "
+                        "about 230 bytes per pixel in each worker (default %(default)s)")
+
+
+def _add_db(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
+
+
+def _add_database_choice(p: argparse.ArgumentParser, camera_default: str) -> None:
+    p.add_argument("--db-camera", default=None,
+                   help=f"database camera in the store (default: the database drive's only camera; {camera_default})")
+    p.add_argument("--db-source", default=None,
+                   help="database drive/dataset in the store (default: the store's only one, else the queries' own)")
+
+
+def _add_exports(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("trajectory files (truth, measurements, estimates with covariance)")
+    g.add_argument("--geojson", type=Path, default=None, metavar="FILE",
+                   help="write them as GeoJSON for GIS tools (FILE ends in .geojson or .json)")
+    g.add_argument("--csv", type=Path, default=None, metavar="FILE", help="write them as CSV, one row per step")
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """Descriptions wrapped to the terminal as usual; the examples (text with line breaks) kept as written."""
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        if "\n" in text:
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
+def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentParser:
+    return sub.add_parser(name, help=help, description=description, epilog=examples(name),
+                          formatter_class=_HelpFormatter)
+
+
+
+# -- parser ----------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="visloc",
+        description="Localize a vehicle from one camera against a database of geotagged images (SIFT + Kalman filter).",
+        epilog=examples(), formatter_class=_HelpFormatter)
+    parser.add_argument("--version", action="version", version=f"visloc {_version()}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = _command(sub, "ingest", help="build or extend a store: SIFT features and geotags of every image",
+                       description="Extract SIFT from every image of a drive (or CSV) and store features and geotags. "
+                                   "Re-running skips what is stored; an interruption loses nothing committed.")
+    _add_source(p, "KITTI camera to store", "image_01, or image_00 on a drive without it", multiple=True)
+    _add_db(p)
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes (default: number of cores)")
+    p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
+    _add_bad_frames(p)
+    _add_sift(p)
+    p.set_defaults(func=commands.cmd_ingest)
+
+    p = _command(sub, "localize", help="localize one query series against a store; print the paper's Tables 2 and 3",
+                       description="Run one series of queries (one every --dt-s seconds) against the database and "
+                                   "print the paper's Tables 2 and 3 for it.")
+    _add_source(p, "query camera", "image_00")
+    _add_db(p)
+    _add_database_choice(p, "with several, image_01 for image_00 queries, as the paper")
+    p.add_argument("--start-frame", type=int, default=0, help="query frame of the first step, t-5 (default %(default)s)")
+    p.add_argument("--steps", type=int, default=6, help="number of queries (default %(default)s)")
+    _add_sampling(p)
+    p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
+    _add_exports(p)
+    _add_method(p, PAPER_RETRIEVAL, auto_exclusion=True)
+    _add_mode(p)
+    _add_sift(p)
+    p.set_defaults(func=commands.cmd_localize)
+
+    p = _command(sub, "evaluate", help="the paper's evaluation protocol on a drive (KITTI or CSV)",
+                       description="Every series of --steps queries one --dt-s apart that fits in the drive; "
+                                   "per-step mean measurement and estimate errors (Figure 4), final error, latency. "
+                                   "Ingests both cameras into --db first (skipping what is stored).")
+    p.add_argument("root", nargs="?", type=Path, default=None,
+                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
+    p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001")
+    _add_db(p)
+    p.add_argument("--query-camera", default=None, help="KITTI camera of the queries (default image_00, left gray)")
+    p.add_argument("--db-camera", default=None,
+                   help="KITTI camera of the database (default image_01, right gray; the query camera on a drive "
+                        "without image_01); with --db-source, a camera in the store")
+    p.add_argument("--db-source", default=None,
+                   help="evaluate against this drive/dataset already in the store (e.g. another CSV drive "
+                        "ingested before) instead of the query drive's own cameras")
+    p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
+    p.add_argument("--start-frames", default=None, help="only series starting at these query frames, e.g. 0,20,40")
+    _add_sampling(p)
+    p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
+    p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
+    _add_exports(p)
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--smooth", action="store_true",
+                   help="also run the RTS smoother over each series and report its per-step errors")
+    p.add_argument("--fast", action="store_true",
+                   help="the fast retrieval: the filter gates the candidates, VLAD vectors shortlist "
+                        "8 of them, exact counts on those only (default: the paper's window, every candidate)")
+    _add_method(p, PAPER_EVAL_RETRIEVAL)
+    _add_mode(p)
+    _add_sift(p)
+    _add_bad_frames(p)
+    p.set_defaults(func=commands.cmd_evaluate)
+
+    p = _command(sub, "evaluate-drives", help="the evaluation on every drive of a data root, every protocol and mode",
+                       description="Every KITTI drive under ROOT (a drive dropped into the folder is picked up), "
+                                   "with each protocol it supports: a stereo drive's left queries against its right "
+                                   "camera's database, and every drive's queries against its own camera's database "
+                                   "with the --exclusion-s window; each in every --modes method. Prints one table per "
+                                   "drive and a pooled line per method; writes OUT_DIR/drives.json and one "
+                                   "evaluation JSON per drive, protocol and method.")
+    p.add_argument("root", nargs="?", type=Path, default=None, help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
+    _add_db(p)
+    p.add_argument("--out-dir", type=Path, default=Path("out/drives"), help="where the JSON goes (default %(default)s)")
+    p.add_argument("--modes", default="paper,refined", help="comma-separated methods (default %(default)s)")
+    p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
+    _add_sampling(p)
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--smooth", action="store_true", help="also run the RTS smoother over each series")
+    _add_method(p, PAPER_EVAL_RETRIEVAL)
+    _add_mode(p, choose_mode=False)
+    _add_sift(p)
+    _add_bad_frames(p)
+    p.set_defaults(func=commands.cmd_evaluate_drives)
+
+    p = _command(sub, "dashboard", help="browser dashboard: scrub through a drive, tune the method live",
+                       description="Serve the viser dashboard for a store built by 'visloc ingest' or 'visloc "
+                                   "evaluate'. Prints the URL actually served (viser moves to the next free port "
+                                   "when --port is taken). A missing or bad store is reported in the page.")
+    _add_db(p)
+    p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default %(default)s, this machine only)")
+    p.add_argument("--port", type=int, default=8080, help="port to try first (default %(default)s)")
+    p.add_argument("--db-camera", default=None,
+                   help="database camera to show first (default: the store's only camera, else image_01)")
+    p.add_argument("--query-camera", default=None,
+                   help="query camera to show first (default: the store's only camera, else image_00)")
+    p.add_argument("--db-source", default=None,
+                   help="database drive/dataset to show first, e.g. a CSV drive's folder name (default: the first)")
+    p.add_argument("--query-source", default=None,
+                   help="query drive/dataset to show first (default: the database's drive, or another drive "
+                        "when the store holds several and the cameras do not tell)")
+    p.set_defaults(func=commands.cmd_dashboard)
+
+    p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",
+                       description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "
+                                   "SIFT at a smaller image scale) on the same queries of a KITTI drive: accuracy, "
+                                   "latency per stage, ingest throughput against bare SIFT, and a synthetic "
+                                   "database's lost-query time and peak memory. Builds the stores it lacks.")
+    p.add_argument("root", nargs="?", type=Path, default=None,
+                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti)")
+    p.add_argument("--drive", default="2011_09_26_drive_0001", help="KITTI drive (default %(default)s)")
+    p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store of the paper's path (default %(default)s)")
+    p.add_argument("--fast-db", type=Path, default=Path(DEFAULT_FAST_DB),
+                   help="store of the fast path, SIFT at --fast-scale (default %(default)s)")
+    p.add_argument("--series", type=int, default=2, help="live series of 6 queries timed per lever (default %(default)s)")
+    p.add_argument("--shortlist", type=int, default=8, help="images matched exactly per query (default %(default)s)")
+    p.add_argument("--fast-scale", type=float, default=0.5, help="fast path's SIFT image scale (default %(default)s)")
+    p.add_argument("--ingest-images", type=int, default=40, help="images timed for ingest (default %(default)s)")
+    p.add_argument("--workers", type=int, default=2, help="processes for ingest and bare SIFT (default %(default)s)")
+    p.add_argument("--synthetic-images", type=int, default=100_000, help="synthetic database size (default %(default)s)")
+    p.add_argument("--synthetic-descriptors", type=int, default=64,
+                   help="descriptors per synthetic image (default %(default)s)")
+    p.add_argument("--synthetic-queries", type=int, default=20, help="lost queries on it (default %(default)s)")
+    p.add_argument("--skip-synthetic", action="store_true", help="leave out the synthetic database test")
+    p.add_argument("--skip-accuracy", action="store_true", help="leave out the accuracy over every series")
+    p.add_argument("--refined-stride", type=int, default=2,
+                   help="refined paths: time every stride-th frame of the drive with each (default %(default)s)")
+    p.add_argument("--skip-refined", action="store_true", help="leave out the exact and camera-rate refined paths")
+    p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
+    p.set_defaults(func=commands.cmd_bench)
+
+    p = _command(sub, "track", help="localize every frame of a drive in order, at the camera's rate",
+                       description="Localize every frame of a drive in order, as a vehicle would: SIFT, retrieval, "
+                                   "the refined measurement and the filter (its time step the frame interval). By "
+                                   "default the camera-rate path: the database's stored structure and global "
+                                   "vectors, the filter's gate, matching against 3D points only. Ingests the "
+                                   "database camera into --db first when the store lacks it. Prints latency per "
+                                   "frame, sustained rate and errors against the frames' geotags.")
+    _add_source(p, "camera of the frames", "image_00")
+    _add_db(p)
+    p.add_argument("--db-camera", default=None,
+                   help="database camera (default: --camera; with --db-source, that source's only camera in the store)")
+    p.add_argument("--db-source", default=None,
+                   help="database drive/dataset in the store (default: the frames' own drive, ingested first)")
+    p.add_argument("--exact", action="store_true",
+                   help="the exact refined path (the paper's retrieval, every candidate verified; seconds per frame)")
+    p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: the whole drive)")
+    add_param_flags(p.add_argument_group("the run"), TrackParams, TRACK, automatic={"exclusion_s": EXCLUSION_AUTO_HELP})
+    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--json", type=Path, default=None, help="write the summary and every frame as JSON")
+    _add_exports(p)
+    add_param_flags(p.add_argument_group("filter (its time step: the frame interval)"), FilterParams, PAPER_FILTER,
+                    exclude=("dt_s",))
+    _add_mode(p, choose_mode=False)
+    _add_sift(p)
+    _add_bad_frames(p)
+    p.set_defaults(func=commands.cmd_track)
+
+    p = _command(sub, "upgrade", help="migrate a store of an older schema version in place",
+                       description="Bring a store written by an older visloc to this version's schema, keeping every "
+                                   "image and cached count. Reading commands (info, dashboard) never migrate; ingest "
+                                   "and the other commands that write do it on their own.")
+    _add_db(p)
+    p.set_defaults(func=commands.cmd_upgrade)
+
+    p = _command(sub, "info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
+    _add_db(p)
+    p.set_defaults(func=commands.cmd_info)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    # Ctrl-C and `kill -INT` stop a command cleanly (what it committed is kept) even when it was
+    # started in the background, where Python would otherwise inherit SIGINT as ignored
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    for name in ("steps", "workers", "limit", "frames"):
+        value = getattr(args, name, None)
+        if value is not None and value < 1:
+            print(f"visloc: error: --{name} {value}: must be >= 1", file=sys.stderr)
+            return 2
+    try:
+        if getattr(args, "max_image_mp", None) is not None:
+            require_max_image_mp(args.max_image_mp)  # before a command creates any file
+        return args.func(args)
+    except (VislocError, StoreError) as exc:
+        print(f"visloc: error: {exc}", file=sys.stderr)
+        return 2
+    except sqlite3.Error as exc:  # locked, read-only or damaged store file
+        print(f"visloc: error: {getattr(args, 'db', 'database')}: SQLite: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("visloc: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

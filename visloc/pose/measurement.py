@@ -1,0 +1,132 @@
+"""What one retrieved query tells the filter: a ``Measurement``, and the measurers that make it.
+
+* ``GeotagMeasurer`` is the paper's: the geotag of the best match, with the filter's own R.
+* ``visloc.pose.refined.PoseMeasurer`` (the refined method) measures a metric position from the
+  database's own geometry with its own covariance, and falls back to the geotag with a reason.
+* ``MemoisedMeasurer`` wraps either: the same query with the same retrieval measures the same.
+
+Every measurer has ``measure(query, retrieval) -> Measurement``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Hashable
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from visloc.features.sift import Query
+from visloc.retrieval.retrievers import Retrieval
+
+GEOMETRY = "geometry"
+GEOTAG = "geotag"
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """What one query tells the filter.
+
+    east_north_m:        (2,) measured position of the vehicle's geotag reference point, metres in
+                         the local frame; None when the query gave no measurement at all.
+    cov_m2:              (2, 2) its covariance, m^2; None means "use the filter's R" (geotags).
+    source:              "geometry" (refined pose), "geotag" (the paper's) or None (no measurement).
+    fallback_reason:     why a refined measurement is a geotag; None otherwise.
+    db_index:            database image the measurement rests on (the verified best view for
+                         geometry, the best match by count for a geotag).
+    view_indices:        database images the query was posed against; neighbour_indices: those
+                         triangulated with them.
+    n_verified_inliers:  the exact refined path (``visloc.pose.refined``): essential-matrix inliers of the best
+                         verified candidate; None where nothing was verified (the paper's measurement, the
+                         camera-rate path, a query without keypoints). candidate_inliers: the same per
+                         verified candidate (database index -> inliers).
+    n_structure_matches: the camera-rate path (``visloc.pose.fastpose``): the best candidate's query matches to
+                         its stored 3D points (the count that ranks its candidates; no two-view
+                         verification); None elsewhere. candidate_structure_matches: the same per candidate.
+    n_correspondences_3d, n_pnp_inliers, reprojection_rms_px: the pose's support.
+    up_m, heading_deg:   the pose's altitude in the local frame and compass heading (geometry only).
+    absolute_sigma_m:    geometry: the stated accuracy of the geotags it rests on (per axis, m), the map's own
+                         error, which ``cov_m2`` (relative to the map) leaves out; see ``visloc.pose.uncertainty``.
+    side, lever_m:       geometry: "both" when its views lie on both sides of it, else "one"; the distance
+                         to the nearest view's geotag, m.
+    cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever").
+    compute_ms:          wall time this measurement took when it was made (query side: matching,
+                         RANSAC, PnP, and any database structure built on the way).
+    structure_ms:        of which building database structure that was not cached yet.
+    """
+
+    east_north_m: np.ndarray | None
+    cov_m2: np.ndarray | None
+    source: str | None
+    fallback_reason: str | None = None
+    db_index: int | None = None
+    view_indices: tuple[int, ...] = ()
+    neighbour_indices: tuple[int, ...] = ()
+    n_verified_inliers: int | None = None
+    n_structure_matches: int | None = None
+    n_correspondences_3d: int = 0
+    n_pnp_inliers: int = 0
+    reprojection_rms_px: float | None = None
+    up_m: float | None = None
+    heading_deg: float | None = None
+    absolute_sigma_m: float | None = None
+    side: str | None = None
+    lever_m: float | None = None
+    cov_terms_m2: dict = field(default_factory=dict, repr=False)
+    compute_ms: float = 0.0
+    structure_ms: float = 0.0
+    candidate_inliers: dict[int, int] = field(default_factory=dict, repr=False)
+    candidate_structure_matches: dict[int, int] = field(default_factory=dict, repr=False)
+
+    @property
+    def sigma_m(self) -> float | None:
+        """1-sigma along the covariance's longest axis, metres (None: the filter's R applies)."""
+        if self.cov_m2 is None:
+            return None
+        return float(np.sqrt(max(np.linalg.eigvalsh(self.cov_m2).max(), 0.0)))
+
+    @property
+    def query_side_ms(self) -> float:
+        """What making this measurement costs a live query: its time without database-side structure."""
+        return self.compute_ms - self.structure_ms
+
+
+def geotag_measurement(retrieval: Retrieval, db_east_north_m: np.ndarray, reason: str | None = None) -> Measurement:
+    """The paper's measurement: the geotag of the best match by count (None without a match)."""
+    best = retrieval.best_index
+    if best is None:
+        return Measurement(None, None, None, fallback_reason=reason, db_index=None)
+    return Measurement(np.asarray(db_east_north_m[best], float), None, GEOTAG, fallback_reason=reason, db_index=best)
+
+
+class Measurer(Protocol):
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement: ...
+
+
+class GeotagMeasurer:
+    """The paper's measurer: the best match's geotag; the filter applies its own R."""
+
+    def __init__(self, db_east_north_m: np.ndarray):
+        self.db_east_north_m = np.asarray(db_east_north_m, float)
+
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
+        return geotag_measurement(retrieval, self.db_east_north_m)
+
+
+class MemoisedMeasurer:
+    """``measurer``, remembering each measurement by (query key, retrieval): an evaluation where the
+    same query image recurs with the same candidates measures it once. Queries without a key are
+    measured every time."""
+
+    def __init__(self, measurer: Measurer):
+        self.measurer = measurer
+        self._memo: dict[tuple[Hashable, bytes, bytes, bytes | None], Measurement] = {}
+
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
+        if query.key is None:
+            return self.measurer.measure(query, retrieval)
+        allowed = None if retrieval.allowed is None else retrieval.allowed.tobytes()
+        key = (query.key, retrieval.candidates.tobytes(), retrieval.counts.tobytes(), allowed)
+        if key not in self._memo:
+            self._memo[key] = self.measurer.measure(query, retrieval)
+        return self._memo[key]

@@ -1,0 +1,286 @@
+"""The refined method's measurement: a metric position of the query from the database alone.
+
+For a query whose retrieval has ranked the database candidates by correspondence count:
+
+1. **Verification.** The ``top_k`` candidates are matched to the query again (Lowe's
+   ratio alone) and re-ranked by their inliers under an essential matrix (RANSAC,
+   both cameras' intrinsics).
+2. **Structure.** Each verified candidate used as a *view* is triangulated with database
+   neighbours before and after it: on each side, for each of ``neighbour_baselines_m``, the
+   image whose distance from the view is nearest that baseline (``neighbours_of``), within
+   ``max_neighbour_gap`` frames, among the images the retrieval allows (so the exclusion
+   window holds for them too), posed, and at least ``min_baseline_m`` away. Their poses come
+   from the geotags and attitudes, their scale from the geotags: no query information.
+3. **Views on both sides.** The query is posed against the ``n_views`` best views; if
+   they all lie on one side of that first pose (all behind it, or all ahead) and a
+   verified candidate lies on the other side, the weakest view is swapped for it and the
+   query posed again. Posing from one side extrapolates the geotags' local errors (their
+   scale and drift between the views and their neighbours) over the distance to the
+   query; views on both sides interpolate them.
+4. **Pose.** PnP RANSAC and Levenberg-Marquardt over every view's 2D-3D correspondences
+   give the query camera's pose, and the query camera's extrinsics give the pose of the
+   query vehicle's geotag reference point (its IMU): the measurement is its east/north.
+   The query is also posed against each view alone (from the pooled pose, on that view's
+   inliers): a view whose pose lies more than ``max_view_spread_m`` from the others' is
+   dropped, and a measurement whose views still disagree, that faces away from its views,
+   or lies far from them, is rejected with the reason.
+5. **Uncertainty**, the sum of three parts, none fitted to a drive: the PnP covariance
+   (residual variance times the inverse normal matrix) propagated to east/north; the
+   spread of the per-view poses (the covariance of their mean: what one view's geotags
+   and structure get wrong and another's do not); and the views' geotags' own stated
+   accuracy (OXTS ``pos_accuracy``, or ``geotag_sigma_m`` where the source states none),
+   since the pose is tied to those geotags.
+
+Whenever a stage fails for one query (too few inliers, no neighbour with a baseline
+because the car stood still, an image without attitude, PnP failure, an implausible
+pose) the measurement falls back to the paper's: the geotag of the best match by count,
+with the filter's own R, and ``fallback_reason`` says why. Without calibrated cameras
+there is nothing to pose: ``PoseMeasurer`` refuses to be built.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from visloc.geometry.bundle import PosePriors, refine_database_poses
+from visloc.features.sift import Query
+from visloc.geometry.projective import CameraModel, essential_inliers
+from visloc.geometry.multiview import triangulate_tracks
+from visloc.retrieval.matching import correspondences
+from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
+from visloc.params import MatchParams, RefinedParams
+from visloc.retrieval.retrievers import Retrieval
+from visloc.pose.viewpose import DatabaseGeometry, pose_from_views, require_calibrated
+
+
+class StructureCache:
+    """Memoised structure per (view, neighbours) and matches per database pair: database-side work,
+    reusable across queries."""
+
+    def __init__(self) -> None:
+        self._views: dict[tuple[int, tuple[int, ...]], dict[int, np.ndarray]] = {}
+        self._pairs: dict[tuple[int, int], np.ndarray] = {}
+        self.build_ms = 0.0
+
+    def get(self, key: tuple[int, tuple[int, ...]]) -> dict[int, np.ndarray] | None:
+        return self._views.get(key)
+
+    def put(self, key: tuple[int, tuple[int, ...]], value: dict[int, np.ndarray], ms: float) -> None:
+        self._views[key] = value
+        self.build_ms += ms
+
+    def pairs(self, geometry: "DatabaseGeometry", a: int, b: int, params: RefinedParams) -> np.ndarray:
+        if (a, b) not in self._pairs:
+            match = MatchParams(tau1=params.ratio, tau2=-1.0)
+            self._pairs[(a, b)] = correspondences(geometry.descriptors_u8[a], geometry.descriptors_u8[b], match)
+        return self._pairs[(a, b)]
+
+    def __len__(self) -> int:
+        return len(self._views)
+
+
+def build_view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], params: RefinedParams,
+                         cache: StructureCache) -> dict[int, np.ndarray]:
+    """keypoint row of ``view`` -> (world point, its 3x3 covariance), triangulated from every neighbour
+    that sees it."""
+    tracks: dict[int, dict[int, np.ndarray]] = {}
+    for c, j in enumerate(neighbours, 1):
+        pairs = cache.pairs(geometry, view, j, params)
+        for d_row, n_row in pairs.tolist():
+            tracks.setdefault(d_row, {})[c] = geometry.keypoints_xy_px[j][n_row]
+    rows = np.array(sorted(tracks), np.int64)
+    xy = np.full((len(rows), len(neighbours) + 1, 2), np.nan)
+    for m, d_row in enumerate(rows.tolist()):
+        xy[m, 0] = geometry.keypoints_xy_px[view][d_row]
+        for c, pixel in tracks[d_row].items():
+            xy[m, c] = pixel
+    T = geometry.T_world_camera[[view, *neighbours]]
+    if params.refine_poses:
+        T = refined_poses(geometry, T, xy, params)
+    tri = triangulate_tracks(geometry.camera.K, T, xy, max_reprojection_px=params.triangulation_px,
+                             min_parallax_deg=params.min_parallax_deg, max_depth_m=params.max_depth_m)
+    return {int(k): (X, S) for k, X, S in zip(rows[tri.keep].tolist(), tri.points_world[tri.keep],
+                                               tri.cov_world[tri.keep])}
+
+
+def pose_priors(geometry: DatabaseGeometry, params: RefinedParams, n_images: int,
+                sigma_pos_m: float | None = None) -> PosePriors:
+    """The priors of ``n_images`` poses in a bundle adjustment: ``relative_geotag_sigma_m`` (or
+    ``sigma_pos_m``) on the horizontal position, twice that (at least 0.2 m) on the height, which
+    GNSS gets worse, and ``attitude_prior_per_heading_spread`` times the database's heading spread, at
+    least ``min_attitude_prior_deg``, on the attitude."""
+    sigma = params.relative_geotag_sigma_m if sigma_pos_m is None else sigma_pos_m
+    spread = geometry.heading_spread_rad
+    attitude = max(np.radians(params.min_attitude_prior_deg),
+                   params.attitude_prior_per_heading_spread * spread if spread is not None else 0.0)
+    return PosePriors(sigma_pos_m=np.full(n_images, sigma), sigma_up_m=max(0.2, 2.0 * sigma), sigma_rot_rad=attitude)
+
+
+def refined_poses(geometry: DatabaseGeometry, T: np.ndarray, xy: np.ndarray, params: RefinedParams) -> np.ndarray:
+    """``T`` (C, 4, 4), the poses of a view and its neighbours, refined by bundle adjustment on their
+    observations ``xy`` (M, C, 2). Where the images move the positions much farther than the prior
+    allows (a jittery track), the adjustment is run again with the prior loosened to the RMS of those
+    moves: the images, not the prior, then decide the track's shape. ``T`` itself when too few points
+    start an adjustment."""
+    used = np.all(np.isfinite(xy), axis=2)
+    priors = pose_priors(geometry, params, len(T))
+    refined = refine_database_poses(geometry.camera.K, T, xy, used, priors)
+    if refined is None:
+        return T
+    moved_rms_m = float(np.sqrt(np.mean(refined.moved_m**2) / 3.0))
+    if moved_rms_m > 3.0 * params.relative_geotag_sigma_m:
+        again = refine_database_poses(geometry.camera.K, T, xy, used, pose_priors(geometry, params, len(T),
+                                                                                  moved_rms_m))
+        refined = again if again is not None else refined
+    return refined.T_world_camera
+
+
+def view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], params: RefinedParams,
+                   cache: StructureCache | None) -> tuple[dict[int, np.ndarray], float]:
+    """keypoint row of ``view`` -> world point over its neighbours, and the milliseconds spent
+    building it (0 when cached)."""
+    cache = cache if cache is not None else StructureCache()
+    key = (view, tuple(neighbours))
+    found = cache.get(key)
+    if found is not None:
+        return found, 0.0
+    t0 = time.perf_counter()
+    structure = build_view_structure(geometry, view, neighbours, params, cache)
+    ms = (time.perf_counter() - t0) * 1000.0
+    cache.put(key, structure, ms)
+    return structure, ms
+
+
+def neighbours_of(view: int, allowed: np.ndarray, T_world_camera: np.ndarray, params: RefinedParams,
+                  directions: tuple[int, ...] = (-1, 1)) -> list[int]:
+    """For each of ``neighbour_baselines_m``, the database image before ``view`` and the one after
+    it (within ``max_neighbour_gap`` frames, allowed and posed) whose distance from the view is
+    nearest that baseline and at least ``min_baseline_m``. ``directions``: (-1,) before only,
+    (1,) after only."""
+    allowed_set = set(int(i) for i in allowed)
+    centre = T_world_camera[view][:3, 3]
+    out: list[int] = []
+    for direction in directions:
+        near = []
+        for gap in range(1, params.max_neighbour_gap + 1):
+            j = view + direction * gap
+            if not 0 <= j < len(T_world_camera):
+                break
+            if j in allowed_set and np.all(np.isfinite(T_world_camera[j])):
+                baseline_m = float(np.linalg.norm(T_world_camera[j][:3, 3] - centre))
+                if baseline_m >= params.min_baseline_m:
+                    near.append((baseline_m, j))
+        for target_m in params.neighbour_baselines_m:
+            if near:
+                j = min(near, key=lambda bj: abs(bj[0] - target_m))[1]
+                if j not in out:
+                    out.append(j)
+    return out
+
+
+def pose_measurement(
+    query_keypoints_f32: np.ndarray | None,
+    query_descriptors_u8: np.ndarray,
+    retrieval: Retrieval,
+    db_east_north_m: np.ndarray,
+    geometry: DatabaseGeometry,
+    query_camera: CameraModel,
+    params: RefinedParams = RefinedParams(),
+    cache: StructureCache | None = None,
+) -> Measurement:
+    """The refined measurement of one query and its retrieval (see the module docstring), or the
+    geotag of the best match with the reason geometry failed.
+
+    ``geometry`` must have its camera (see ``PoseMeasurer``). ``query_keypoints_f32`` is (N, 6) or
+    (N, 2) with pixel x, y first. Pass a ``StructureCache`` to reuse database structure across queries.
+    """
+    start = time.perf_counter()
+    if retrieval.best_index is None:
+        return geotag_measurement(retrieval, db_east_north_m, "no database image has a correspondence")
+
+    spent = {"structure_ms": 0.0}
+
+    def fallback(reason: str, **extra) -> Measurement:
+        m = geotag_measurement(retrieval, db_east_north_m, reason)
+        return Measurement(m.east_north_m, None, GEOTAG, fallback_reason=reason, db_index=m.db_index,
+                           compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=spent["structure_ms"],
+                           **extra)
+
+    if query_keypoints_f32 is None or len(query_keypoints_f32) != len(query_descriptors_u8):
+        return fallback("query keypoints not given")
+    query_xy = np.asarray(query_keypoints_f32, float)[:, :2]
+
+    # 1. verification: re-rank the top-k candidates by essential-matrix inliers
+    order = np.argsort(-retrieval.counts, kind="stable")[: params.top_k]
+    order = [k for k in order if retrieval.counts[k] > 0]
+    match = MatchParams(tau1=params.ratio, tau2=-1.0)
+    verified: list[tuple[int, int, np.ndarray]] = []  # (inliers, db index, pairs)
+    for k in order:
+        i = int(retrieval.candidates[k])
+        pairs = correspondences(query_descriptors_u8, geometry.descriptors_u8[i], match)
+        mask = essential_inliers(query_xy[pairs[:, 0]], geometry.keypoints_xy_px[i][pairs[:, 1]],
+                                 query_camera.K, geometry.camera.K, threshold_px=params.essential_px,
+                                 seed=params.seed)
+        verified.append((int(mask.sum()), i, pairs))
+    verified.sort(key=lambda v: -v[0])  # stable: ties keep the count order
+    inliers_of = {i: n for n, i, _ in verified}
+    best_inliers = verified[0][0] if verified else 0
+    if best_inliers < params.min_verified_inliers:
+        return fallback(f"verification: best candidate has {best_inliers} essential-matrix inliers "
+                        f"(need {params.min_verified_inliers})", n_verified_inliers=best_inliers,
+                        candidate_inliers=inliers_of)
+    candidates = [(i, pairs) for n, i, pairs in verified if n >= params.min_verified_inliers
+                  and np.all(np.isfinite(geometry.T_world_camera[i]))]
+    if not candidates:
+        return fallback(f"database image {verified[0][1]} has no attitude (re-run 'visloc ingest' to fill it)",
+                        n_verified_inliers=best_inliers, candidate_inliers=inliers_of)
+
+    # 2. the verified candidates that have allowed neighbours; a view's structure is built when it is chosen
+    pairs_of, neighbours_used = {}, {}
+    for i, pairs in candidates:
+        neighbours = neighbours_of(i, retrieval.search_area, geometry.T_world_camera, params)
+        if neighbours:
+            pairs_of[i], neighbours_used[i] = pairs, neighbours
+    usable = list(pairs_of)  # in inlier order
+    base = dict(n_verified_inliers=best_inliers, candidate_inliers=inliers_of)
+    if not usable:
+        return fallback(f"no database neighbour within {params.max_neighbour_gap} frames of the verified views is "
+                        f"allowed and at least {params.min_baseline_m:g} m away (car stopped?)", **base)
+
+    def structure_of(i: int) -> tuple[dict[int, np.ndarray], float]:
+        return view_structure(geometry, i, neighbours_used[i], params, cache)
+
+    posed = pose_from_views(query_xy, usable, pairs_of, structure_of, neighbours_used, db_east_north_m, geometry,
+                            query_camera, params)
+    base.update(posed.support)
+    spent["structure_ms"] += posed.structure_ms
+    if posed.reason is not None:
+        return fallback(posed.reason, **base)
+    return Measurement(
+        posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
+        reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
+        absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m, cov_terms_m2=posed.cov_terms_m2,
+        compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=spent["structure_ms"], **base,
+    )
+
+
+class PoseMeasurer:
+    """The refined method's measurer. Refuses to be built without what a pose needs: the database
+    camera's calibration and attitudes (``geometry``) and the query camera's calibration."""
+
+    def __init__(self, db_east_north_m: np.ndarray, geometry: DatabaseGeometry, query_camera: CameraModel | None,
+                 params: RefinedParams, *, structures: StructureCache | None = None, query_what: str = "the query camera"):
+        require_calibrated(geometry, query_camera, query_what)
+        self.db_east_north_m = np.asarray(db_east_north_m, float)
+        self.geometry = geometry
+        self.query_camera = query_camera
+        self.params = params
+        self.structures = structures if structures is not None else StructureCache()
+
+    def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
+        return pose_measurement(query.keypoints_f32, query.descriptors_u8, retrieval, self.db_east_north_m,
+                                self.geometry, self.query_camera, self.params, self.structures)
+

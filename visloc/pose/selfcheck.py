@@ -1,0 +1,145 @@
+"""How well a database poses its own images: the measurement its lever gain is fitted on.
+
+Each database image is treated as a query of its own drive: the images closer to it in time than
+``SELF_CHECK_EXCLUSION_S`` (the evaluation's exclusion window) are left out, the ``top_k`` allowed
+images most like it by global vector are its candidates, and the refined measurement
+(``visloc.pose.refined``: verification, structure with refined database poses, PnP) poses it. Its error
+against its own geotag, with the covariance the measurement gives without the lever term, says how
+far this database's poses are off per metre of lever (``visloc.pose.uncertainty.fit_lever_gain``).
+
+Only the database's own data is used: its images, geotags, attitudes and calibration. The
+retrieval is shortcut (global vectors instead of the paper's counts) because it is not what is
+checked: the verification re-ranks the candidates as it does for any query.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from visloc.db import SelfCheckRecord
+from visloc.geometry.projective import CameraModel
+from visloc.pose.measurement import GEOMETRY
+from visloc.params import RefinedParams
+from visloc.pose.refined import StructureCache, pose_measurement
+from visloc.retrieval.retrievers import Retrieval
+from visloc.pose.structure import structure_settings_json
+from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, SIDES, LeverGain, fit_lever_gain
+from visloc.pose.viewpose import DatabaseGeometry
+
+SELF_CHECK_EXCLUSION_S = 1.0  # as the evaluation's: a same-drive query never sees its own second of driving
+SELF_CHECK_PROBABILITY = 0.8  # the level at which the lever gain matches the errors (see fit_lever_gain)
+MIN_POSES_PER_SIDE = 10  # fewer: that side keeps the default gain (never below the other side's)
+SELF_CHECK_VERSION = 1  # bump when what a self-check measures changes: older rows are then not used
+
+
+@dataclass(frozen=True)
+class SelfCheckPose:
+    """One database image posed from its allowed neighbours.
+
+    index: database index; error_m: (2,) pose minus the image's geotag, metres (None: no pose);
+    base_cov_m2: (2, 2) the pose's covariance without the lever term; lever_m, side: as the
+    measurement's; reason: why there is no pose (None otherwise)."""
+
+    index: int
+    error_m: np.ndarray | None
+    base_cov_m2: np.ndarray | None
+    lever_m: float | None
+    side: str | None
+    reason: str | None = None
+
+
+def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S) -> str:
+    """What a stored self-check was made with: the structure's settings, the exclusion, the version."""
+    return json.dumps({"structure": json.loads(structure_settings_json(params)), "exclusion_s": exclusion_s,
+                       "top_k": params.top_k, "pnp_px": params.pnp_px, "version": SELF_CHECK_VERSION},
+                      sort_keys=True)
+
+
+def self_check_pose(k: int, geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray,
+                    keypoints_f32: np.ndarray, descriptors_u8: np.ndarray, global_vectors_f32: np.ndarray,
+                    params: RefinedParams, *, exclusion_s: float = SELF_CHECK_EXCLUSION_S,
+                    cache: StructureCache | None = None) -> SelfCheckPose:
+    """Database image ``k`` posed as a query of its own drive (module docstring); ``geometry`` without
+    a lever gain (the base covariance is what is kept)."""
+    t = np.asarray(db_timestamps_s, float)
+    allowed = np.flatnonzero(np.abs(t - t[k]) >= exclusion_s)
+    if allowed.size == 0:
+        return SelfCheckPose(k, None, None, None, None, f"no image at least {exclusion_s:g} s away")
+    similarity = global_vectors_f32[allowed] @ global_vectors_f32[k]
+    chosen = allowed[np.argsort(-similarity, kind="stable")[: params.top_k]]
+    retrieval = Retrieval(candidates=chosen, counts=np.arange(len(chosen), 0, -1, dtype=np.int64),
+                          best_index=int(chosen[0]), allowed=allowed)
+    camera: CameraModel = geometry.camera
+    m = pose_measurement(keypoints_f32, descriptors_u8, retrieval, db_east_north_m, geometry, camera, params, cache)
+    if m.source != GEOMETRY:
+        return SelfCheckPose(k, None, None, None, None, m.fallback_reason)
+    error = np.asarray(m.east_north_m, float) - np.asarray(db_east_north_m[k], float)
+    return SelfCheckPose(k, error, m.cov_terms_m2["pnp"] + m.cov_terms_m2["views"], float(m.lever_m), m.side)
+
+
+def self_check(geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray,
+               keypoints_f32: Sequence[np.ndarray], descriptors_u8: Sequence[np.ndarray],
+               global_vectors_f32: np.ndarray, params: RefinedParams, *, indices: Sequence[int] | None = None,
+               exclusion_s: float = SELF_CHECK_EXCLUSION_S, cache: StructureCache | None = None,
+               progress: Callable[[int, int], None] | None = None) -> list[SelfCheckPose]:
+    """Every database image (or ``indices``) posed as a query of its own drive. Structure is shared
+    between them through ``cache`` (one view serves many neighbours)."""
+    bare = replace(geometry, lever_gain=None)
+    cache = cache if cache is not None else StructureCache()
+    wanted = range(len(db_timestamps_s)) if indices is None else indices
+    out = []
+    for n, k in enumerate(wanted, 1):
+        out.append(self_check_pose(int(k), bare, db_east_north_m, db_timestamps_s, keypoints_f32[k],
+                                   descriptors_u8[k], global_vectors_f32, params, exclusion_s=exclusion_s,
+                                   cache=cache))
+        if progress:
+            progress(n, len(wanted))
+    return out
+
+
+def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check") -> LeverGain:
+    """The lever gain per side that the self-check's poses call for (``fit_lever_gain`` at
+    ``SELF_CHECK_PROBABILITY``). The one-side gain is never below the both-sides one: a query with
+    views on one side only extrapolates the database's errors where one with views on both sides
+    interpolates them, and is never better off (a self-check with few one-sided poses can say
+    otherwise by chance). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the default gain,
+    again never below the other side's; with no pose on either side, the defaults."""
+    gains, counts = {}, {}
+    for side in SIDES:
+        chosen = [p for p in poses if p.error_m is not None and p.side == side]
+        counts[side] = len(chosen)
+        if len(chosen) >= MIN_POSES_PER_SIDE:
+            gains[side] = fit_lever_gain(np.array([p.error_m for p in chosen]),
+                                         np.array([p.base_cov_m2 for p in chosen]),
+                                         np.array([p.lever_m for p in chosen]), probability=SELF_CHECK_PROBABILITY)
+    if "both" in gains and "one" in gains:
+        both, one = gains["both"], max(gains["one"], gains["both"])
+    elif "both" in gains:
+        both, one = gains["both"], max(DEFAULT_LEVER_GAIN.one_side, gains["both"])
+    elif "one" in gains:
+        both = one = gains["one"]
+    else:
+        both, one = DEFAULT_LEVER_GAIN.both_sides, DEFAULT_LEVER_GAIN.one_side
+    return LeverGain(both_sides=float(both), one_side=float(one), n_both=counts["both"], n_one=counts["one"],
+                     source=source)
+
+
+def pose_record(p: SelfCheckPose, image_id: int, settings_json: str) -> SelfCheckRecord:
+    """A self-check pose as the store keeps it (``visloc.db.SelfCheckRecord``)."""
+    if p.error_m is None:
+        return SelfCheckRecord(image_id, settings_json, None, None, None, None, None, None, None, p.reason)
+    C = p.base_cov_m2
+    return SelfCheckRecord(image_id, settings_json, float(p.error_m[0]), float(p.error_m[1]), float(C[0, 0]),
+                           float(C[0, 1]), float(C[1, 1]), float(p.lever_m), p.side, None)
+
+
+def record_pose(r: SelfCheckRecord, index: int) -> SelfCheckPose:
+    """A stored self-check as a pose of database index ``index``."""
+    if r.error_east_m is None:
+        return SelfCheckPose(index, None, None, None, None, r.reason)
+    return SelfCheckPose(index, np.array([r.error_east_m, r.error_north_m]),
+                         np.array([[r.cov_ee_m2, r.cov_en_m2], [r.cov_en_m2, r.cov_nn_m2]]), r.lever_m, r.side)

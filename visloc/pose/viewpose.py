@@ -1,0 +1,236 @@
+"""Posing a query against database views whose keypoints carry 3D points (steps 3-5 of ``visloc.pose.refined``).
+
+``pose_from_views`` is shared by the exact refined path (structure triangulated as it is needed)
+and the fast one (structure read from the store): given the same correspondences and structure,
+both give the same measurement.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from visloc.errors import InputError
+from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, imu_east_north_covariance, imu_pose_from_camera,
+                             refine_pose, solve_pnp)
+from visloc.params import RefinedParams
+from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, lever_covariance_m2
+
+
+@dataclass(frozen=True)
+class DatabaseGeometry:
+    """The database as the refined mode needs it, in arrays.
+
+    T_world_camera: (N, 4, 4) pose of each database camera in the local ENU frame,
+    NaN where the image's attitude is unknown; camera: intrinsics and extrinsics of
+    the database camera, or None with ``unavailable_reason`` saying why; geotag_sigma_m:
+    the stated accuracy of each geotag (standard deviation per axis, metres; NaN or None
+    where the source states none); heading_spread_rad: how far the database's headings stray from
+    its course over ground (``visloc.geometry.bundle.heading_spread_rad``; None where it cannot be told);
+    lever_gain: what the database's poses get wrong per metre of lever (``visloc.pose.uncertainty``),
+    as its self-check measured it (None: ``DEFAULT_LEVER_GAIN``).
+    """
+
+    T_world_camera: np.ndarray
+    keypoints_xy_px: Sequence[np.ndarray]
+    descriptors_u8: Sequence[np.ndarray]
+    camera: CameraModel | None
+    unavailable_reason: str | None = None
+    geotag_sigma_m: np.ndarray | None = None  # (N,) stated accuracy of each geotag, per axis, NaN if unknown
+    heading_spread_rad: float | None = None
+    lever_gain: LeverGain | None = None  # measured by the store's self-check; None: DEFAULT_LEVER_GAIN
+
+
+def require_calibrated(geometry: DatabaseGeometry, query_camera: CameraModel | None, query_what: str) -> None:
+    """Refuse a refined measurer without what a pose needs, naming what is missing."""
+    if geometry.camera is None:
+        raise InputError(f"the refined method needs a calibrated database: {geometry.unavailable_reason}")
+    if query_camera is None:
+        raise InputError(f"the refined method needs a calibrated query camera: {query_what} has no intrinsics "
+                         "and extrinsics")
+
+
+@dataclass(frozen=True)
+class _Views:
+    """2D-3D correspondences of the query against some views: which view each comes from."""
+
+    points_world: np.ndarray  # (M, 3)
+    points_cov: np.ndarray  # (M, 3, 3)
+    pixels: np.ndarray  # (M, 2)
+    view_of: np.ndarray  # (M,) database index of the view
+
+
+def _correspondences(chosen: list[int], pairs_of: dict[int, np.ndarray], structure_of: dict[int, dict],
+                     query_xy: np.ndarray) -> _Views:
+    points, covs, pixels, view_of = [], [], [], []
+    for i in chosen:
+        structure = structure_of[i]
+        for q_row, d_row in pairs_of[i].tolist():
+            found = structure.get(d_row)
+            if found is not None:
+                points.append(found[0])
+                covs.append(found[1])
+                pixels.append(query_xy[q_row])
+                view_of.append(i)
+    return _Views(np.array(points).reshape(-1, 3), np.array(covs).reshape(-1, 3, 3), np.array(pixels).reshape(-1, 2),
+                  np.array(view_of, np.int64))
+
+
+def _side(view_centre: np.ndarray, T_world_camera_query: np.ndarray) -> int:
+    """+1 if a view's camera lies ahead of the query camera (along its optical axis), -1 behind."""
+    forward = T_world_camera_query[:3, 2]
+    return 1 if float(np.dot(view_centre - T_world_camera_query[:3, 3], forward)) >= 0 else -1
+
+
+def _per_view_positions(pnp: PnPResult, views: _Views, query_camera: CameraModel,
+                        min_points: int) -> dict[int, np.ndarray]:
+    """East/north of the query posed against each view alone, from the pooled pose on that view's
+    inliers (views with fewer than ``min_points`` inliers are left out)."""
+    out = {}
+    inlier_views = views.view_of[pnp.inliers]
+    for i in np.unique(inlier_views).tolist():
+        rows = pnp.inliers[inlier_views == i]
+        if len(rows) < min_points:
+            continue
+        T_world_camera = refine_pose(views.points_world[rows], views.pixels[rows], query_camera.K, pnp)
+        out[int(i)] = imu_pose_from_camera(T_world_camera, query_camera.T_camera_imu)[:2, 3].copy()
+    return out
+
+
+def _mean_covariance(positions: list[np.ndarray]) -> np.ndarray:
+    """Covariance of the mean of independent estimates, from their spread (zero for fewer than two)."""
+    if len(positions) < 2:
+        return np.zeros((2, 2))
+    P = np.array(positions)
+    d = P - P.mean(axis=0)
+    return d.T @ d / (len(P) * (len(P) - 1))
+
+
+def _spread_m(positions: list[np.ndarray]) -> float:
+    P = np.array(positions)
+    return float(max(np.linalg.norm(a - b) for a in P for b in P)) if len(P) > 1 else 0.0
+
+
+@dataclass
+class PosedViews:
+    """What ``pose_from_views`` found: a pose (``reason`` None) or why there is none.
+
+    support: view_indices, neighbour_indices, n_correspondences_3d and n_pnp_inliers (Measurement fields).
+    cov_m2 is the relative covariance (``visloc.pose.uncertainty``): the sum of ``cov_terms_m2`` ("pnp",
+    "views", "lever"); side: "both" or "one" (the views' sides of the pose); lever_m: the distance
+    from the pose to its nearest view's geotag; absolute_sigma_m: the views' geotags' stated accuracy."""
+
+    reason: str | None
+    support: dict
+    structure_ms: float = 0.0
+    east_north_m: np.ndarray | None = None
+    cov_m2: np.ndarray | None = None
+    anchor: int | None = None
+    reprojection_rms_px: float | None = None
+    up_m: float | None = None
+    heading_deg: float | None = None
+    cov_terms_m2: dict | None = None
+    side: str | None = None
+    lever_m: float | None = None
+    absolute_sigma_m: float | None = None
+
+
+def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np.ndarray],
+                    structure_of, neighbours_used: dict[int, Sequence[int]], db_east_north_m: np.ndarray,
+                    geometry: DatabaseGeometry, query_camera: CameraModel, params: RefinedParams) -> PosedViews:
+    """Steps 3-5 of the module docstring: the query posed against views (best first in ``usable``).
+
+    pairs_of[i]: (M, 2) pairs (query row, keypoint row of view i); structure_of(i) -> (keypoint row ->
+    (world point, covariance), milliseconds spent building it); neighbours_used[i]: the database images
+    view i's structure was triangulated with. Shared by the exact path (structure built as needed)
+    and the fast path (structure read from the store)."""
+    spent = {"structure_ms": 0.0}
+    structures: dict[int, dict] = {}
+    support: dict = {}
+
+    def solve(chosen: list[int]) -> tuple[PnPResult | str, _Views]:
+        for i in chosen:
+            if i not in structures:
+                structures[i], ms = structure_of(i)
+                spent["structure_ms"] += ms
+        views = _correspondences(chosen, pairs_of, structures, query_xy)
+        pnp = solve_pnp(views.points_world, views.pixels, query_camera.K, reprojection_px=params.pnp_px,
+                        iterations=params.pnp_iterations, seed=params.seed, min_inliers=params.min_pnp_inliers,
+                        points_cov=views.points_cov)
+        return pnp, views
+
+    def describe(chosen: list[int], views: _Views) -> None:
+        support.update(view_indices=tuple(chosen), n_correspondences_3d=len(views.points_world),
+                       neighbour_indices=tuple(j for i in chosen for j in neighbours_used[i]))
+
+    def failed(reason: str) -> PosedViews:
+        return PosedViews(reason, support, spent["structure_ms"])
+
+    # 3. pose against the best views, then against views on both sides of it where the database has them
+    chosen = usable[: params.n_views]
+    pnp, views = solve(chosen)
+    if params.both_sides and not isinstance(pnp, str):
+        side = {i: _side(geometry.T_world_camera[i][:3, 3], pnp.T_world_camera) for i in usable}
+        behind, ahead = [i for i in usable if side[i] < 0], [i for i in usable if side[i] > 0]
+        if behind and ahead:  # as many views on each side, best first
+            balanced_choice = [i for pair in zip(behind, ahead) for i in pair][: max(params.n_views, 2)]
+            if set(balanced_choice) != set(chosen):
+                balanced, balanced_views = solve(balanced_choice)
+                if not isinstance(balanced, str):
+                    pnp, views, chosen = balanced, balanced_views, balanced_choice
+    describe(chosen, views)
+    if isinstance(pnp, str):
+        return failed(pnp)
+
+    # 4. each view alone: drop a view that disagrees with the others, reject if they still disagree
+    min_points = max(6, params.min_pnp_inliers // 2)
+    per_view = _per_view_positions(pnp, views, query_camera, min_points)
+    if len(per_view) >= 3:
+        centre = np.median(np.array(list(per_view.values())), axis=0)
+        far = [i for i, p in per_view.items() if np.linalg.norm(p - centre) > params.max_view_spread_m]
+        if far and len(far) < len(per_view):
+            kept = [i for i in chosen if i not in far]
+            again, again_views = solve(kept)
+            if not isinstance(again, str):
+                pnp, views, chosen = again, again_views, kept
+                describe(chosen, views)
+                per_view = _per_view_positions(pnp, views, query_camera, min_points)
+    spread_m = _spread_m(list(per_view.values()))
+    support.update(n_pnp_inliers=len(pnp.inliers))
+    if spread_m > params.max_view_spread_m:
+        return failed(f"views {sorted(per_view)} disagree: their own poses lie {spread_m:.1f} m apart "
+                      f"(limit {params.max_view_spread_m:g} m)")
+    T_world_imu = imu_pose_from_camera(pnp.T_world_camera, query_camera.T_camera_imu)
+    east_north = T_world_imu[:2, 3].copy()
+    anchor = chosen[0]
+    offset_m = float(np.linalg.norm(east_north - np.asarray(db_east_north_m[anchor], float)))
+    if not np.all(np.isfinite(east_north)) or offset_m > params.max_offset_m:
+        return failed(f"PnP pose {offset_m:.1f} m from the geotag of view {anchor} (limit "
+                      f"{params.max_offset_m:g} m)")
+    heading = heading_deg_of(T_world_imu)
+    view_heading = heading_deg_of(geometry.T_world_camera[anchor] @ geometry.camera.T_camera_imu)
+    turn_deg = abs((heading - view_heading + 180.0) % 360.0 - 180.0)
+    if turn_deg > params.max_heading_diff_deg:
+        return failed(f"PnP pose faces {turn_deg:.0f} deg away from view {anchor} (limit "
+                      f"{params.max_heading_diff_deg:g} deg)")
+
+    # 5. covariance (visloc.pose.uncertainty): relative to the map, PnP's + the views' spread + what the
+    #    database's poses get wrong over the lever to the nearest view; the geotags' stated accuracy apart
+    sides = {_side(geometry.T_world_camera[i][:3, 3], pnp.T_world_camera) for i in chosen}
+    side = "both" if len(sides) == 2 else "one"
+    lever_m = float(min(np.linalg.norm(east_north - np.asarray(db_east_north_m[i], float)) for i in chosen))
+    gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
+    terms = {"pnp": imu_east_north_covariance(pnp, query_camera.T_camera_imu),
+             "views": _mean_covariance(list(per_view.values())),
+             "lever": lever_covariance_m2(gain.of(side), lever_m)}
+    cov = terms["pnp"] + terms["views"] + terms["lever"]
+    absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
+    return PosedViews(None, support, spent["structure_ms"], east_north, cov, anchor, pnp.reprojection_rms_px,
+                      float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m)
+
+
+def _geotag_sigma_m(geometry: DatabaseGeometry, i: int, params: RefinedParams) -> float:
+    stated = None if geometry.geotag_sigma_m is None else float(geometry.geotag_sigma_m[i])
+    return stated if stated is not None and np.isfinite(stated) else params.geotag_sigma_m

@@ -1,0 +1,226 @@
+"""``visloc track``: localize every frame of a drive in order, at the camera's rate, as a vehicle would.
+
+Each frame is read, described by SIFT, retrieved, measured (the refined method) and fused by
+the constant-velocity filter, whose time step is the frame interval. ``track_localizer``
+composes the path (``TrackParams.fast``: the camera-rate path of ``visloc.pose.fastpose`` on the
+structure and global vectors the store keeps; else the exact refined path with the paper's
+retrieval), ``run_track`` runs it and ``TrackRun`` holds what happened: per frame the timings,
+the measurement and the estimate against the frame's own geotag, and the run's summary.
+
+Latency counts what a live system spends on a frame once its image is decoded: SIFT,
+retrieval, the query side of the measurement and the filter step (``visloc.tracking.runs.latency_ms``).
+``sustained_hz`` is frames per second of wall time over the whole run, reading included.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from visloc.store.database import GeoDatabase, same_drive
+from visloc.errors import InputError
+from visloc.geo import geodesic_distance_m
+from visloc.geometry.projective import CameraModel
+from visloc.tracking.localizer import Localizer, StepResult
+from visloc.pose.measurement import GEOMETRY
+from visloc.retrieval.matching import MatchCancelled
+from visloc.tracking.methods import REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer
+from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK, FilterParams, RetrievalParams,
+                           SiftParams, TrackParams)
+from visloc.sources.queries import extract_queries
+from visloc.pose.structure import seeded_structure_cache
+from visloc.tracking.runs import latency_ms
+from visloc.sources.drives import Sequence
+from visloc.pose.uncertainty import SIDES, calibration
+from visloc.store.workspace import Workspace
+
+WINDOW_S = 20.0  # the exact path's retrieval window, the paper's
+
+
+def track_filter(seq: Sequence, params: TrackParams, base: FilterParams = PAPER_FILTER) -> FilterParams:
+    """``base`` with the time step of one localized frame: the median frame interval times the stride."""
+    t = seq.timestamps_s
+    if len(t) < 2:
+        raise InputError(f"{seq.name}: a track needs at least 2 frames")
+    dt_s = float(np.median(np.diff(t))) * params.stride
+    if not MIN_DT_S <= dt_s <= MAX_DT_S:
+        raise InputError(f"{seq.name}: its median frame interval times --stride {params.stride} is {dt_s:g} s, the "
+                         f"filter's time step; it must be in [{MIN_DT_S:g}, {MAX_DT_S:g}] s (check the timestamps)")
+    return base.replace(dt_s=dt_s)
+
+
+def track_localizer(ws: Workspace, db: GeoDatabase, query_camera: CameraModel | None, filter_params: FilterParams,
+                    params: TrackParams = TRACK, method: Method | None = None, *,
+                    query_what: str = "the query camera") -> tuple[Localizer, SiftParams]:
+    """The localizer of a track over ``db`` and the SIFT settings its frames are described with.
+
+    ``method``: the refined method to run, a preset with the user's changes (default: refined-fast when
+    ``params.fast``, else refined)."""
+    method = method or (REFINED_FAST_METHOD if params.fast else REFINED_METHOD)
+    store_sift = ws.sift_params
+    structures = ws.load_structure(db, method.pose)
+    retrieval = RetrievalParams(window_s=WINDOW_S, exclusion_s=params.exclusion_s)
+    if not method.camera_rate:
+        loc = build_localizer(method, db, PAPER_MATCH, retrieval, filter_params, query_camera=query_camera,
+                              query_what=query_what, structures=seeded_structure_cache(structures))
+        return loc, store_sift
+    loc = build_localizer(method, db, PAPER_MATCH, retrieval, filter_params, query_camera=query_camera,
+                          query_what=query_what, stored=structures,
+                          shortlist_index=ws.load_database_index(db, method.shortlist))
+    return loc, store_sift.replace(image_scale=params.query_image_scale, n_features=params.query_max_keypoints)
+
+
+@dataclass(frozen=True)
+class TrackFrame:
+    """One localized frame. Positions are (east_m, north_m) in the database's local frame."""
+
+    frame: int
+    timestamp_s: float
+    truth_m: tuple[float, float]
+    estimate_m: tuple[float, float]
+    estimate_sigma_m: float
+    error_m: float  # estimate vs the frame's geotag, geodesic
+    measurement_m: tuple[float, float] | None
+    measurement_sigma_m: float | None
+    measurement_error_m: float | None
+    measurement_source: str | None  # "geometry", "geotag" or None
+    fallback_reason: str | None
+    gated: bool
+    restarted: bool
+    view_frames: tuple[int, ...]
+    n_pnp_inliers: int
+    sift_ms: float
+    retrieval_ms: float
+    geometry_ms: float
+    filter_ms: float
+    latency_ms: float
+    estimate_cov_m2: list[list[float]] | None = None  # 2x2 east/north position covariance, m^2
+    measurement_cov_m2: list[list[float]] | None = None  # the measurement's own covariance, m^2
+    # e' C^-1 e of the measurement's and the estimate's errors (visloc.protocols.records.step_record's rule: C alone when
+    # the frame's geotag comes from the map's own receiver, else with the map's and the truth's accuracy added)
+    measurement_nees: float | None = None
+    estimate_nees: float | None = None
+    measurement_side: str | None = None  # refined: "both" or "one" (the views' sides of the pose)
+    absolute_sigma_m: float | None = None  # refined: the map's own error, m per axis
+    maneuver: bool = False  # the filter applied the measurement with its maneuver prediction
+    retracted_previous: bool = False  # the filter took the previous frame's measurement out
+
+
+def _stats(values: list[float]) -> dict:
+    v = np.asarray([x for x in values if x is not None], float)
+    if not v.size:
+        return {"mean": None, "median": None, "p90": None, "max": None, "n": 0}
+    return {"mean": float(v.mean()), "median": float(np.median(v)), "p90": float(np.percentile(v, 90)),
+            "max": float(v.max()), "n": int(v.size)}
+
+
+@dataclass
+class TrackRun:
+    queries: str
+    database: str
+    path: str  # "fast" or "exact"
+    params: dict
+    frames: list[TrackFrame] = field(default_factory=list)
+    wall_s: float = 0.0
+
+    def summary(self) -> dict:
+        f = self.frames
+        lat = np.array([x.latency_ms for x in f], float)
+        n_geometry = sum(x.measurement_source == "geometry" for x in f)
+        return {
+            "queries": self.queries, "database": self.database, "path": self.path, "frames": len(f),
+            "latency_ms": {"p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
+                           "max": float(lat.max())} if lat.size else None,
+            "stages_ms": {k: float(np.median([getattr(x, k) for x in f])) if f else None
+                          for k in ("sift_ms", "retrieval_ms", "geometry_ms", "filter_ms")},
+            "error_m": _stats([x.error_m for x in f]),
+            "measurement_error_m": _stats([x.measurement_error_m for x in f]),
+            "geometry_measurement_error_m": _stats([x.measurement_error_m for x in f
+                                                    if x.measurement_source == "geometry"]),
+            "geometry_fraction": n_geometry / len(f) if f else None,
+            "gated": sum(x.gated for x in f), "restarts": sum(x.restarted for x in f),
+            "maneuvers": sum(x.maneuver for x in f), "retracted": sum(x.retracted_previous for x in f),
+            "calibration": {"all": calibration([x.measurement_nees for x in f if x.measurement_source == GEOMETRY])
+                            .as_dict(),
+                            **{side: calibration([x.measurement_nees for x in f if x.measurement_source == GEOMETRY
+                                                  and x.measurement_side == side]).as_dict() for side in SIDES}},
+            "estimate_calibration": calibration([x.estimate_nees for x in f]).as_dict(),
+            "wall_s": self.wall_s, "sustained_hz": len(f) / self.wall_s if self.wall_s > 0 else None,
+            "params": self.params,
+        }
+
+    def as_json(self) -> dict:
+        out = self.summary()
+        out["per_frame"] = [dict(x.__dict__) for x in self.frames]
+        return out
+
+
+def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoDatabase,
+                  truth_shares_map: bool) -> TrackFrame:
+    fr, m = seq.frames[i], r.measurement
+    truth = (fr.lat_deg, fr.lon_deg)
+    truth_m = np.asarray(db.frame.to_local(*truth), float)
+    a_map = m.absolute_sigma_m or 0.0
+    s_truth = fr.position_accuracy_m if fr.position_accuracy_m is not None else 0.0
+    extra = 0.0 if truth_shares_map else a_map**2 + s_truth**2
+
+    def nees(position: np.ndarray | None, cov: np.ndarray | None) -> float | None:
+        if position is None or cov is None or not np.all(np.isfinite(position)):
+            return None
+        e = np.asarray(position, float) - truth_m
+        return float(e @ np.linalg.solve(np.asarray(cov, float) + extra * np.eye(2), e))
+
+
+    def error(en: np.ndarray) -> float:
+        lat, lon = db.frame.to_geo(np.asarray(en, float))
+        return float(geodesic_distance_m(float(lat), float(lon), *truth))
+
+    est = r.filter.position_m
+    P = np.asarray(r.filter.P, float)[:2, :2]
+    m_sigma = None
+    R = m.cov_m2 if m.cov_m2 is not None else r.filter.R  # the measurement's own covariance
+    if m.east_north_m is not None and R is not None:
+        m_sigma = float(np.sqrt(np.linalg.eigvalsh(np.asarray(R, float)).max()))
+    return TrackFrame(
+        frame=fr.frame, timestamp_s=fr.timestamp_s, truth_m=tuple(float(v) for v in db.frame.to_local(*truth)),
+        estimate_m=(float(est[0]), float(est[1])), estimate_sigma_m=float(np.sqrt(np.linalg.eigvalsh(P).max())),
+        error_m=error(est),
+        measurement_m=None if m.east_north_m is None else (float(m.east_north_m[0]), float(m.east_north_m[1])),
+        measurement_sigma_m=m_sigma,
+        measurement_error_m=None if m.east_north_m is None else error(m.east_north_m),
+        measurement_source=m.source, fallback_reason=m.fallback_reason, gated=bool(r.filter.gated),
+        restarted=bool(r.filter.restarted), view_frames=tuple(int(db.images[v].frame) for v in m.view_indices),
+        n_pnp_inliers=int(m.n_pnp_inliers), sift_ms=float(r.query.sift_ms), retrieval_ms=float(r.timings.retrieval_ms),
+        geometry_ms=float(m.query_side_ms), filter_ms=float(r.timings.filter_ms), latency_ms=float(latency),
+        estimate_cov_m2=P.tolist(),
+        measurement_cov_m2=None if m_sigma is None else np.asarray(R, float).tolist(),
+        measurement_nees=nees(m.east_north_m, R if m_sigma is not None else None),
+        estimate_nees=nees(est, P), measurement_side=m.side, absolute_sigma_m=m.absolute_sigma_m,
+        maneuver=bool(r.filter.maneuver), retracted_previous=bool(r.filter.retracted_previous))
+
+
+def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
+              indices: list[int] | None = None, path_params: dict | None = None,
+              progress: Callable[[int, int], None] | None = None,
+              cancelled: Callable[[], bool] | None = None) -> TrackRun:
+    """Localize the frames ``indices`` of ``seq`` (default: every ``params.stride``-th) in order, from a fresh track."""
+    indices = list(range(0, len(seq), params.stride)) if indices is None else list(indices)
+    run = TrackRun(seq.name, f"{db.source}/{db.camera}", "fast" if params.fast else "exact",
+                   {"track": params.as_dict(), "query_sift": sift.as_dict(), "filter": localizer.filter_params.as_dict(),
+                    **(path_params or {})})
+    localizer.reset()
+    shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
+    start = time.perf_counter()
+    for n, (i, query) in enumerate(zip(indices, extract_queries(seq, indices, sift)), 1):
+        result = localizer.step(query)
+        run.frames.append(_frame_record(seq, i, result, latency_ms(result), db, shares))
+        run.wall_s = time.perf_counter() - start
+        if progress:
+            progress(n, len(indices))
+        if cancelled is not None and cancelled():
+            raise MatchCancelled()
+    return run
+

@@ -1,0 +1,266 @@
+"""Build or extend a store: SIFT on every image of a sequence, geotags beside the features.
+
+Idempotent and resumable: frames already in the store are skipped, features are
+committed in small batches, and an interruption (Ctrl-C) commits the images that
+were finished before re-raising. A killed process loses at most the batch in
+flight; SQLite's journal guarantees that no half-written image remains.
+"""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+import time
+from collections import deque
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, replace
+
+import cv2
+import numpy as np
+
+from visloc.db import CameraRecord, EmptyStoreError, FeatureStore, ImageRecord, SkippedFrame
+from visloc.errors import InputError
+from visloc.features.sift import extract_sift, make_sift, undistort_keypoints
+from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, check_image_size, header_size_px, require_max_image_mp
+from visloc.params import SiftParams
+from visloc.sources.drives import Frame, Sequence, load_gray
+
+SIFT_SETTINGS_KEY = "sift"
+
+
+@dataclass(frozen=True)
+class IngestReport:
+    source: str
+    camera: str
+    n_frames: int
+    n_skipped: int  # already stored
+    n_added: int
+    seconds: float
+    n_attitudes_filled: int = 0  # stored images whose missing attitude this run filled in (schema-1 stores)
+    n_accuracies_filled: int = 0  # stored images whose missing geotag accuracy this run filled in (schema < 3)
+    n_bad_skipped: int = 0  # frames the store records as skipped because they could not be described
+
+    @property
+    def images_per_s(self) -> float:
+        return self.n_added / self.seconds if self.seconds > 0 else 0.0
+
+
+def require_sift_settings(store: FeatureStore, params: SiftParams) -> None:
+    """Record the SIFT settings in a new store; refuse a store built with others."""
+    store.require_setting(SIFT_SETTINGS_KEY, params.as_dict(), what="SIFT settings")
+
+
+def check_sift_settings(store: FeatureStore, params: SiftParams) -> None:
+    """Refuse to read features extracted with other SIFT settings (read-only check)."""
+    stored = store.get_setting(SIFT_SETTINGS_KEY)
+    if stored is None:
+        raise EmptyStoreError(f"{store.label}: no features yet (build it with 'visloc ingest')")
+    if stored != params.as_dict():
+        store.require_setting(SIFT_SETTINGS_KEY, params.as_dict(), what="SIFT settings")  # raises, naming the diff
+
+
+def stored_sift_params(store: FeatureStore) -> SiftParams | None:
+    stored = store.get_setting(SIFT_SETTINGS_KEY)
+    return None if stored is None else SiftParams(**stored)
+
+
+_worker_sift = None
+
+
+def _init_worker(params: SiftParams, single_thread: bool = True) -> None:
+    global _worker_sift
+    if single_thread:
+        cv2.setNumThreads(1)  # in worker processes: parallelism comes from the processes
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
+    _worker_sift = make_sift(params)
+
+
+# one work item: the frame, the SIFT settings, the pinhole K (3x3) and distortion coefficients to
+# undistort its keypoints with (None, None: stored as detected), the size the calibration states
+# (None: any), and the image size limit in megapixels
+WorkItem = tuple[Frame, SiftParams, np.ndarray | None, np.ndarray | None, tuple[int, int] | None, float]
+Extracted = tuple[Frame, np.ndarray, np.ndarray, float, tuple[int, int]]
+
+
+def _extract_frame(item: WorkItem) -> Extracted:
+    """SIFT of one frame; ``InputError`` naming the frame's file when it cannot be described."""
+    frame, params, K, distortion, calibrated_size, max_image_mp = item
+    check_image_size(frame.image_path, header_size_px(frame.image_path), max_image_mp)
+    gray = load_gray(frame.image_path)
+    size = (gray.shape[1], gray.shape[0])
+    check_image_size(frame.image_path, size, max_image_mp)
+    if calibrated_size is not None and size != tuple(calibrated_size):
+        raise InputError(f"{frame.image_path}: image is {size[0]}x{size[1]} px but the calibration is for "
+                         f"{calibrated_size[0]}x{calibrated_size[1]}")
+    start = time.perf_counter()
+    features = extract_sift(gray, params, sift=_worker_sift, name=str(frame.image_path))
+    sift_ms = (time.perf_counter() - start) * 1000.0
+    keypoints = features.keypoints_f32 if distortion is None else undistort_keypoints(features.keypoints_f32, K,
+                                                                                       distortion)
+    return frame, keypoints, features.descriptors_u8, sift_ms, size
+
+
+def _undistortion(sequence: Sequence) -> tuple[np.ndarray | None, np.ndarray | None]:
+    if sequence.distortion is None:
+        return None, None
+    if sequence.P_rect is None:
+        raise InputError(f"{sequence.name}: distortion coefficients without intrinsics (P_rect)")
+    return np.asarray(sequence.P_rect, float)[:, :3], np.asarray(sequence.distortion, float)
+
+
+class WorkerDiedError(InputError):
+    """A SIFT worker process ended without a result (killed, or out of memory)."""
+
+
+def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Sequence,
+               max_image_mp: float) -> Iterator[tuple[Frame, Extracted | InputError]]:
+    """(frame, its extraction or the ``InputError`` that says why it has none), in ``todo``'s order.
+
+    With several workers, at most two frames per worker are in flight, and a worker that dies ends
+    the iteration with ``WorkerDiedError`` instead of waiting for a result that never comes.
+    """
+    K, distortion = _undistortion(sequence)
+    items = [(f, params, K, distortion, sequence.image_size_px, max_image_mp) for f in todo]
+    if workers <= 1 or len(todo) <= 1:
+        _init_worker(params, single_thread=False)  # in this process: leave OpenCV's threading alone
+        for item in items:
+            try:
+                yield item[0], _extract_frame(item)
+            except InputError as exc:
+                yield item[0], exc
+        return
+    ctx = mp.get_context("spawn")  # fork after OpenCV has started threads can deadlock
+    pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(params,))
+    in_flight: deque[tuple[Frame, Future]] = deque()
+    pending = iter(items)
+    try:
+        while True:
+            while len(in_flight) < 2 * workers and (item := next(pending, None)) is not None:
+                in_flight.append((item[0], pool.submit(_extract_frame, item)))
+            if not in_flight:
+                return
+            frame, future = in_flight.popleft()
+            try:
+                yield frame, future.result()
+            except InputError as exc:
+                yield frame, exc
+            except BrokenProcessPool:
+                raise WorkerDiedError(
+                    f"{sequence.name}: a SIFT worker process died (killed, or out of memory) while describing "
+                    f"{frame.image_path} or a frame after it; the images finished before are stored. Run the same "
+                    "command again to go on; if memory is short, lower --workers or --max-image-mp") from None
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def ingest(
+    store: FeatureStore,
+    sequence: Sequence,
+    params: SiftParams,
+    *,
+    workers: int | None = None,
+    batch_size: int = 8,
+    progress: Callable[[int, int], None] | None = None,
+    limit: int | None = None,
+    skip_bad_frames: bool = False,
+    max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
+) -> IngestReport:
+    """Add every frame of ``sequence`` missing from ``store``. ``progress(done, total)`` is told of
+    the start (0 done) and of each image done.
+
+    A frame that cannot be described (unreadable, too large, of another size than the calibration,
+    no keypoints) stops the ingest with an ``InputError`` naming it, keeping every image finished
+    before; with ``skip_bad_frames`` it is recorded in the store as skipped, with the reason, and the
+    ingest goes on. A frame recorded as skipped by an earlier run is tried again and, if still bad,
+    skipped again. ``limit`` stops after that many new images (for sampling and tests).
+    """
+    start = time.perf_counter()
+    max_image_mp = require_max_image_mp(max_image_mp)
+    require_sift_settings(store, params)
+    _refuse_mixed_undistortion(store, sequence)
+    stored = store.stored_frames(sequence.source, sequence.camera)
+    skipped_before = {f.frame for f in store.skipped_frames(sequence.source, sequence.camera)}
+    missing = [f for f in sequence.frames if f.frame not in stored]
+    todo = missing if limit is None else missing[:limit]
+    workers = workers or min(os.cpu_count() or 1, 8)
+    pending: list[tuple[ImageRecord, np.ndarray, np.ndarray]] = []
+    added, bad = 0, []
+    size_px = sequence.image_size_px
+    if progress:
+        progress(0, len(todo))
+    try:
+        for done, (frame, result) in enumerate(_extracted(todo, params, workers, sequence, max_image_mp), 1):
+            if isinstance(result, InputError):
+                if not (skip_bad_frames or frame.frame in skipped_before):
+                    raise InputError(f"{result} (frame {frame.frame} of {sequence.name}); the images before it "
+                                     "are stored. Fix or remove that frame, or ingest with --skip-bad-frames to "
+                                     "skip such frames (the store records which)") from None
+                bad.append(SkippedFrame(sequence.source, sequence.camera, frame.frame, str(frame.image_path),
+                                        str(result)))
+            else:
+                _, keypoints, descriptors, sift_ms, size_px = result
+                record = ImageRecord(
+                    source=sequence.source, camera=sequence.camera, frame=frame.frame, path=str(frame.image_path),
+                    timestamp_s=frame.timestamp_s, lat_deg=frame.lat_deg, lon_deg=frame.lon_deg,
+                    alt_m=frame.alt_m, heading_deg=frame.heading_deg, width_px=size_px[0], height_px=size_px[1],
+                    sift_ms=sift_ms, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad, yaw_rad=frame.yaw_rad,
+                    position_accuracy_m=frame.position_accuracy_m,
+                )
+                pending.append((record, keypoints, descriptors))
+            if len(pending) >= batch_size or (bad and not pending):
+                added += store.add_images(pending, skipped=bad)
+                pending, bad = [], []
+            if progress:
+                progress(done, len(todo))
+    finally:
+        # Commit what finished, also on Ctrl-C, on a bad image further on or on a dead worker.
+        if pending or bad:
+            added += store.add_images(pending, skipped=bad)
+        if size_px is not None and (added or store.get_camera(sequence.source, sequence.camera) is None):
+            store.set_camera(CameraRecord(sequence.source, sequence.camera, sequence.P_rect, *size_px,
+                                          T_camera_imu=sequence.T_camera_imu))
+    filled = backfill_poses(store, sequence)
+    n_skipped_bad = len(store.skipped_frames(sequence.source, sequence.camera))
+    return IngestReport(sequence.source, sequence.camera, len(sequence), len(sequence) - len(missing), added,
+                        time.perf_counter() - start, n_attitudes_filled=filled,
+                        n_accuracies_filled=backfill_accuracies(store, sequence), n_bad_skipped=n_skipped_bad)
+
+
+def _refuse_mixed_undistortion(store: FeatureStore, sequence: Sequence) -> None:
+    """Keypoints stored without calibration were not undistorted: refuse to add undistorted ones beside
+    them (or to give them a pinhole calibration they do not fit)."""
+    if sequence.distortion is None:
+        return
+    camera = store.get_camera(sequence.source, sequence.camera)
+    if camera is not None and camera.P_rect is None and store.stored_frames(sequence.source, sequence.camera):
+        raise InputError(f"{store.label}: {sequence.name} was stored without calibration, so its keypoints are "
+                         "not undistorted; ingest it into a new store to use the calibration's distortion")
+
+
+def backfill_accuracies(store: FeatureStore, sequence: Sequence) -> int:
+    """Fill the stated geotag accuracy that a store built before schema version 3 lacks, from
+    ``sequence``; features are untouched. Returns the number of images filled."""
+    lacking = store.frames_without_accuracy(sequence.source, sequence.camera)
+    accuracies = {f.frame: f.position_accuracy_m for f in sequence.frames
+                  if f.frame in lacking and f.position_accuracy_m is not None}
+    return store.set_position_accuracies(sequence.source, sequence.camera, accuracies) if accuracies else 0
+
+
+def backfill_poses(store: FeatureStore, sequence: Sequence) -> int:
+    """Fill attitudes and camera extrinsics that a store built before schema version 2 lacks (or that a
+    CSV drive gained since it was stored).
+
+    Reads them from ``sequence`` (the OXTS records and calibration files); features are
+    untouched. Returns the number of images whose attitude was filled.
+    """
+    camera = store.get_camera(sequence.source, sequence.camera)
+    if camera is not None and camera.T_camera_imu is None and sequence.T_camera_imu is not None:
+        store.set_camera(replace(camera, T_camera_imu=sequence.T_camera_imu,
+                                 P_rect=camera.P_rect if camera.P_rect is not None else sequence.P_rect))
+    lacking = store.frames_without_attitude(sequence.source, sequence.camera)
+    attitudes = {f.frame: (f.roll_rad, f.pitch_rad, f.yaw_rad) for f in sequence.frames
+                 if f.frame in lacking and None not in (f.roll_rad, f.pitch_rad, f.yaw_rad)}
+    return store.set_attitudes(sequence.source, sequence.camera, attitudes) if attitudes else 0

@@ -1,0 +1,355 @@
+"""The one door to a store file: what it holds, building it, loading it, keeping counts.
+
+Every caller (the command line, the dashboard, the benchmark, scripts) goes through
+``Workspace``; it never hands out the store itself. Every call opens its own short-lived
+connection, so one ``Workspace`` can be used from several threads. Store and SQLite
+errors come out as ``InputError`` naming the file.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from visloc.store.database import GeoDatabase, QuerySet
+from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecord, SelfCheckRecord, SelfCheckTable,
+                       SkippedFrame,
+                       StoredImage, StoreError, StructureRecord, StructureTable, VectorTable)
+from visloc.errors import InputError
+from visloc.geo import LocalFrame
+from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
+from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
+from visloc.retrieval.matching import PairCountCache
+from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
+from visloc.pose.selfcheck import lever_gain_from, record_pose, self_check_settings_json
+from visloc.sources.drives import Sequence
+from visloc.pose.structure import (ViewStructure, structure_settings_json)
+from visloc.pose.uncertainty import LeverGain
+from visloc.features.vlad import GlobalEncoder, GlobalIndex
+
+STORE_SCHEMA_VERSION = SCHEMA_VERSION  # the store schema this visloc reads and writes
+
+
+@dataclass(frozen=True)
+class Dataset:
+    """One (source, camera) held by a store."""
+
+    source: str
+    camera: str
+    n_images: int
+    duration_s: float
+    mean_keypoints: float
+    has_calibration: bool  # intrinsics (P_rect) known
+    has_extrinsics: bool = False  # the camera's pose relative to the geotag's reference point known
+    n_without_attitude: int = 0  # images whose attitude is unknown
+
+    @property
+    def name(self) -> str:
+        return f"{self.source}/{self.camera}"
+
+
+class Workspace:
+    """A store file. ``create=True`` makes a new store when the file does not exist yet;
+    ``read_only=True`` never changes the file (no migration, no cached counts saved, works on a
+    read-only medium): every method that would write raises ``InputError`` instead."""
+
+    def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False):
+        self.path = Path(path)
+        self.read_only = read_only
+        with self._store(create=create) as store:  # fail now, with the file's name, if it is no store
+            self._sift = stored_sift_params(store)
+            # opening for writing migrates a store of an older schema version in place: from which, if it did
+            self.migrated_from: int | None = store.migrated_from
+
+    @contextmanager
+    def _store(self, *, create: bool = False) -> Iterator[FeatureStore]:
+        try:
+            store = FeatureStore(self.path, create=create and not self.read_only, read_only=self.read_only)
+        except StoreError as exc:
+            raise InputError(str(exc)) from None
+        except sqlite3.Error as exc:
+            raise InputError(f"{self.path}: SQLite: {exc}") from None
+        try:
+            yield store
+        except StoreError as exc:
+            raise InputError(str(exc)) from None
+        except sqlite3.Error as exc:
+            raise InputError(f"{self.path}: SQLite: {exc}") from None
+        finally:
+            store.close()
+
+    # -- what it holds -------------------------------------------------------------------------
+
+    @property
+    def sift_params(self) -> SiftParams | None:
+        """The SIFT settings the store's features were extracted with (None: no features yet)."""
+        return self._sift
+
+    def image_count(self) -> int:
+        with self._store() as store:
+            return store.image_count()
+
+    def datasets(self) -> list[Dataset]:
+        with self._store() as store:
+            rows = store.sources()
+            cameras = {(c.source, c.camera): c for c in store.cameras()}
+            lacking = {(r["source"], r["camera"]): len(store.frames_without_attitude(r["source"], r["camera"]))
+                       for r in rows}
+        out = []
+        for r in rows:
+            key = (r["source"], r["camera"])
+            cam = cameras.get(key)
+            out.append(Dataset(r["source"], r["camera"], int(r["n_images"]),
+                               float(r["last_timestamp_s"] - r["first_timestamp_s"]), float(r["mean_keypoints"] or 0.0),
+                               has_calibration=cam is not None and cam.P_rect is not None,
+                               has_extrinsics=cam is not None and cam.T_camera_imu is not None,
+                               n_without_attitude=lacking[key]))
+        return out
+
+    # -- building it ---------------------------------------------------------------------------
+
+    def skipped_frames(self) -> list[SkippedFrame]:
+        """The frames ingest skipped because they could not be described, with the reason."""
+        with self._store() as store:
+            return store.skipped_frames()
+
+    def stored_frame_count(self, source: str, camera: str) -> int:
+        with self._store() as store:
+            return len(store.stored_frames(source, camera))
+
+    def add_features(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None,
+                     limit: int | None = None, progress: Callable[[int, int], None] | None = None,
+                     skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP) -> IngestReport:
+        """SIFT every frame of ``sequence`` that the store lacks, into the store (``visloc.store.ingest``, also
+        for ``skip_bad_frames`` and ``max_image_mp``); resumable. ``visloc.store.build.ingest_sequence`` adds
+        what the refined methods need after it."""
+        with self._store(create=True) as store:
+            report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit,
+                            skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp)
+            self._sift = stored_sift_params(store)
+        return report
+
+    def structure_complete_ids(self, image_ids: list[int], settings_json: str, n_variants: int) -> set[int]:
+        """The images among ``image_ids`` whose every structure variant made with ``settings_json`` is stored."""
+        with self._store() as store:
+            return set(StructureTable(store).complete_ids(image_ids, settings_json, n_variants))
+
+    def self_checked_ids(self, image_ids: list[int], settings_json: str) -> set[int]:
+        """The images among ``image_ids`` that have a self-check made with ``settings_json``."""
+        with self._store() as store:
+            return set(SelfCheckTable(store).get(image_ids, settings_json))
+
+    def add_self_checks(self, records: list[SelfCheckRecord]) -> None:
+        with self._store() as store:
+            SelfCheckTable(store).add(records)
+
+    def stored_vector_ids(self, name: str) -> set[int]:
+        """The images that have a global vector called ``name``."""
+        with self._store() as store:
+            return set(VectorTable(store).stored_vector_ids(name))
+
+    def lever_gain(self, db: GeoDatabase, params: RefinedParams = REFINED) -> LeverGain | None:
+        """The lever gain ``db``'s stored self-check calls for (``visloc.pose.selfcheck.lever_gain_from``);
+        None when the store holds no self-check of it with ``params``' settings."""
+        with self._store() as store:
+            records = SelfCheckTable(store).get([im.image_id for im in db.images], self_check_settings_json(params))
+        if not records:
+            return None
+        index_of = {im.image_id: k for k, im in enumerate(db.images)}
+        poses = [record_pose(r, index_of[r.image_id]) for r in records.values()]
+        return lever_gain_from(poses, source=f"self-check of {db.source}/{db.camera} ({len(poses)} images)")
+
+    def load_structure(self, db: GeoDatabase, params: RefinedParams = REFINED,
+                       views: list[int] | None = None) -> dict[int, dict[str, ViewStructure]]:
+        """Stored structure of ``db``'s images (or of the database indices ``views``): database index ->
+        variant -> structure, neighbours as database indices. Images without stored structure are absent."""
+        index_of = {im.image_id: k for k, im in enumerate(db.images)}
+        wanted = range(len(db.images)) if views is None else views
+        with self._store() as store:
+            records = StructureTable(store).get([db.images[k].image_id for k in wanted], structure_settings_json(params))
+        out: dict[int, dict[str, ViewStructure]] = {}
+        for (image_id, variant), r in records.items():
+            if any(j not in index_of for j in r.neighbour_ids):
+                continue
+            k = index_of[image_id]
+            out.setdefault(k, {})[variant] = ViewStructure(
+                k, variant, tuple(index_of[j] for j in r.neighbour_ids), r.rows_i32.astype(np.int64), r.points_f64,
+                r.cov_f64, r.reason, r.build_ms)
+        return out
+
+    def save_structure(self, records: list[StructureRecord]) -> None:
+        """Keep structure made elsewhere (e.g. a synthetic database), in one transaction."""
+        with self._store() as store:
+            StructureTable(store).add(records)
+
+    def stored_structure(self, image_ids: list[int], settings_json: str) -> dict[tuple[int, str], StructureRecord]:
+        """(image id, variant) -> the stored record, for ``image_ids`` only (large databases read what they pose)."""
+        with self._store() as store:
+            return StructureTable(store).get(image_ids, settings_json)
+
+    def load_database_index(self, db: GeoDatabase, params: FastParams = FAST) -> GlobalIndex | None:
+        """The stored global vectors of ``db``'s images in its order, or None when any image lacks one."""
+        name = global_vectors_name(db.source, db.camera, params)
+        if not self.has_global_index(name):
+            return None
+        ids, index = self.load_global_index(name)
+        row_of = {int(i): r for r, i in enumerate(ids)}
+        rows = [row_of.get(im.image_id) for im in db.images]
+        if any(r is None for r in rows):
+            return None
+        return GlobalIndex(index.encoder, index.vectors_f32[rows])
+
+    # -- loading it ----------------------------------------------------------------------------
+
+    def _require_features(self, sift: SiftParams | None) -> SiftParams:
+        if self._sift is None:
+            raise InputError(f"{self.path}: no features yet (build it with 'visloc ingest')")
+        return sift or self._sift
+
+    def _images(self, store: FeatureStore, source: str, camera: str, sift: SiftParams
+                ) -> tuple[tuple[StoredImage, ...], tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
+        """Stored images of (source, camera) in time order with their keypoints and descriptors;
+        refuses features extracted with other SIFT settings than ``sift``."""
+        check_sift_settings(store, sift)
+        images = tuple(store.images(source, camera))
+        if not images:
+            have = ", ".join(f"{s['source']}/{s['camera']}" for s in store.sources()) or "nothing"
+            raise EmptyStoreError(f"{store.label}: no images of {source}/{camera} (it holds {have})")
+        features = store.features(im.image_id for im in images)
+        keypoints = tuple(features[im.image_id][0] for im in images)
+        descriptors = tuple(features[im.image_id][1] for im in images)
+        return images, keypoints, descriptors
+
+    def load_database(self, source: str, camera: str, sift: SiftParams | None = None,
+                      frame: LocalFrame | None = None) -> GeoDatabase:
+        """(source, camera) as a geotagged database; its local frame is centred on its first image
+        unless ``frame`` is given. ``sift`` (default: the store's) must equal the store's settings."""
+        sift = self._require_features(sift)
+        with self._store() as store:
+            images, keypoints, descriptors = self._images(store, source, camera, sift)
+            calibration = store.get_camera(source, camera)
+        lat = np.array([im.lat_deg for im in images])
+        lon = np.array([im.lon_deg for im in images])
+        frame = frame or LocalFrame(float(lat[0]), float(lon[0]))
+        alt = np.array([np.nan if im.alt_m is None else im.alt_m for im in images], float)
+        rpy = np.array([[np.nan if v is None else v for v in (im.roll_rad, im.pitch_rad, im.yaw_rad)]
+                        for im in images], float).reshape(-1, 3)
+        db = GeoDatabase(
+            source=source, camera=camera, images=images,
+            timestamps_s=np.array([im.timestamp_s for im in images]),
+            lat_deg=lat, lon_deg=lon, east_north_m=frame.to_local(lat, lon),
+            keypoints_f32=keypoints, descriptors_u8=descriptors,
+            calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy, geotag_sigma_m=_sigmas(images),
+        )
+        gain = self.lever_gain(db)
+        return db if gain is None else replace(db, lever_gain=gain)
+
+    def load_queries(self, source: str, camera: str, sift: SiftParams | None = None) -> QuerySet:
+        """(source, camera) as queries, with their geotags as ground truth."""
+        sift = self._require_features(sift)
+        with self._store() as store:
+            images, keypoints, descriptors = self._images(store, source, camera, sift)
+            calibration = store.get_camera(source, camera)
+        return QuerySet(
+            source=source, camera=camera, frames=np.array([im.frame for im in images]),
+            timestamps_s=np.array([im.timestamp_s for im in images]), lat_deg=np.array([im.lat_deg for im in images]),
+            lon_deg=np.array([im.lon_deg for im in images]), descriptors_u8=descriptors,
+            sift_ms=np.array([np.nan if im.sift_ms is None else im.sift_ms for im in images]),
+            image_ids=tuple(im.image_id for im in images), paths=tuple(im.path for im in images),
+            keypoints_f32=keypoints, calibration=calibration,
+            heading_deg=np.array([np.nan if im.heading_deg is None else im.heading_deg for im in images]),
+            truth_sigma_m=_sigmas(images),
+        )
+
+    # -- cached correspondence counts -----------------------------------------------------------
+
+    def pair_cache(self, db: GeoDatabase, queries: QuerySet, match_params: MatchParams) -> PairCountCache:
+        """A count cache keyed by store image ids, seeded with the counts the store keeps for these thresholds."""
+        with self._store() as store:
+            known = store.pair_counts(queries.image_ids, match_params.tau1, match_params.tau2)
+        return PairCountCache(db.descriptors_u8, match_params, db_keys=[im.image_id for im in db.images], known=known)
+
+    def save_pair_counts(self, cache: PairCountCache) -> int:
+        """Persist the counts ``cache`` computed since the last save; returns how many. A read-only
+        workspace writes nothing: the counts stay in ``cache`` only."""
+        new = cache.take_new_entries()
+        if new and not self.read_only:
+            with self._store() as store:
+                store.add_pair_counts(new, cache.match_params.tau1, cache.match_params.tau2)
+        return len(new)
+
+    # -- large databases: images from elsewhere, streamed descriptors, stored global vectors --------
+
+    def setting(self, key: str) -> object | None:
+        with self._store() as store:
+            return store.get_setting(key)
+
+    def record_setting(self, key: str, value: object) -> None:
+        """Record ``value`` under ``key``; refuse a store that holds another value there."""
+        with self._store() as store:
+            store.require_setting(key, value)
+
+    def add_images(self, batch: list[tuple[ImageRecord, np.ndarray, np.ndarray]]) -> int:
+        """Store (record, keypoints_f32 (N, 6), descriptors_u8 (N, 128)) triples made elsewhere (e.g. a
+        synthetic database), in one transaction; returns how many were new."""
+        with self._store(create=True) as store:
+            return store.add_images(batch)
+
+    def image_ids(self, source: str, camera: str) -> np.ndarray:
+        """(N,) store ids of (source, camera)'s images in time order, without loading anything else."""
+        with self._store() as store:
+            return store.image_ids(source, camera)
+
+    def iter_descriptors(self, image_ids, chunk_size: int = 256) -> Iterator[tuple[int, np.ndarray]]:
+        """(image id, descriptors_u8) for ``image_ids`` in order, read ``chunk_size`` images at a time:
+        memory stays bounded however large the store."""
+        with self._store() as store:
+            yield from store.iter_descriptors(image_ids, chunk_size)
+
+    def save_global_encoder(self, name: str, encoder: GlobalEncoder) -> None:
+        """Keep the encoder of the global vectors called ``name`` (its codebook and PCA)."""
+        with self._store() as store:
+            VectorTable(store).put_array(f"{name}_codebook", encoder.codebook_f32)
+            if encoder.pca_basis_f32 is not None:
+                VectorTable(store).put_array(f"{name}_pca_mean", encoder.pca_mean_f32)
+                VectorTable(store).put_array(f"{name}_pca_basis", encoder.pca_basis_f32)
+
+    def add_global_vectors(self, name: str, image_ids, vectors_f32: np.ndarray) -> None:
+        """Keep one global vector per image under ``name`` (replacing what was there)."""
+        with self._store() as store:
+            VectorTable(store).add_global_vectors(name, list(image_ids), vectors_f32)
+
+    def has_global_index(self, name: str) -> bool:
+        with self._store() as store:
+            return VectorTable(store).get_array(f"{name}_codebook") is not None
+
+    def load_global_encoder(self, name: str) -> GlobalEncoder:
+        with self._store() as store:
+            return GlobalEncoder(VectorTable(store).get_array(f"{name}_codebook"), VectorTable(store).get_array(f"{name}_pca_mean"),
+                                 VectorTable(store).get_array(f"{name}_pca_basis"))
+
+    def load_global_index(self, name: str) -> tuple[np.ndarray, GlobalIndex]:
+        """(image ids (N,), the index) of the global vectors called ``name``, in image id order."""
+        with self._store() as store:
+            codebook = VectorTable(store).get_array(f"{name}_codebook")
+            if codebook is None:
+                raise InputError(f"{self.path}: no global vectors named {name!r}")
+            encoder = GlobalEncoder(codebook, VectorTable(store).get_array(f"{name}_pca_mean"), VectorTable(store).get_array(f"{name}_pca_basis"))
+            ids, vectors = VectorTable(store).global_vectors(name)
+        return ids, GlobalIndex(encoder, vectors)
+
+
+def global_vectors_name(source: str, camera: str, params: FastParams) -> str:
+    """The name a store keeps (source, camera)'s global vectors under, for the encoder ``params`` describe."""
+    return (f"vlad:{source}/{camera}:words={params.n_words},pca={params.pca_dim},"
+            f"train={params.train_descriptors},seed={params.seed}")
+
+
+def _sigmas(images: tuple[StoredImage, ...]) -> np.ndarray:
+    """(N,) stated geotag accuracy of each image, sigma per axis in metres, NaN where unknown."""
+    return np.array([np.nan if im.position_accuracy_m is None else im.position_accuracy_m for im in images], float)

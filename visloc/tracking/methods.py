@@ -1,0 +1,164 @@
+"""The named methods: compositions of the localizer's parts.
+
+A ``Method`` says which retriever and which measurer a localizer is made of; it holds
+parameters only. ``build_localizer`` makes the parts from a database and composes them,
+and refuses a composition that lacks what it needs (the refined method without calibrated
+cameras) with a message that says what is missing.
+
+===========  ======================================  ============================================
+method       retriever                               measurer
+===========  ======================================  ============================================
+``paper``    +-window_s around the previous match    the best match's geotag, the filter's R
+``refined``  the same                                a metric pose from the database's geometry,
+                                                     its own covariance; the filter gates outliers
+``refined-`` the filter's gate, a global-vector       the same pose on the database's stored
+``fast``     shortlist, matches to 3D points only     structure (``visloc.pose.fastpose``): camera rate
+===========  ======================================  ============================================
+
+Either can take the fast retrieval (``method.replace(shortlist=FAST)``): the filter's gate,
+a global-vector shortlist, exact counts on the shortlist only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+from visloc.store.database import GeoDatabase
+from visloc.errors import ParameterError
+from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
+from visloc.geometry.projective import CameraModel
+from visloc.tracking.localizer import Localizer
+from visloc.retrieval.matching import Counter, PairCountCache, backend_counter, brute_force_counter
+from visloc.pose.measurement import GeotagMeasurer, MemoisedMeasurer
+from visloc.params import FAST, REFINED, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
+from visloc.pose.refined import PoseMeasurer, StructureCache
+from visloc.retrieval.retrievers import ShortlistRetriever, WindowRetriever, build_global_index
+from visloc.pose.structure import seeded_structure_cache
+from visloc.features.vlad import GlobalIndex
+
+
+@dataclass(frozen=True)
+class Method:
+    """A named composition of retriever, measurer and filter gate.
+
+    name:       what reports and the command line call it
+    pose:       None: the paper's measurement, the best match's geotag. ``RefinedParams``: a metric
+                pose from the database's own geometry (falling back to the geotag with a reason),
+                and the filter skips measurements beyond ``pose.gate_chi2``.
+    shortlist:  None: the paper's retrieval. ``FastParams``: the fast retrieval (filter gate,
+                global-vector shortlist, exact counts on the shortlist).
+    camera_rate: the camera-rate refined path (needs ``pose`` and ``shortlist``): candidates counted
+                by their matches to the database's stored structure, posed on it
+                (``visloc.pose.fastpose``); ``min_matches`` a candidate needs to be posed against.
+    """
+
+    name: str
+    pose: RefinedParams | None = None
+    shortlist: FastParams | None = None
+    camera_rate: bool = False
+    min_matches: int = 20
+
+    def __post_init__(self) -> None:
+        if not (isinstance(self.name, str) and self.name):
+            raise ParameterError(f"name={self.name!r}: a method needs a name")
+        if self.camera_rate and (self.pose is None or self.shortlist is None):
+            raise ParameterError(f"{self.name}: the camera-rate path needs refined and shortlist parameters")
+
+    @property
+    def measures_pose(self) -> bool:
+        return self.pose is not None
+
+    @property
+    def gate_chi2(self) -> float:
+        """The filter's Mahalanobis gate (2 dof); 0: every measurement is applied."""
+        return self.pose.gate_chi2 if self.pose is not None else 0.0
+
+    @property
+    def reinit_after_gated(self) -> int:
+        """Gated measurements in a row that restart the track; 0: never."""
+        return self.pose.reinit_after_gated if self.pose is not None else 0
+
+    def replace(self, **changes) -> "Method":
+        unknown = set(changes) - {f.name for f in fields(self)}
+        if unknown:
+            raise ParameterError(f"unknown parameter {sorted(unknown)[0]!r} for Method")
+        return replace(self, **changes)
+
+    def as_dict(self) -> dict:
+        return {"name": self.name, "pose": None if self.pose is None else self.pose.as_dict(),
+                "shortlist": None if self.shortlist is None else self.shortlist.as_dict(),
+                "camera_rate": self.camera_rate, "min_matches": self.min_matches}
+
+
+PAPER_METHOD = Method("paper")
+REFINED_METHOD = Method("refined", pose=REFINED)
+# the camera-rate path: keypoints found at a reduced scale are less precise (PnP at 3 px); few candidates
+# per frame inside the gate, more for a frame without one
+REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=3.0),
+                             shortlist=FAST.replace(shortlist_size=3, lost_shortlist_size=16), camera_rate=True,
+                             min_matches=20)
+METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD, REFINED_FAST_METHOD)}
+
+
+def method_named(name: str) -> Method:
+    """The method called ``name``; ``ParameterError`` naming the choices otherwise."""
+    if name not in METHODS:
+        raise ParameterError(f"mode={name!r}: must be one of {', '.join(METHODS)}")
+    return METHODS[name]
+
+
+def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retrieval: RetrievalParams,
+                    filter_params: FilterParams, *, query_camera: CameraModel | None = None,
+                    query_what: str = "the query camera", counter: Counter | None = None,
+                    shortlist_index: GlobalIndex | None = None, structures: StructureCache | None = None,
+                    stored: dict | None = None, memoise: bool = False) -> Localizer:
+    """The localizer ``method`` describes, over ``db``.
+
+    query_camera:     the query camera's calibration (the refined method needs it); ``query_what``
+                      names the queries (source/camera) in the message when it is missing
+    counter:          how retrieval counts correspondences (e.g. a ``PairCountCache`` of earlier
+                      runs); default: computed afresh for every candidate
+    shortlist_index:  the fast retrieval's global vectors of ``db``, if built already
+    structures:       database structure triangulated by earlier refined measurements, to reuse
+    stored:           the database's stored structure (``Workspace.load_structure``): the camera-rate
+                      path needs it (it counts with it and ignores ``counter``); the exact refined path
+                      reads it where it would triangulate the same view with the same neighbours
+    memoise:          measure a query (by its key) with the same retrieval only once
+    """
+    if method.camera_rate:
+        return _camera_rate_localizer(method, db, retrieval, filter_params, query_camera, query_what,
+                                      shortlist_index, stored)
+    if isinstance(counter, PairCountCache):
+        counter.check_thresholds(match)
+    if method.shortlist is None:
+        retriever = WindowRetriever(db.timestamps_s, counter or brute_force_counter(db.descriptors_u8, match),
+                                    retrieval)
+    else:
+        index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
+        counter = counter or backend_counter(method.shortlist.nn_backend, db.descriptors_u8, match)
+        retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, counter, retrieval)
+    if method.pose is None:
+        measurer = GeotagMeasurer(db.east_north_m)
+    else:
+        if structures is None and stored:
+            structures = seeded_structure_cache(stored)  # the stored structure, where the views' neighbours match
+        measurer = PoseMeasurer(db.east_north_m, db.geometry(), query_camera, method.pose, structures=structures,
+                                query_what=query_what)
+    if memoise:
+        measurer = MemoisedMeasurer(measurer)
+    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
+                     reinit_after_gated=method.reinit_after_gated)
+
+
+def _camera_rate_localizer(method: Method, db: GeoDatabase, retrieval: RetrievalParams, filter_params: FilterParams,
+                           query_camera: CameraModel | None, query_what: str, shortlist_index: GlobalIndex | None,
+                           stored: dict | None) -> Localizer:
+    stored = stored or {}
+    matcher = StructureMatcher(db.descriptors_u8, stored, method.pose.ratio)
+    measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, db.geometry(), stored, matcher, query_camera,
+                                method.pose, exclusion_s=retrieval.exclusion_s, min_matches=method.min_matches,
+                                query_what=query_what, db_name=f"{db.source}/{db.camera}")  # refuses first
+    index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
+    retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, matcher, retrieval)
+    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
+                     reinit_after_gated=method.reinit_after_gated)

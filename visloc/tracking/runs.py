@@ -1,0 +1,59 @@
+"""Running a localizer over queries: the one query loop every command uses, and what a query costs.
+
+``run_queries`` steps a localizer through queries in order and times each one as a live
+system would spend it (``latency_ms``). Where the queries come from is the caller's: stored
+features (``QuerySet.query``) or images read and described now (``visloc.sources.queries.extract_queries``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable
+from typing import NamedTuple
+
+from visloc.tracking.localizer import Localizer, StepResult
+from visloc.retrieval.matching import MatchCancelled, PairCountCache
+
+
+class TimedStep(NamedTuple):
+    result: StepResult
+    latency_ms: float  # see latency_ms()
+
+
+def latency_ms(result: StepResult, cache: PairCountCache | None = None) -> float:
+    """What a live system would spend on this query, ms: its SIFT time, its retrieval, the query
+    side of its measurement (matching, RANSAC, PnP; database-side structure building is not
+    counted) and the filter step.
+
+    Work a cache answered costs what it took when first done: candidate pairs their recorded
+    matching time (``cache``, the counter the retrieval used), a memoised measurement its
+    recorded time.
+    """
+    retrieval_ms = result.timings.retrieval_ms
+    if cache is not None:  # take this step's fresh matching out, put every candidate pair's first cost in
+        retrieval_ms = max(retrieval_ms - cache.fresh_ms, 0.0) + cache.cost_ms(result.query.key,
+                                                                              result.retrieval.candidates)
+    return result.query.sift_ms + retrieval_ms + result.measurement.query_side_ms + result.timings.filter_ms
+
+
+def run_queries(localizer: Localizer, queries: Iterable, *, cache: PairCountCache | None = None,
+                cancelled: Callable[[], bool] | None = None,
+                progress: Callable[[int], None] | None = None,
+                on_step: Callable[[TimedStep], None] | None = None) -> list[TimedStep]:
+    """Step ``localizer`` through ``queries`` (``visloc.Query``) in order, from its current state.
+
+    ``cache``: the ``PairCountCache`` the localizer's retrieval counts with, if any (for latency).
+    ``cancelled()`` is asked after each query and raises ``MatchCancelled`` when true (wrap the
+    counter with ``visloc.retrieval.matching.cancellable`` to stop inside a query too); ``progress(done)``
+    is told of each query done; ``on_step(step)`` is handed each step as soon as it is done.
+    """
+    out: list[TimedStep] = []
+    for query in queries:
+        result = localizer.step(query)
+        if cancelled is not None and cancelled():
+            raise MatchCancelled()
+        out.append(TimedStep(result, latency_ms(result, cache)))
+        if on_step:
+            on_step(out[-1])
+        if progress:
+            progress(len(out))
+    return out
