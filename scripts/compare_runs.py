@@ -18,7 +18,8 @@ import sys
 from pathlib import Path
 
 TIMED = {"latency_ms", "measurement_ms", "measurement_latency_ms", "structure_build_ms", "wall_s", "sustained_hz",
-         "stages_ms", "latency_p50_ms", "latency_p95_ms", "build_ms"}
+         "stages_ms", "latency_p50_ms", "latency_p95_ms", "build_ms", "sift_ms", "retrieval_ms", "geometry_ms",
+         "filter_ms"}
 
 
 def differences(before, after, path: str = "") -> list[str]:
