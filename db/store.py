@@ -153,11 +153,14 @@ class FeatureStore:
         """
         stored = self.get_setting(key)
         if stored is None:
-            if self.image_count() and key == "sift":
-                raise StoreError(f"{self.label}: holds images but no SIFT settings; rebuild it")
-            with self.db.atomic():
-                self.db["settings"].upsert({"key": key, "value_json": json.dumps(value, sort_keys=True)}, pk="key")
-            return
+            with self.db.atomic():  # the write lock first, then look again: another writer may have recorded it
+                stored = self.get_setting(key)
+                if stored is None:
+                    if self.image_count() and key == "sift":
+                        raise StoreError(f"{self.label}: holds images but no SIFT settings; rebuild it")
+                    self.db["settings"].upsert({"key": key, "value_json": json.dumps(value, sort_keys=True)},
+                                               pk="key")
+                    return
         if json.loads(json.dumps(value, sort_keys=True)) != stored:
             diffs = _dict_diff(stored, value)
             raise SettingsMismatchError(f"{self.label}: built with other {what} ({diffs})")
