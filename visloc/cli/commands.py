@@ -14,7 +14,6 @@ from visloc.bench.run import BenchParams, run_bench
 from visloc.cli.choices import (PAPER_DATABASE_CAMERA, require_exports, write_exports, choose_database, exclusion_for, kitti_camera, kitti_only_camera,
                             make_folder_of, only_camera, refuse_camera_for_csv, require_output, store_for_writing)
 from visloc.errors import InputError, ParameterError
-from visloc.store.database import same_drive
 from visloc.protocols.evaluation import evaluate, series_schedule
 from visloc.tracking.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
 from visloc.cli.outputs import require_output_folder, require_writable_output
@@ -23,7 +22,7 @@ from visloc.params import (FAST, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAP
                            MatchParams, RetrievalParams, SiftParams)
 from visloc.sources.queries import extract_queries
 from visloc.progress import progress_reporter
-from visloc.protocols.records import step_record
+from visloc.protocols.records import QueryTruth, records_of
 from visloc.results.report import (evaluation_json, is_paper_protocol, record_json, save_error_plot, series_tables,
                            summary_text, track_text, write_json)
 from visloc.tracking.runs import run_queries
@@ -152,11 +151,8 @@ def cmd_localize(a: argparse.Namespace) -> int:
     progress(0, len(indices))
     steps = run_queries(localizer, extract_queries(seq, indices, sift),
                         progress=lambda done: progress(done, len(indices)))
-    shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
-    records = [step_record(k, s.result, db, query_frame=seq.frames[i].frame, truth_lat_deg=seq.frames[i].lat_deg,
-                           truth_lon_deg=seq.frames[i].lon_deg, latency_ms=s.latency_ms, keep_counts=True,
-                           truth_sigma_m=seq.frames[i].position_accuracy_m, truth_shares_map=shares)
-               for k, (i, s) in enumerate(zip(indices, steps))]
+    records = records_of([s.result for s in steps], [s.latency_ms for s in steps], indices,
+                         QueryTruth.of_drive(seq, db), db, keep_counts=True)
     print(f"queries: {seq.name} frames {[seq.frames[i].frame for i in indices]}   "
           f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s   "
           f"mode {method.name}")

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.store.database import GeoDatabase, QuerySet, same_drive
+from visloc.store.database import GeoDatabase, QuerySet
 from visloc.errors import ParameterError
 from visloc.tracking.localizer import StepResult, StepTimings
 from visloc.retrieval.matching import PairCountCache, cancellable
@@ -27,7 +27,7 @@ from visloc.pose.measurement import GEOMETRY, Measurement
 from visloc.tracking.methods import PAPER_METHOD, Method, build_localizer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
 from visloc.pose.refined import StructureCache
-from visloc.protocols.records import StepRecord, step_record
+from visloc.protocols.records import QueryTruth, StepRecord, records_of
 from visloc.retrieval.retrievers import Retrieval
 from visloc.tracking.runs import run_queries
 from visloc.tracking.kalman import FilterStep, run_filter
@@ -136,17 +136,11 @@ def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filte
     gate_chi2 = matches.method.gate_chi2 if gate_chi2 is None else gate_chi2
     filtered = filter_measurements(matches.measurements, filter_params, gate_chi2=gate_chi2,
                                    reinit_after_gated=matches.method.reinit_after_gated if gate_chi2 > 0 else 0)
-    records = []
     no_time = StepTimings(0.0, 0.0, 0.0)
-    shares = same_drive(db, queries.timestamps_s, queries.lat_deg, queries.lon_deg)
-    for k, (q, retrieval, m, f) in enumerate(zip(matches.query_indices, matches.retrievals, matches.measurements,
-                                                 filtered)):
-        result = StepResult(queries.query(int(q)), retrieval, m, f, no_time)
-        records.append(step_record(k, result, db, query_frame=int(queries.frames[q]),
-                                   truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
-                                   latency_ms=float(matches.latency_ms[k]), keep_counts=True,
-                                   truth_sigma_m=queries.truth_sigma(int(q)), truth_shares_map=shares))
-    return records
+    results = [StepResult(queries.query(int(q)), retrieval, m, f, no_time) for q, retrieval, m, f in
+               zip(matches.query_indices, matches.retrievals, matches.measurements, filtered)]
+    return records_of(results, matches.latency_ms, [int(q) for q in matches.query_indices],
+                      QueryTruth.of_queries(queries, db), db, keep_counts=True)
 
 
 def drive_summary(records: Sequence[StepRecord]) -> dict:

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.store.database import GeoDatabase, QuerySet, same_drive
+from visloc.store.database import GeoDatabase, QuerySet
 from visloc.errors import ParameterError
 from visloc.geo import LocalFrame
 from visloc.retrieval.matching import PairCountCache
@@ -26,7 +26,7 @@ from visloc.tracking.methods import PAPER_METHOD, Method, build_localizer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
 from visloc.pose.refined import StructureCache
 from visloc.pose.structure import seeded_structure_cache
-from visloc.protocols.records import StepRecord, step_record
+from visloc.protocols.records import QueryTruth, StepRecord, records_of
 from visloc.tracking.runs import run_queries
 from visloc.tracking.kalman import rts_smooth
 from visloc.pose.uncertainty import SIDES, calibration
@@ -236,18 +236,15 @@ def evaluate(
                                 counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True,
                                 stored=stored)
     latency_cache = None if method.camera_rate else cache  # the camera-rate path counts without the cache
-    shares = same_drive(db, queries.timestamps_s, queries.lat_deg, queries.lon_deg)
+    truth = QueryTruth.of_queries(queries, db)
     series = []
     for done, indices in enumerate(schedule, 1):
         localizer.reset()
         steps = run_queries(localizer, [queries.query(q) for q in indices], cache=latency_cache)
         smoothed = (rts_smooth([s.result.filter for s in steps], filter_params.dt_s) if smooth
                     else [None] * len(steps))
-        series.append([step_record(k, s.result, db, query_frame=int(queries.frames[q]),
-                                   truth_lat_deg=queries.lat_deg[q], truth_lon_deg=queries.lon_deg[q],
-                                   latency_ms=s.latency_ms, smoothed=sm, truth_sigma_m=queries.truth_sigma(q),
-                                   truth_shares_map=shares)
-                       for k, (q, s, sm) in enumerate(zip(indices, steps, smoothed))])
+        series.append(records_of([s.result for s in steps], [s.latency_ms for s in steps], indices, truth, db,
+                                  smoothed=smoothed))
         if progress:
             progress(done, len(schedule))
     params = {

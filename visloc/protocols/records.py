@@ -9,11 +9,13 @@ WGS84, with the paper's Haversine distance beside them.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from visloc.store.database import GeoDatabase
+from visloc.sources.drives import Sequence as Drive
+from visloc.store.database import GeoDatabase, QuerySet, same_drive
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
 from visloc.tracking.localizer import StepResult
 from visloc.pose.measurement import GEOMETRY, GEOTAG
@@ -175,6 +177,52 @@ class RecordGeotags:
     measurement: tuple[float, float] | None
     estimate: tuple[float, float] | None
     smoothed: tuple[float, float] | None
+
+
+@dataclass(frozen=True)
+class QueryTruth:
+    """The ground truth of a run's queries, by query index: frame numbers, recorded geotags and their
+    stated accuracy (sigma per axis, m; NaN: unknown), and whether it comes from the receiver that
+    geotagged the database, on the same drive (``visloc.store.database.same_drive``)."""
+
+    frames: np.ndarray
+    lat_deg: np.ndarray
+    lon_deg: np.ndarray
+    sigma_m: np.ndarray
+    shares_map: bool
+
+    @classmethod
+    def of_queries(cls, queries: QuerySet, db: GeoDatabase) -> "QueryTruth":
+        """Stored queries' truth (their own geotags)."""
+        sigma = (np.full(len(queries.frames), np.nan) if queries.truth_sigma_m is None
+                 else np.asarray(queries.truth_sigma_m, float))
+        return cls(np.asarray(queries.frames), queries.lat_deg, queries.lon_deg, sigma,
+                   same_drive(db, queries.timestamps_s, queries.lat_deg, queries.lon_deg))
+
+    @classmethod
+    def of_drive(cls, seq: Drive, db: GeoDatabase) -> "QueryTruth":
+        """A drive's frames' truth (their geotags), for queries described now."""
+        sigma = np.array([np.nan if f.position_accuracy_m is None else f.position_accuracy_m for f in seq.frames])
+        return cls(np.array([f.frame for f in seq.frames]), np.array([f.lat_deg for f in seq.frames]),
+                   np.array([f.lon_deg for f in seq.frames]), sigma,
+                   same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg))
+
+    def sigma(self, index: int) -> float | None:
+        value = float(self.sigma_m[index])
+        return value if np.isfinite(value) else None
+
+
+def records_of(results: Sequence[StepResult], latencies_ms: Sequence[float], indices: Sequence[int],
+               truth: QueryTruth, db: GeoDatabase, *, keep_counts: bool = False,
+               smoothed: Sequence[SmoothedStep | None] | None = None) -> list[StepRecord]:
+    """The records of a run: step k is ``results[k]``, query ``indices[k]`` of ``truth``, taking
+    ``latencies_ms[k]`` (``keep_counts``: every candidate's count too; ``smoothed``: the RTS smoother's
+    steps). The one place a run's steps become records."""
+    smoothed = [None] * len(results) if smoothed is None else smoothed
+    return [step_record(k, result, db, query_frame=int(truth.frames[q]), truth_lat_deg=truth.lat_deg[q],
+                        truth_lon_deg=truth.lon_deg[q], latency_ms=float(latency), keep_counts=keep_counts,
+                        smoothed=sm, truth_sigma_m=truth.sigma(q), truth_shares_map=truth.shares_map)
+            for k, (q, result, latency, sm) in enumerate(zip(indices, results, latencies_ms, smoothed))]
 
 
 def record_geotags(record: StepRecord, frame: LocalFrame) -> RecordGeotags:
