@@ -26,13 +26,12 @@ from visloc.geo import geodesic_distance_m
 from visloc.geometry.projective import CameraModel
 from visloc.tracking.localizer import Localizer, StepResult
 from visloc.pose.measurement import GEOMETRY
-from visloc.retrieval.matching import MatchCancelled
 from visloc.tracking.methods import REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer
 from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK, FilterParams, RetrievalParams,
                            SiftParams, TrackParams)
 from visloc.sources.queries import extract_queries
 from visloc.pose.structure import seeded_structure_cache
-from visloc.tracking.runs import latency_ms
+from visloc.tracking.runs import steps_of
 from visloc.sources.drives import Sequence
 from visloc.pose.uncertainty import SIDES, calibration
 from visloc.store.workspace import Workspace
@@ -214,13 +213,11 @@ def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoData
     localizer.reset()
     shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
     start = time.perf_counter()
-    for n, (i, query) in enumerate(zip(indices, extract_queries(seq, indices, sift)), 1):
-        result = localizer.step(query)
-        run.frames.append(_frame_record(seq, i, result, latency_ms(result), db, shares))
+    steps = steps_of(localizer, extract_queries(seq, indices, sift), cancelled=cancelled)
+    for n, (i, step) in enumerate(zip(indices, steps), 1):
+        run.frames.append(_frame_record(seq, i, step.result, step.latency_ms, db, shares))
         run.wall_s = time.perf_counter() - start
         if progress:
             progress(n, len(indices))
-        if cancelled is not None and cancelled():
-            raise MatchCancelled()
     return run
 

@@ -1,13 +1,13 @@
 """Running a localizer over queries: the one query loop every command uses, and what a query costs.
 
-``run_queries`` steps a localizer through queries in order and times each one as a live
+``steps_of`` (and ``run_queries``, its steps as a list) steps a localizer through queries in order and times each one as a live
 system would spend it (``latency_ms``). Where the queries come from is the caller's: stored
 features (``QuerySet.query``) or images read and described now (``visloc.sources.queries.extract_queries``).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from typing import NamedTuple
 
 from visloc.tracking.localizer import Localizer, StepResult
@@ -35,25 +35,33 @@ def latency_ms(result: StepResult, cache: PairCountCache | None = None) -> float
     return result.query.sift_ms + retrieval_ms + result.measurement.query_side_ms + result.timings.filter_ms
 
 
-def run_queries(localizer: Localizer, queries: Iterable, *, cache: PairCountCache | None = None,
-                cancelled: Callable[[], bool] | None = None,
-                progress: Callable[[int], None] | None = None,
-                on_step: Callable[[TimedStep], None] | None = None) -> list[TimedStep]:
-    """Step ``localizer`` through ``queries`` (``visloc.Query``) in order, from its current state.
+def steps_of(localizer: Localizer, queries: Iterable, *, cache: PairCountCache | None = None,
+             cancelled: Callable[[], bool] | None = None) -> Iterator[TimedStep]:
+    """The one query loop: step ``localizer`` through ``queries`` (``visloc.Query``) in order, from its
+    current state, yielding each step with its latency as soon as it is done (nothing is kept).
 
     ``cache``: the ``PairCountCache`` the localizer's retrieval counts with, if any (for latency).
     ``cancelled()`` is asked after each query and raises ``MatchCancelled`` when true (wrap the
-    counter with ``visloc.retrieval.matching.cancellable`` to stop inside a query too); ``progress(done)``
-    is told of each query done; ``on_step(step)`` is handed each step as soon as it is done.
+    counter with ``visloc.retrieval.matching.cancellable`` to stop inside a query too).
     """
-    out: list[TimedStep] = []
     for query in queries:
         result = localizer.step(query)
         if cancelled is not None and cancelled():
             raise MatchCancelled()
-        out.append(TimedStep(result, latency_ms(result, cache)))
+        yield TimedStep(result, latency_ms(result, cache))
+
+
+def run_queries(localizer: Localizer, queries: Iterable, *, cache: PairCountCache | None = None,
+                cancelled: Callable[[], bool] | None = None,
+                progress: Callable[[int], None] | None = None,
+                on_step: Callable[[TimedStep], None] | None = None) -> list[TimedStep]:
+    """Every step of ``steps_of`` as a list; ``progress(done)`` is told of each query done, ``on_step(step)``
+    is handed each step as soon as it is done."""
+    out: list[TimedStep] = []
+    for step in steps_of(localizer, queries, cache=cache, cancelled=cancelled):
+        out.append(step)
         if on_step:
-            on_step(out[-1])
+            on_step(step)
         if progress:
             progress(len(out))
     return out
