@@ -86,9 +86,11 @@ def _exact_and_fast(store: Path, query_frame: int):
     structures = ws.load_structure(db)
     matcher = StructureMatcher(db.descriptors_u8, structures, REFINED.ratio, against="image")
     fast_candidates = np.array([i for i, _ in verified])
-    matcher(query.descriptors_u8)(fast_candidates)
-    fast_retrieval = Retrieval(fast_candidates, np.array([n for _, n in verified]), int(fast_candidates[0]))
-    measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, geometry, structures, matcher, seq.camera_model,
+    counts_of = matcher(query.descriptors_u8)
+    counts_of(fast_candidates)
+    fast_retrieval = Retrieval(fast_candidates, np.array([n for _, n in verified]), int(fast_candidates[0]),
+                               pairs=counts_of.pairs)
+    measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, geometry, structures, seq.camera_model,
                                 REFINED, min_matches=REFINED.min_verified_inliers)
     return exact, measurer.measure(query, fast_retrieval)
 

@@ -75,10 +75,14 @@ def _matches(q: np.ndarray, q_sq: np.ndarray, d: np.ndarray, half_d_sq: np.ndarr
     return np.stack([np.flatnonzero(ok), index1[ok]], axis=1).astype(np.int64)
 
 
+NO_PAIRS = np.zeros((0, 2), np.int64)  # a candidate the retrieval did not match
+
+
 class StructureMatcher:
     """A retrieval counter over stored structure: a candidate's count is the number of query
-    descriptors matched to the candidate's 3D-carrying keypoints; the matches of the latest query
-    are kept for the measurer.
+    descriptors matched to the candidate's 3D-carrying keypoints. The count function it makes for a
+    query keeps those matches (``pairs``: candidate -> (M, 2) query row, keypoint row of the view);
+    the retrieval hands them to the measurer (``Retrieval.pairs``).
 
     against="structure" (the camera-rate path): nearest neighbour among those keypoints only, Lowe's ratio
     and a mutual check. against="image": Lowe's ratio against every keypoint of the
@@ -95,12 +99,11 @@ class StructureMatcher:
         self._descriptors = {i: np.ascontiguousarray(db_descriptors[i][rows], np.float32)
                              for i, rows in self._rows.items()}
         self._half_sq = {i: 0.5 * np.einsum("ij,ij->i", d, d) for i, d in self._descriptors.items()}
-        self._pairs: dict[int, np.ndarray] = {}
 
     def __call__(self, query_u8: np.ndarray, key: Hashable = None) -> CountFn:
-        self._pairs = {}
         q = np.asarray(query_u8, np.float32)
         q_sq = np.einsum("ij,ij->i", q, q)
+        pairs_of: dict[int, np.ndarray] = {}
 
         def counts(candidates: np.ndarray) -> np.ndarray:
             out = np.zeros(len(candidates), np.int64)
@@ -115,23 +118,20 @@ class StructureMatcher:
                     pairs = _matches(q, q_sq, self._descriptors[i], self._half_sq[i], self.match.tau1, mutual=True)
                     pairs[:, 1] = rows[pairs[:, 1]]  # subset index -> keypoint row of the view
                     n_3d = len(pairs)
-                self._pairs[i] = pairs
+                pairs_of[i] = pairs
                 out[j] = n_3d
             return out
 
+        counts.pairs = pairs_of  # type: ignore[attr-defined]  # the retrieval hands them to the measurer
         return counts
-
-    def pairs(self, view: int) -> np.ndarray:
-        """(M, 2) (query row, keypoint row of ``view``) of the latest query; empty if not matched."""
-        return self._pairs.get(view, np.zeros((0, 2), np.int64))
 
 
 class FastPoseMeasurer:
-    """The refined measurement on stored structure (see the module docstring). Needs the retrieval
-    to have counted with this measurer's ``matcher``."""
+    """The refined measurement on stored structure (see the module docstring). Needs a retrieval counted
+    by a ``StructureMatcher``, whose matches it carries (``Retrieval.pairs``)."""
 
     def __init__(self, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray, geometry: DatabaseGeometry,
-                 structures: StoredStructures, matcher: StructureMatcher, query_camera: CameraModel | None,
+                 structures: StoredStructures, query_camera: CameraModel | None,
                  params: RefinedParams, *, exclusion_s: float = 0.0, min_matches: int = 20,
                  query_what: str = "the query camera", db_name: str = "the database"):
         require_calibrated(geometry, query_camera, query_what)
@@ -142,7 +142,6 @@ class FastPoseMeasurer:
         self.db_timestamps_s = np.asarray(db_timestamps_s, float)
         self.geometry = geometry
         self.structures = structures
-        self.matcher = matcher
         self.query_camera = query_camera
         self.params = params
         self.exclusion_s = float(exclusion_s)
@@ -172,6 +171,7 @@ class FastPoseMeasurer:
         if self.exclusion_s > 0:
             allowed = np.abs(self.db_timestamps_s - query.timestamp_s) >= self.exclusion_s
         order = np.argsort(-retrieval.counts, kind="stable")
+        matches = retrieval.pairs or {}  # what the retrieval's StructureMatcher matched, per candidate
         usable, pairs_of, lookups, neighbours_used = [], {}, {}, {}
         best = int(retrieval.counts[order[0]]) if order.size else 0
         for k in order.tolist():
@@ -182,7 +182,7 @@ class FastPoseMeasurer:
             if s is None:
                 continue
             usable.append(i)
-            pairs_of[i], lookups[i], neighbours_used[i] = self.matcher.pairs(i), self._lookup(s), s.neighbours
+            pairs_of[i], lookups[i], neighbours_used[i] = matches.get(i, NO_PAIRS), self._lookup(s), s.neighbours
         base = dict(n_structure_matches=best, candidate_structure_matches={
             int(c): int(n) for c, n in zip(retrieval.candidates, retrieval.counts)})
         if not usable:

@@ -300,6 +300,8 @@ def cancellable(counter: Counter, cancelled: Callable[[], bool] | None, chunk: i
                 parts.append(counts(candidates[lo:lo + chunk]))
             return np.concatenate(parts) if parts else np.zeros(0, np.int64)
 
+        if hasattr(counts, "pairs"):  # the matches behind the counts go on to the retrieval (StructureMatcher)
+            checked.pairs = counts.pairs  # type: ignore[attr-defined]
         return checked
 
     return for_query

@@ -55,6 +55,9 @@ class Retrieval:
     allowed: np.ndarray | None = None
     gated: bool = False  # fast path: the filter's gate chose the search area
     widened: bool = False  # fast path: the gate held no image with a correspondence, so every image was searched
+    # the matches behind the counts, where the count function keeps them (the camera-rate path's
+    # StructureMatcher): candidate -> (M, 2) (query row, keypoint row of the candidate); None otherwise
+    pairs: dict[int, np.ndarray] | None = None
 
     @property
     def search_area(self) -> np.ndarray:
@@ -74,7 +77,7 @@ def retrieve(counts_of: CountFn, db_timestamps_s: np.ndarray, query_timestamp_s:
     best = None
     if counts.size and counts.max() > 0:
         best = int(candidates[int(np.argmax(counts))])
-    return Retrieval(candidates=candidates, counts=counts, best_index=best)
+    return Retrieval(candidates=candidates, counts=counts, best_index=best, pairs=getattr(counts_of, "pairs", None))
 
 
 # -- the filter's gate ----------------------------------------------------------------------
@@ -120,7 +123,7 @@ def shortlist_retrieve(query_vector_f32: np.ndarray, counts_of: CountFn, db_time
     if counts.size and counts.max() > 0:
         best = int(chosen[counts == counts.max()].min())  # ties go to the earliest image, as in the paper's path
     return Retrieval(candidates=chosen, counts=counts, best_index=best, allowed=np.flatnonzero(area),
-                     gated=gated and not widened, widened=widened)
+                     gated=gated and not widened, widened=widened, pairs=getattr(counts_of, "pairs", None))
 
 
 # -- the retrievers ---------------------------------------------------------------------------
