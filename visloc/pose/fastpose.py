@@ -31,7 +31,7 @@ from visloc.errors import InputError
 from visloc.features.sift import Query
 from visloc.geometry.projective import CameraModel
 from visloc.errors import ParameterError
-from visloc.retrieval.matching import CountFn, correspondences
+from visloc.retrieval.matching import CountFn, best_two, correspondences
 from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
 from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval.retrievers import Retrieval
@@ -63,12 +63,7 @@ def _matches(q: np.ndarray, q_sq: np.ndarray, d: np.ndarray, half_d_sq: np.ndarr
         back = np.argmax(score, axis=0)
         score += 0.5 * q_sq[:, None]
     score -= half_d_sq[None, :]
-    index1 = np.argmax(score, axis=1)  # two passes of argmax: much faster than a partial sort
-    best = score[rows, index1]
-    score[rows, index1] = -np.inf
-    second = score.max(axis=1)
-    d1 = np.maximum(q_sq - 2.0 * best, 0.0)
-    d2 = np.maximum(q_sq - 2.0 * second, 0.0)
+    index1, _, d1, d2 = best_two(score, q_sq)
     ok = d1 < ratio**2 * d2
     if mutual:
         ok &= back[index1] == rows

@@ -55,6 +55,24 @@ class NearestTwo:
     cosine1: np.ndarray
 
 
+def best_two(score: np.ndarray, q_sq: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The one nearest-two kernel every matcher uses. ``score`` (..., n): g.f - |f|^2 / 2 of each query
+    descriptor g (its |g|^2 in ``q_sq``, over the leading axes) against n database descriptors f, so
+    that the largest score is the nearest f; -inf where there is no descriptor. Returns (index1, best,
+    dist1_sq, dist2_sq) along the last axis: the nearest's index and score and the squared distances
+    to the nearest two, |g - f|^2 = |g|^2 - 2 score (exact in float32 for SIFT's integer values, see
+    the module docstring). ``score``'s best entries are overwritten with -inf."""
+    index1 = np.argmax(score, axis=-1)  # two passes of argmax: much faster than a partial sort
+    best = np.take_along_axis(score, index1[..., None], axis=-1)[..., 0]
+    np.put_along_axis(score, index1[..., None], -np.inf, axis=-1)
+    second = score.max(axis=-1)  # -inf with one database descriptor
+    q_sq = q_sq.reshape(q_sq.shape + (1,) * (best.ndim - q_sq.ndim))
+    with np.errstate(over="ignore", invalid="ignore"):
+        dist1_sq = np.maximum(q_sq - 2.0 * best, 0.0).astype(np.float32)
+        dist2_sq = np.maximum(q_sq - 2.0 * second, 0.0).astype(np.float32)
+    return index1, best, dist1_sq, dist2_sq
+
+
 def nearest_two(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
     """Exact two nearest neighbours of every query row among the database rows."""
     q = np.asarray(query_u8, dtype=np.float32)
@@ -70,16 +88,7 @@ def nearest_two(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
     # maximises score = g.f - |f|^2 / 2 (exact in float32, see the module docstring).
     score = q @ d.T
     score -= 0.5 * d_sq
-    rows = np.arange(n_query)
-    index1 = np.argmax(score, axis=1)
-    best = score[rows, index1]
-    if n_db > 1:
-        score[rows, index1] = -np.inf
-        second = score.max(axis=1)
-    else:
-        second = np.full(n_query, -np.inf, np.float32)
-    dist1_sq = np.maximum(q_sq - 2.0 * best, 0.0).astype(np.float32)
-    dist2_sq = np.maximum(q_sq - 2.0 * second, 0.0).astype(np.float32)
+    index1, best, dist1_sq, dist2_sq = best_two(score, q_sq)
     dot1 = best + 0.5 * d_sq[index1]
     norms = np.sqrt(q_sq) * np.sqrt(d_sq[index1])
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -170,13 +179,8 @@ def count_many(query_u8: np.ndarray, db_descriptors: Sequence[np.ndarray], candi
         # score = g.f - |f|^2 / 2, maximal at the nearest f (see nearest_two)
         score = (q @ d.reshape(c * width, -1).T).reshape(q.shape[0], c, width)
         score -= 0.5 * d_sq[None, :, :]
-        index1 = score.argmax(axis=2)  # (Nq, c)
-        best = np.take_along_axis(score, index1[:, :, None], axis=2)[:, :, 0]
-        np.put_along_axis(score, index1[:, :, None], -np.inf, axis=2)
-        second = score.max(axis=2)
+        index1, best, dist1_sq, dist2_sq = best_two(score, q_sq)  # (Nq, c) each
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            dist1_sq = np.maximum(q_sq[:, None] - 2.0 * best, 0.0).astype(np.float32)
-            dist2_sq = np.maximum(q_sq[:, None] - 2.0 * second, 0.0).astype(np.float32)
             d_sq1 = d_sq[np.arange(c)[None, :], index1]
             dot1 = best + 0.5 * d_sq1
             norms = q_norm[:, None] * np.sqrt(d_sq1)
