@@ -137,6 +137,20 @@ def test_every_stage_of_the_pipeline_is_a_subpackage_that_says_what_it_holds_and
     assert loose == ["__init__.py", "__main__.py", "errors.py", "geo.py", "progress.py"], loose
 
 
+def test_the_architecture_page_names_every_stage_and_module_of_the_tree():
+    """docs/architecture.md's table of the tree stays true: a row per folder of visloc/ naming each of its modules,
+    and no row for a folder that is gone."""
+    page = (REPO / "docs" / "architecture.md").read_text()
+    rows = {m.group(1): m.group(2) for m in re.finditer(r"^\| `(\w+)/` \| [^|]+ \| (.+) \|$", page, re.M)}
+    for folder in sorted(p.parent for p in (REPO / "visloc").glob("*/__init__.py")):
+        assert folder.name in rows, f"docs/architecture.md: no row for visloc/{folder.name}/"
+        have = {p.stem for p in folder.glob("*.py") if not p.stem.startswith("__")}
+        named = set(re.findall(r"`(\w+)`", rows[folder.name]))
+        assert have <= named, f"visloc/{folder.name}/: {sorted(have - named)} not on the architecture page"
+    gone = sorted(name for name in rows if not (REPO / "visloc" / name / "__init__.py").exists())
+    assert gone == [], f"docs/architecture.md describes folders visloc/ no longer has: {gone}"
+
+
 def test_no_private_name_is_imported_from_another_module():
     for name, path in modules().items():
         for node in ast.walk(ast.parse(path.read_text())):
