@@ -45,6 +45,8 @@ re-extracting any feature.
 from __future__ import annotations
 
 import json
+import sqlite3
+import time
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 
@@ -52,10 +54,24 @@ import numpy as np
 import sqlite_utils
 
 from visloc.db.blobs import array_from_blob
-from visloc.db.connection import Database, connect
+from visloc.db.connection import BUSY_TIMEOUT_S, Database, connect
 from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, EmptyStoreError, ImageRecord,
                                NotAStoreError, SettingsMismatchError, SkippedFrame, StoredImage, StoreError)
 from visloc.db.schema import REQUIRED_TABLES, SCHEMA_VERSION, lacking, now_iso, upgrade
+
+
+def _enable_wal(db: sqlite_utils.Database) -> None:
+    """Switch the file to WAL. The switch needs the file to itself, and where other writers are opening
+    it at the same moment SQLite can answer "database is locked" at once instead of waiting: look again
+    and retry until it is WAL, for up to the busy timeout."""
+    deadline = time.monotonic() + BUSY_TIMEOUT_S
+    while db.journal_mode != "wal":
+        try:
+            db.enable_wal()
+        except sqlite3.OperationalError as exc:
+            if "locked" not in str(exc) or time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
 
 
 class FeatureStore:
@@ -127,8 +143,8 @@ class FeatureStore:
                 upgrade(db, version)
             if older:
                 self.migrated_from = version
-        if on_disk and db.journal_mode != "wal":
-            db.enable_wal()
+        if on_disk:
+            _enable_wal(db)
 
     def close(self) -> None:
         self.db.close()
