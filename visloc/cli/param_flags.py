@@ -13,7 +13,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
 from visloc.errors import ParameterError
-from visloc.params import PARAMETER_CLASSES, Spec, declared, flag_of
+from visloc.params import PARAMETER_CLASSES, Spec, declared, flag_of, value_text
 
 # flag of every declared parameter, by field name (a name two classes share has one flag)
 FLAGS = {name: flag for cls in PARAMETER_CLASSES for name, spec, _ in declared(cls)
@@ -29,14 +29,6 @@ def _distances(text: str) -> tuple[float, ...]:
         return tuple(float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r}: expected distances separated by commas, e.g. 2,5,10") from None
-
-
-def _shown(value) -> str:
-    if isinstance(value, tuple):
-        return ",".join(f"{v:g}" for v in value)
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    return str(value)
 
 
 def help_of(spec: Spec, default_text: str | None) -> str:
@@ -72,13 +64,13 @@ def add_param_flags(group, cls, preset=None, *, presets: Iterable[tuple[str, obj
             kwargs["help"] = automatic[name]
         elif preset is not None:
             kwargs["default"] = getattr(preset, name)
-            kwargs["help"] = help_of(spec, _shown(kwargs["default"]))
+            kwargs["help"] = help_of(spec, value_text(kwargs["default"]))
         else:
             values = [(label, getattr(p, name)) for label, p in presets]
-            if len({_shown(v) for _, v in values}) <= 1:
-                default_text = _shown(values[0][1]) if values else None
+            if len({value_text(v) for _, v in values}) <= 1:
+                default_text = value_text(values[0][1]) if values else None
             else:
-                default_text = "the method's: " + ", ".join(f"{label} {_shown(v)}" for label, v in values)
+                default_text = "the method's: " + ", ".join(f"{label} {value_text(v)}" for label, v in values)
             kwargs["help"] = help_of(spec, default_text)
         group.add_argument(flag, **kwargs)
 

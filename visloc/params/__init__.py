@@ -13,7 +13,7 @@ The command line's flags, the dashboard's controls, ``--help`` and ``docs/parame
 from __future__ import annotations
 
 from visloc.params.declare import (AUTO, MAX_C_INT, MAX_VARIANCE, METHODS_ALL, MIN_VARIANCE, Control, Params, Spec,
-                                   check, declared, flag_of, param, refuse, spec_of)
+                                   check, declared, flag_of, param, refuse, spec_of, value_text)
 from visloc.params.paper import (MAX_DT_S, MAX_GEOTAG_SIGMA_M, MAX_SECONDS, METRES_PER_DEGREE, MIN_DT_S,
                                  PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT,
                                  FilterParams, MatchParams, RetrievalParams, SiftParams)
@@ -36,15 +36,8 @@ __all__ = [
     "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PARAMETER_CLASSES", "REFINED", "TRACK", "Control", "FastParams",
     "FilterParams", "MatchParams", "Params", "RefinedParams", "RetrievalParams", "SiftParams", "Spec", "TrackParams",
     "check", "dashboard_controls", "declared", "flag_of", "param", "parameter_table_markdown", "refuse", "spec_of",
+    "value_text",
 ]
-
-
-def _default_text(value) -> str:
-    if isinstance(value, tuple):
-        return ", ".join(f"{v:g}" for v in value)
-    if isinstance(value, float):
-        return f"{value:.6g}"
-    return str(value)
 
 
 def parameter_table_markdown() -> str:
@@ -64,6 +57,6 @@ def parameter_table_markdown() -> str:
             control = spec.control.label if spec.control else ""
             help_text = spec.help.replace("|", "\\|")
             lines.append(f"| `{name}` | {f'`{flag}`' if flag else '–'} | {spec.unit or '–'} | {spec.rule()} | "
-                         f"{_default_text(default)} | {', '.join(spec.methods)} | {help_text} | {control or '–'} |")
+                         f"{value_text(default)} | {', '.join(spec.methods)} | {help_text} | {control or '–'} |")
         lines.append("")
     return "\n".join(lines)

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator
-from dataclasses import MISSING, asdict, dataclass, fields, replace
+from dataclasses import MISSING, asdict, dataclass, field, fields, replace
 
 from visloc.errors import ParameterError
 
@@ -129,8 +129,16 @@ class Spec:
 
 def param(default, help: str, **spec):
     """A declared dataclass field: ``default`` and the ``Spec`` made of ``help`` and ``spec``."""
-    from dataclasses import field
     return field(default=default, metadata={"spec": Spec(help=help, **spec)})
+
+
+def value_text(value) -> str:
+    """A parameter's value as a user types it (a tuple comma-separated), for help texts and the docs."""
+    if isinstance(value, tuple):
+        return ",".join(f"{v:g}" for v in value)
+    if isinstance(value, float):
+        return f"{value:.6g}"
+    return str(value)
 
 
 def refuse(message: str, *names: str) -> ParameterError:
