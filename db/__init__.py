@@ -8,6 +8,7 @@ them back. ``store`` holds ``FeatureStore``, ``schema`` the tables and migration
 
 from visloc.db.records import (
     CameraRecord,
+    DamagedStoreError,
     EmptyStoreError,
     ImageRecord,
     NotAStoreError,
@@ -27,6 +28,7 @@ from visloc.db.vectors import VectorTable
 __all__ = [
     "SCHEMA_VERSION",
     "CameraRecord",
+    "DamagedStoreError",
     "EmptyStoreError",
     "FeatureStore",
     "ImageRecord",

@@ -67,3 +67,15 @@ class Database(sqlite_utils.Database):
             self.conn.rollback()
             raise
         self.conn.execute("COMMIT")
+
+
+def sqlite_error_line(label: str, exc: sqlite3.Error) -> str:
+    """One line for an error SQLite raised on the store ``label``, saying what it means for the user."""
+    text = str(exc)
+    if "malformed" in text or "not a database" in text:
+        return (f"{label}: the store file is damaged (SQLite: {text}); 'visloc check --db {label}' says more; "
+                "ingest its drives into a new store")
+    if "disk I/O error" in text or "disk is full" in text:
+        return (f"{label}: cannot write the store (SQLite: {text}): the disk is full or a file-size limit is "
+                "reached; every image committed before is kept: make room and run the same command again to go on")
+    return f"{label}: SQLite: {text}"

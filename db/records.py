@@ -22,6 +22,11 @@ class EmptyStoreError(StoreError):
     """The store exists but holds no images (or no images of the requested camera)."""
 
 
+class DamagedStoreError(StoreError):
+    """A BLOB fails its checksum or its row, a table or a column the schema needs is missing: the store
+    is damaged. The message names the store and the image, and how to find and repair the rest."""
+
+
 class SettingsMismatchError(StoreError):
     """Features were requested or added with SIFT settings other than the store's."""
 
@@ -51,6 +56,10 @@ class ImageRecord:
     # stated accuracy of the geotag: standard deviation per horizontal axis, metres (KITTI: the OXTS
     # record's pos_accuracy; CSV: the accuracy_m column). None when the source states none.
     position_accuracy_m: float | None = None
+    # what the features were made from: the SHA-256 (hex) of the image file's bytes and their count.
+    # None in images stored before schema version 5 until ingest has read their files again.
+    source_sha256: str | None = None
+    source_bytes: int | None = None
 
 
 @dataclass(frozen=True)

@@ -11,6 +11,12 @@ step of ``HISTORY`` that brought it, and ``upgrade`` is the one function that ap
 4  database structure (``structures``), global vectors (``global_vectors``, ``arrays``), the frames
    ingest skipped (``skipped_frames``) and self-checks (``self_checks``). The last two were once
    made when first needed, so a store of version 4 written then may lack them.
+5  a CRC-32 beside every BLOB (images: keypoints_crc32, descriptors_crc32; structures: rows_crc32,
+   points_crc32, cov_crc32; global_vectors: vector_crc32; arrays: data_crc32), written in the same
+   transaction as the BLOB and checked whenever it is read; and what each image was made from
+   (images: source_sha256, the SHA-256 of the image file, and source_bytes, its size). Upgrading
+   a store of version 4 computes the checksums of the BLOBs as they are then (``visloc.db.checksums``);
+   the sources stay NULL until ingest has read them again.
 
 A new store is the whole history applied to an empty file. Opening a store for writing applies
 whatever of the history it lacks (a store of an older version: every later step; any store: a
@@ -105,6 +111,17 @@ HISTORY: tuple[tuple[Change, ...], ...] = (
                               ("cov_nn_m2", "REAL"), ("lever_m", "REAL"), ("side", "TEXT"), ("reason", "TEXT"),
                               ("checked_at", "TEXT")), key=("image_id", "params_json")),
     ),
+    (  # 4 -> 5
+        Column("images", "source_sha256", "TEXT", after="path"),
+        Column("images", "source_bytes", "INTEGER", after="source_sha256"),
+        Column("images", "keypoints_crc32", "INTEGER", after="n_keypoints"),
+        Column("images", "descriptors_crc32", "INTEGER", after="keypoints_crc32"),
+        Column("structures", "rows_crc32", "INTEGER", after="n_points"),
+        Column("structures", "points_crc32", "INTEGER", after="rows_crc32"),
+        Column("structures", "cov_crc32", "INTEGER", after="points_crc32"),
+        Column("global_vectors", "vector_crc32", "INTEGER", after="image_id"),
+        Column("arrays", "data_crc32", "INTEGER", after="shape_json"),
+    ),
 )
 SCHEMA_VERSION = len(HISTORY)
 REQUIRED_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # a store lacking one is damaged, never repaired
@@ -112,6 +129,15 @@ REQUIRED_TABLES = {"visloc_schema", "settings", "cameras", "images"}  # a store 
 
 def now_iso() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def change_name(change: Change) -> str:
+    """"table T", "column T.C" or "index I": a change as a user reads it."""
+    if isinstance(change, Table):
+        return f"table {change.name}"
+    if isinstance(change, Column):
+        return f"column {change.table}.{change.name}"
+    return f"index {change.name}"
 
 
 def lacking(db: sqlite_utils.Database, target: int = SCHEMA_VERSION) -> list[Change]:

@@ -53,11 +53,12 @@ from pathlib import Path
 import numpy as np
 import sqlite_utils
 
-from visloc.db.blobs import array_from_blob
+from visloc.db.blobs import array_from_blob, blob_of, repair_hint
 from visloc.db.connection import BUSY_TIMEOUT_S, Database, connect
-from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, EmptyStoreError, ImageRecord,
-                               NotAStoreError, SettingsMismatchError, SkippedFrame, StoredImage, StoreError)
-from visloc.db.schema import REQUIRED_TABLES, SCHEMA_VERSION, lacking, now_iso, upgrade
+from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, DamagedStoreError, EmptyStoreError,
+                               ImageRecord, NotAStoreError, SettingsMismatchError, SkippedFrame, StoredImage, StoreError)
+from visloc.db.checksums import fill_checksums
+from visloc.db.schema import REQUIRED_TABLES, SCHEMA_VERSION, change_name, lacking, now_iso, upgrade
 
 
 def _enable_wal(db: sqlite_utils.Database) -> None:
@@ -84,9 +85,11 @@ class FeatureStore:
     untouched. ``FeatureStore.memory()`` gives an in-memory store for tests.
     """
 
-    def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False):
+    def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False,
+                 lacking_ok: bool = False):
         self.path = Path(path)
         self.read_only = read_only
+        self._lacking_ok = lacking_ok  # read-only: open a store that lacks tables too (to report what it lacks)
         label = str(self.path)
         if not self.path.exists():
             if not create or read_only:
@@ -103,6 +106,7 @@ class FeatureStore:
         store = cls.__new__(cls)
         store.path = Path(":memory:")
         store.read_only = False
+        store._lacking_ok = False
         store._open(Database(memory=True), ":memory:", create=True, on_disk=False)
         return store
 
@@ -135,12 +139,21 @@ class FeatureStore:
             )
         missing = REQUIRED_TABLES - tables
         if missing:
-            raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}")
+            raise NotAStoreError(f"{label}: damaged visloc store, missing tables {sorted(missing)}; it cannot be "
+                                 "repaired: ingest its drives into a new store")
+        self.checksums_filled = 0  # BLOBs whose checksums this opening computed (upgrading from version < 5)
         if self.read_only:
+            absent = [] if self._lacking_ok else lacking(db)
+            if absent:
+                shown = ", ".join(change_name(c) for c in absent[:4])
+                raise DamagedStoreError(f"{label}: damaged visloc store: missing {shown}; 'visloc ingest' of its "
+                                        "drives rebuilds what is missing (or ingest them into a new store)")
             return
-        if older or lacking(db):  # an older version, or a table once made when first needed
+        if older or lacking(db):  # an older version, or a table lost or once made when first needed
             with db.atomic():
                 upgrade(db, version)
+                if older and version < 5:
+                    self.checksums_filled = fill_checksums(db)
             if older:
                 self.migrated_from = version
         if on_disk:
@@ -226,27 +239,7 @@ class FeatureStore:
         Images already stored (same source, camera, frame) are skipped; a stored image is no longer
         recorded as skipped. Returns the number inserted. Either all of it is committed or none.
         """
-        rows = []
-        for record, keypoints, descriptors in batch:
-            keypoints = np.ascontiguousarray(keypoints, dtype=np.float32)
-            descriptors = np.asarray(descriptors)
-            if descriptors.dtype != np.uint8 or descriptors.ndim != 2 or descriptors.shape[1] != DESCRIPTOR_DIM:
-                raise StoreError(
-                    f"{record.path}: descriptors must be uint8 (N, {DESCRIPTOR_DIM}), got "
-                    f"{descriptors.dtype} {descriptors.shape}"
-                )
-            if keypoints.shape != (descriptors.shape[0], KEYPOINT_COLUMNS):
-                raise StoreError(
-                    f"{record.path}: keypoints must be ({descriptors.shape[0]}, {KEYPOINT_COLUMNS}), got {keypoints.shape}"
-                )
-            row = {k: getattr(record, k) for k in ImageRecord.__dataclass_fields__}
-            row.update(
-                n_keypoints=int(descriptors.shape[0]),
-                keypoints_f32=keypoints.tobytes(),
-                descriptors_u8=np.ascontiguousarray(descriptors).tobytes(),
-                created_at=now_iso(),
-            )
-            rows.append(row)
+        rows = [image_row(record, keypoints, descriptors) for record, keypoints, descriptors in batch]
         if not rows and not skipped:
             return 0
         before = self.image_count()
@@ -319,12 +312,14 @@ class FeatureStore:
             chunk = ids[start : start + 500]
             marks = ",".join("?" * len(chunk))
             for r in self.db.query(
-                f"SELECT id, source, camera, frame, n_keypoints, keypoints_f32, descriptors_u8 FROM images "
-                f"WHERE id IN ({marks})", chunk
+                f"SELECT id, source, camera, frame, n_keypoints, keypoints_crc32, descriptors_crc32, keypoints_f32, "
+                f"descriptors_u8 FROM images WHERE id IN ({marks})", chunk
             ):
                 n, what = _count(r, self.label), _row_name(r, self.label)
-                kp = array_from_blob(r["keypoints_f32"], np.float32, (n, KEYPOINT_COLUMNS), what + " keypoints")
-                desc = array_from_blob(r["descriptors_u8"], np.uint8, (n, DESCRIPTOR_DIM), what + " descriptors")
+                kp = array_from_blob(r["keypoints_f32"], np.float32, (n, KEYPOINT_COLUMNS), what + " keypoints",
+                                     r["keypoints_crc32"], self.label)
+                desc = array_from_blob(r["descriptors_u8"], np.uint8, (n, DESCRIPTOR_DIM), what + " descriptors",
+                                       r["descriptors_crc32"], self.label)
                 out[r["id"]] = (kp, desc)
         missing = set(ids) - set(out)
         if missing:
@@ -365,14 +360,14 @@ class FeatureStore:
             chunk = ids[start : start + chunk_size]
             marks = ",".join("?" * len(chunk))
             rows = {r["id"]: r for r in self.db.query(
-                f"SELECT id, source, camera, frame, n_keypoints, descriptors_u8 FROM images WHERE id IN ({marks})",
-                chunk)}
+                "SELECT id, source, camera, frame, n_keypoints, descriptors_crc32, descriptors_u8 FROM images "
+                f"WHERE id IN ({marks})", chunk)}
             for i in chunk:
                 if i not in rows:
                     raise StoreError(f"{self.label}: no image with id {i}")
                 r = rows[i]
                 yield i, array_from_blob(r["descriptors_u8"], np.uint8, (_count(r, self.label), DESCRIPTOR_DIM),
-                                         _row_name(r, self.label) + " descriptors")
+                                         _row_name(r, self.label) + " descriptors", r["descriptors_crc32"], self.label)
 
     def image_ids(self, source: str | None = None, camera: str | None = None) -> np.ndarray:
         """(N,) int64 image ids in (source, camera, timestamp) order, without loading any metadata."""
@@ -391,6 +386,25 @@ class FeatureStore:
         )
 
 
+def image_row(record: ImageRecord, keypoints: np.ndarray, descriptors: np.ndarray) -> dict:
+    """The ``images`` row of ``record`` with keypoints_f32 (N, 6) and descriptors_u8 (N, 128) as BLOBs, each
+    with its CRC-32; ``StoreError`` naming the image's file when the arrays have other shapes or types."""
+    descriptors = np.asarray(descriptors)
+    if descriptors.dtype != np.uint8 or descriptors.ndim != 2 or descriptors.shape[1] != DESCRIPTOR_DIM:
+        raise StoreError(f"{record.path}: descriptors must be uint8 (N, {DESCRIPTOR_DIM}), got "
+                         f"{descriptors.dtype} {descriptors.shape}")
+    if np.shape(keypoints) != (descriptors.shape[0], KEYPOINT_COLUMNS):
+        raise StoreError(f"{record.path}: keypoints must be ({descriptors.shape[0]}, {KEYPOINT_COLUMNS}), got "
+                         f"{np.shape(keypoints)}")
+    keypoints_blob, keypoints_crc = blob_of(keypoints, np.float32)
+    descriptors_blob, descriptors_crc = blob_of(descriptors, np.uint8)
+    row = {k: getattr(record, k) for k in ImageRecord.__dataclass_fields__}
+    row.update(n_keypoints=int(descriptors.shape[0]), keypoints_crc32=keypoints_crc,
+               descriptors_crc32=descriptors_crc, keypoints_f32=keypoints_blob, descriptors_u8=descriptors_blob,
+               created_at=now_iso())
+    return row
+
+
 def _row_name(row: dict, label: str) -> str:
     return f"{label}: {row['source']}/{row['camera']} frame {row['frame']}"
 
@@ -398,7 +412,7 @@ def _row_name(row: dict, label: str) -> str:
 def _count(row: dict, label: str) -> int:
     n = row["n_keypoints"]
     if not isinstance(n, int) or n < 0:
-        raise StoreError(f"{_row_name(row, label)}: keypoint count {n!r} is not a count; the store is damaged")
+        raise DamagedStoreError(f"{_row_name(row, label)}: keypoint count {n!r} is not a count; {repair_hint(label)}")
     return n
 
 

@@ -13,8 +13,8 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
-from visloc.db.blobs import array_from_blob
-from visloc.db.records import StructureRecord
+from visloc.db.blobs import array_from_blob, blob_of, repair_hint
+from visloc.db.records import DamagedStoreError, StructureRecord
 from visloc.db.schema import now_iso
 from visloc.db.store import FeatureStore
 
@@ -41,14 +41,15 @@ class StructureTable:
 
     def add(self, records: Sequence[StructureRecord]) -> None:
         """Store ``records`` in one transaction, replacing rows of the same image and variant."""
-        rows = [{
-            "image_id": int(r.image_id), "variant": r.variant, "params_json": r.params_json,
-            "neighbour_ids_json": json.dumps([int(i) for i in r.neighbour_ids]), "n_points": int(len(r.rows_i32)),
-            "rows_i32": np.ascontiguousarray(r.rows_i32, np.int32).tobytes(),
-            "points_f64": np.ascontiguousarray(r.points_f64, np.float64).tobytes(),
-            "cov_f64": np.ascontiguousarray(r.cov_f64, np.float64).tobytes(),
-            "reason": r.reason, "build_ms": float(r.build_ms), "created_at": now_iso(),
-        } for r in records]
+        rows = []
+        for r in records:
+            row = {"image_id": int(r.image_id), "variant": r.variant, "params_json": r.params_json,
+                   "neighbour_ids_json": json.dumps([int(i) for i in r.neighbour_ids]), "n_points": int(len(r.rows_i32))}
+            for column, crc_column, array, dtype in (("rows_i32", "rows_crc32", r.rows_i32, np.int32),
+                                                     ("points_f64", "points_crc32", r.points_f64, np.float64),
+                                                     ("cov_f64", "cov_crc32", r.cov_f64, np.float64)):
+                row[column], row[crc_column] = blob_of(array, dtype)
+            rows.append({**row, "reason": r.reason, "build_ms": float(r.build_ms), "created_at": now_iso()})
         if rows:
             with self.db.atomic():
                 self.db["structures"].insert_all(rows, replace=True)
@@ -61,15 +62,29 @@ class StructureTable:
             chunk = ids[start : start + 500]
             marks = ",".join("?" * len(chunk))
             for r in self.db.query(
-                "SELECT image_id, variant, neighbour_ids_json, n_points, rows_i32, points_f64, cov_f64, reason, "
-                f"build_ms FROM structures WHERE params_json = ? AND image_id IN ({marks})", [params_json, *chunk]
+                "SELECT s.image_id, s.variant, s.neighbour_ids_json, s.n_points, s.rows_crc32, s.points_crc32, "
+                "s.cov_crc32, s.rows_i32, s.points_f64, s.cov_f64, s.reason, s.build_ms, i.source, i.camera, i.frame "
+                "FROM structures s LEFT JOIN images i ON i.id = s.image_id "
+                f"WHERE s.params_json = ? AND s.image_id IN ({marks})", [params_json, *chunk]
             ):
-                n, what = r["n_points"], f"{self.label}: structure of image id {r['image_id']} ({r['variant']})"
+                n, what = r["n_points"], f"{self.label}: {structure_name(r)}"
+                if not isinstance(n, int) or n < 0:
+                    raise DamagedStoreError(f"{what}: point count {n!r} is not a count; {repair_hint(self.label)}")
                 out[(r["image_id"], r["variant"])] = StructureRecord(
                     image_id=r["image_id"], variant=r["variant"], params_json=params_json,
                     neighbour_ids=tuple(json.loads(r["neighbour_ids_json"])),
-                    rows_i32=array_from_blob(r["rows_i32"], np.int32, (n,), what + " rows"),
-                    points_f64=array_from_blob(r["points_f64"], np.float64, (n, 3), what + " points"),
-                    cov_f64=array_from_blob(r["cov_f64"], np.float64, (n, 3, 3), what + " covariances"),
+                    rows_i32=array_from_blob(r["rows_i32"], np.int32, (n,), what + " rows", r["rows_crc32"],
+                                             self.label),
+                    points_f64=array_from_blob(r["points_f64"], np.float64, (n, 3), what + " points",
+                                               r["points_crc32"], self.label),
+                    cov_f64=array_from_blob(r["cov_f64"], np.float64, (n, 3, 3), what + " covariances",
+                                            r["cov_crc32"], self.label),
                     reason=r["reason"], build_ms=r["build_ms"] or 0.0)
         return out
+
+
+def structure_name(row: dict) -> str:
+    """"drive/camera frame N structure (variant)" of a structures row joined with its image."""
+    image = (f"{row['source']}/{row['camera']} frame {row['frame']}" if row.get("source") is not None
+             else f"image id {row['image_id']}")
+    return f"{image} structure ({row['variant']})"

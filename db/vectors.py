@@ -9,7 +9,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from visloc.db.records import StoreError
+from visloc.db.blobs import array_from_blob, blob_problem, crc32, repair_hint
+from visloc.db.records import DamagedStoreError, StoreError
 from visloc.db.store import FeatureStore
 
 
@@ -27,8 +28,8 @@ class VectorTable:
             raise StoreError(f"{self.label}: global vectors must be ({len(image_ids)}, D), got {v.shape}")
         with self.db.atomic():
             self.db["global_vectors"].insert_all(
-                ({"name": name, "image_id": int(i), "vector_f32": row.tobytes()} for i, row in zip(image_ids, v)),
-                replace=True, batch_size=1000)
+                ({"name": name, "image_id": int(i), "vector_crc32": crc32(row.tobytes()), "vector_f32": row.tobytes()}
+                 for i, row in zip(image_ids, v)), replace=True, batch_size=1000)
 
     def stored_vector_ids(self, name: str) -> list[int]:
         """Image ids that have a global vector under ``name``."""
@@ -46,26 +47,38 @@ class VectorTable:
             raise StoreError(f"{self.label}: no global vectors named {name!r}")
         ids = np.empty(n, np.int64)
         out = None
-        cur = self.db.execute("SELECT image_id, vector_f32 FROM global_vectors WHERE name = ? ORDER BY image_id",
-                              [name])
-        for k, (image_id, blob) in enumerate(cur):
+        cur = self.db.execute("SELECT image_id, vector_crc32, vector_f32 FROM global_vectors WHERE name = ? "
+                              "ORDER BY image_id", [name])
+        for k, (image_id, stored_crc, blob) in enumerate(cur):
+            size = len(blob) if out is None and isinstance(blob, bytes) else (0 if out is None else out.shape[1] * 4)
+            problem = blob_problem(blob, size, stored_crc)
+            if problem is None and (size == 0 or size % 4):
+                problem = f"holds {size} bytes, not a float32 vector"
+            if problem is not None:
+                raise DamagedStoreError(f"{self.label}: {self._image_name(image_id)} global vector ({name}): "
+                                        f"{problem}; {repair_hint(self.label)}")
             row = np.frombuffer(blob, np.float32)
             if out is None:
                 out = np.empty((n, row.size), np.float32)
             ids[k], out[k] = image_id, row
         return ids, out
 
+    def _image_name(self, image_id: int) -> str:
+        row = self.db.execute("SELECT source, camera, frame FROM images WHERE id = ?", [image_id]).fetchone()
+        return f"image id {image_id}" if row is None else f"{row[0]}/{row[1]} frame {row[2]}"
+
     def put_array(self, key: str, array: np.ndarray) -> None:
         a = np.ascontiguousarray(array)
         with self.db.atomic():
             self.db["arrays"].upsert({"key": key, "dtype": a.dtype.str, "shape_json": json.dumps(list(a.shape)),
-                                      "data": a.tobytes()}, pk="key")
+                                      "data_crc32": crc32(a.tobytes()), "data": a.tobytes()}, pk="key")
 
     def get_array(self, key: str) -> np.ndarray | None:
         if "arrays" not in self.db.table_names():
             return None
-        row = next(self.db.query("SELECT dtype, shape_json, data FROM arrays WHERE key = ?", [key]), None)
+        row = next(self.db.query("SELECT dtype, shape_json, data_crc32, data FROM arrays WHERE key = ?", [key]), None)
         if row is None:
             return None
-        return np.frombuffer(row["data"], np.dtype(row["dtype"])).reshape(json.loads(row["shape_json"])).copy()
+        return array_from_blob(row["data"], np.dtype(row["dtype"]), tuple(json.loads(row["shape_json"])),
+                               f"{self.label}: array {key}", row["data_crc32"], self.label)
 

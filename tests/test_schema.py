@@ -12,20 +12,22 @@ import pytest
 
 from conftest import REPO
 from helpers import features, make_version_1_store
-from visloc.db import (CameraRecord, FeatureStore, ImageRecord, SelfCheckRecord, SelfCheckTable, SkippedFrame,
+from visloc.db import (CameraRecord, DamagedStoreError, FeatureStore, ImageRecord, SelfCheckRecord, SelfCheckTable, SkippedFrame,
                        StructureRecord, StructureTable, VectorTable)
 from visloc.db.connection import Database
 from visloc.db.schema import HISTORY, SCHEMA_VERSION, Column, Index, Table, upgrade
 
 # ``images`` as every store made before the schema was kept as a history laid it out (and as
-# out/results/visloc.sqlite holds it): the columns of later versions before the BLOBs
+# out/results/visloc.sqlite holds it), with the columns of later versions in their places: before the BLOBs
 IMAGES_SQL = ('CREATE TABLE "images" (\n   "id" INTEGER PRIMARY KEY,\n   "source" TEXT NOT NULL,\n'
               '   "camera" TEXT NOT NULL,\n   "frame" INTEGER NOT NULL,\n   "path" TEXT,\n'
+              '   "source_sha256" TEXT,\n   "source_bytes" INTEGER,\n'
               '   "timestamp_s" REAL NOT NULL,\n   "lat_deg" REAL NOT NULL,\n   "lon_deg" REAL NOT NULL,\n'
               '   "alt_m" REAL,\n   "heading_deg" REAL,\n   "width_px" INTEGER,\n   "height_px" INTEGER,\n'
               '   "sift_ms" REAL,\n   "roll_rad" REAL,\n   "pitch_rad" REAL,\n   "yaw_rad" REAL,\n'
-              '   "position_accuracy_m" REAL,\n   "n_keypoints" INTEGER NOT NULL,\n   "keypoints_f32" BLOB,\n'
-              '   "descriptors_u8" BLOB,\n   "created_at" TEXT\n)')
+              '   "position_accuracy_m" REAL,\n   "n_keypoints" INTEGER NOT NULL,\n   "keypoints_crc32" INTEGER,\n'
+              '   "descriptors_crc32" INTEGER,\n   "keypoints_f32" BLOB,\n   "descriptors_u8" BLOB,\n'
+              '   "created_at" TEXT\n)')
 TABLES = {"visloc_schema", "settings", "cameras", "images", "pair_counts", "structures", "global_vectors", "arrays",
           "skipped_frames", "self_checks"}
 
@@ -101,7 +103,7 @@ def test_the_history_defines_each_table_column_and_index_once():
     indexes = [c.name for c in changes if isinstance(c, Index)]
     assert len(set(tables)) == len(tables) and set(tables) == TABLES
     assert len(set(columns)) == len(columns) and len(set(indexes)) == len(indexes)
-    assert SCHEMA_VERSION == len(HISTORY) == 4
+    assert SCHEMA_VERSION == len(HISTORY) == 5
 
 
 def test_a_new_store_written_through_every_path_holds_exactly_what_the_history_makes(tmp_path):
@@ -156,8 +158,11 @@ def test_an_upgraded_store_has_the_schema_of_a_new_one(tmp_path, version):
     assert sqlite3.connect(path).execute("SELECT version FROM visloc_schema").fetchall() == [(SCHEMA_VERSION,)]
 
 
-def test_a_version_4_store_without_the_tables_once_made_when_needed_gains_them_when_written(tmp_path):
-    path = tmp_path / "v4.sqlite"
+def test_a_store_that_lost_tables_is_refused_as_damaged_when_read_and_rebuilt_when_written(tmp_path):
+    """A store of this version holds every table the history makes: one without some (lost, or a
+    version 4 store written when two were made only when first needed and not upgraded since) is
+    damaged. Reading it says so and writes nothing; opening it for writing (ingest) makes them again."""
+    path = tmp_path / "lost.sqlite"
     written_through_every_path(path)
     conn = sqlite3.connect(path)
     conn.execute("DROP TABLE skipped_frames")
@@ -165,12 +170,15 @@ def test_a_version_4_store_without_the_tables_once_made_when_needed_gains_them_w
     conn.commit()
     conn.close()
     before = hashlib.sha256(path.read_bytes()).hexdigest()
-    with FeatureStore(path, read_only=True) as store:  # read as it is, nothing written
-        assert store.skipped_frames() == [] and store.image_count() == 1
+    with pytest.raises(DamagedStoreError, match=r"lost.sqlite: damaged visloc store: missing table skipped_frames, "
+                                                r"table self_checks; 'visloc ingest' of its drives rebuilds"):
+        FeatureStore(path, read_only=True)
     assert hashlib.sha256(path.read_bytes()).hexdigest() == before
     with FeatureStore(path) as store:
         assert store.migrated_from is None  # same version: nothing to report
     assert master(sqlite3.connect(path)) == master(history_applied(step_by_step=False))
+    with FeatureStore(path, read_only=True) as store:
+        assert store.skipped_frames() == [] and store.image_count() == 1
 
 
 def test_no_table_or_index_is_made_outside_the_schema_history():

@@ -31,6 +31,8 @@ from visloc.protocols.suite import database_row, drive_protocols, drives_of, poo
 from visloc.protocols.track import run_track, track_filter, track_localizer
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
 from visloc.store.build import ingest_sequence
+from visloc.store.check import check_store
+from visloc.cli.stopping import interrupted_status, interrupted_text
 
 
 # -- arguments -> parameters ------------------------------------------------------------------
@@ -84,13 +86,13 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
 
 
 def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,
-            structure: bool = True):
+            structure: bool = True, repair: bool = False):
     return ingest_sequence(ws, seq, sift, workers=a.workers, limit=limit, structure=structure,
                      progress=progress_reporter(f"ingest {seq.name}", "images"),
                      vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
                      structure_progress=progress_reporter(f"structure {seq.name}", "images"),
                      self_check_progress=progress_reporter(f"self-check {seq.name}", "images"),
-                     skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp)
+                     skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp, repair=repair)
 
 
 # -- commands -----------------------------------------------------------------------------------
@@ -107,11 +109,12 @@ def cmd_ingest(a: argparse.Namespace) -> int:
         with store_for_writing(a.db):
             ws = Workspace(a.db, create=True)
             for seq in sequences:
-                _print_ingest(a, seq, _ingest(ws, seq, sift, a, a.limit))
-    except KeyboardInterrupt:
+                _print_ingest(a, seq, _ingest(ws, seq, sift, a, a.limit, repair=True))
+    except KeyboardInterrupt as exc:
         n = ws.stored_frame_count(seq.source, seq.camera) if ws is not None and Path(a.db).exists() else 0
-        print(f"visloc: interrupted; {a.db} keeps {n} images of {seq.name}", file=sys.stderr)
-        return 130
+        print(f"visloc: {interrupted_text(exc)}; {a.db} keeps {n} images of {seq.name} (run the same command again "
+              "to go on)", file=sys.stderr)
+        return interrupted_status(exc)
     return 0
 
 
@@ -119,7 +122,14 @@ def _print_ingest(a: argparse.Namespace, seq: Sequence, report) -> None:
     filled = f", attitude filled in for {report.n_attitudes_filled}" if report.n_attitudes_filled else ""
     bad = report.n_bad_skipped
     bad = f", {bad} bad frame{'s' if bad > 1 else ''} skipped (visloc info lists them)" if bad else ""
-    print(f"{a.db}: {seq.name}: {report.n_added} added, {report.n_skipped} already stored, "
+    redone = report.n_repaired + report.n_source_changed
+    again = "".join(text for n, text in (
+        (report.n_repaired, f", {report.n_repaired} repaired (their features failed their checksum)"),
+        (report.n_source_changed, f", {report.n_source_changed} described again (their image file changed)"),
+        (report.n_derived_repaired, f", {report.n_derived_repaired} damaged rows of structure or global vectors "
+                                    "rebuilt"),
+        (report.n_sources_recorded, f", {report.n_sources_recorded} checked against their image files")) if n)
+    print(f"{a.db}: {seq.name}: {report.n_added} added, {report.n_skipped - redone} already stored{again}, "
           f"{len(seq)} frames{bad} ({report.images_per_s:.1f} images/s){filled}")
 
 
@@ -389,6 +399,13 @@ def cmd_upgrade(a: argparse.Namespace) -> int:
         print(f"{a.db}: schema version {ws.migrated_from} -> {STORE_SCHEMA_VERSION}, every image and cached count kept; "
               "'visloc ingest' on its drives fills in what the new version adds")
     return 0
+
+
+def cmd_check(a: argparse.Namespace) -> int:
+    report = check_store(a.db, progress=progress_reporter(f"check {a.db}", "images"))
+    for line in report.lines():
+        print(line)
+    return 0 if report.clean else 2
 
 
 def cmd_info(a: argparse.Namespace) -> int:

@@ -97,6 +97,11 @@ examples:
 examples:
   visloc info                                       # the default store
   visloc info --db out/my_drive.sqlite""",
+    "check": """\
+examples:
+  visloc check                                      # the default store
+  visloc check --db out/my_drive.sqlite && echo whole
+  visloc ingest my_drive/geotags.csv --db out/my_drive.sqlite   # repairs the damaged images check named""",
 }
 
 

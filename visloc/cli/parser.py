@@ -8,12 +8,15 @@ exit status 2; nothing already stored is lost.
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import sqlite3
 import sys
 from pathlib import Path
 
 from visloc.cli import commands
+from visloc.cli.stopping import interrupted_status, interrupted_text, stop_on_signal
+from visloc.db.connection import sqlite_error_line
 from visloc.db import StoreError
 from visloc.errors import VislocError
 from visloc.cli.help_text import DEFAULT_DB, DEFAULT_FAST_DB, examples
@@ -307,6 +310,15 @@ def build_parser() -> argparse.ArgumentParser:
     p = _command(sub, "info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)
     p.set_defaults(func=commands.cmd_info)
+
+    p = _command(sub, "check", help="is a store whole? (exit 0 when it is, 2 when not)",
+                 description="Check a store without changing it: SQLite's own integrity check, every table and column "
+                             "this version needs, and every stored array (features, structure, global vectors) "
+                             "against the checksum written with it and the size its row states. Prints one line per "
+                             "damaged image (drive, camera, frame, what is wrong) and a summary. Re-running 'visloc "
+                             "ingest' of a drive repairs its damaged images.")
+    _add_db(p)
+    p.set_defaults(func=commands.cmd_check)
     return parser
 
 
@@ -314,6 +326,7 @@ def main(argv: list[str] | None = None) -> int:
     # Ctrl-C and `kill -INT` stop a command cleanly (what it committed is kept) even when it was
     # started in the background, where Python would otherwise inherit SIGINT as ignored
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, stop_on_signal)  # `kill` stops it as cleanly as Ctrl-C
     parser = build_parser()
     args = parser.parse_args(argv)
     for name in ("steps", "workers", "limit", "frames"):
@@ -324,16 +337,23 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if getattr(args, "max_image_mp", None) is not None:
             require_max_image_mp(args.max_image_mp)  # before a command creates any file
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # here, so that a reader gone away (| head) is met below, not at exit
+        return status
+    except BrokenPipeError:
+        # the reader of the output went away (| head): stop quietly, as the shell's own tools do
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 128 + signal.SIGPIPE
     except (VislocError, StoreError) as exc:
         print(f"visloc: error: {exc}", file=sys.stderr)
         return 2
     except sqlite3.Error as exc:  # locked, read-only or damaged store file
-        print(f"visloc: error: {getattr(args, 'db', 'database')}: SQLite: {exc}", file=sys.stderr)
+        print(f"visloc: error: {sqlite_error_line(str(getattr(args, 'db', 'database')), exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("visloc: interrupted", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        print(f"visloc: {interrupted_text(exc)}", file=sys.stderr)
+        return interrupted_status(exc)
+
 
 
 if __name__ == "__main__":

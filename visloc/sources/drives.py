@@ -33,6 +33,7 @@ UTF-8, with or without a byte-order mark.
 from __future__ import annotations
 
 import csv
+import hashlib
 import datetime as _dt
 import io
 import math
@@ -127,6 +128,12 @@ def default_data_root() -> Path:
 
 def load_gray(path: Path) -> np.ndarray:
     """Read an image file as 2-D uint8 gray; ``InputError`` naming the file if it is missing or corrupt."""
+    return read_image(path)[0]
+
+
+def read_image(path: Path) -> tuple[np.ndarray, str, int]:
+    """(the image as 2-D uint8 gray, the SHA-256 of the file's bytes (hex), their count), from one read
+    of the file; ``InputError`` naming the file if it is missing or corrupt."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: image file not found")
@@ -134,7 +141,16 @@ def load_gray(path: Path) -> np.ndarray:
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None:
         raise InputError(f"{path}: cannot decode image (corrupt or not an image)")
-    return to_gray_u8(image, name=str(path))
+    return to_gray_u8(image, name=str(path)), hashlib.sha256(data).hexdigest(), int(data.size)
+
+
+def file_digest(path: Path) -> tuple[str, int] | None:
+    """(SHA-256 of the file's bytes (hex), their count), None when the file cannot be read."""
+    try:
+        data = Path(path).read_bytes()
+    except OSError:
+        return None
+    return hashlib.sha256(data).hexdigest(), len(data)
 
 
 # -- KITTI raw -------------------------------------------------------------------

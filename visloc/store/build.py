@@ -26,11 +26,13 @@ Progress = Callable[[int, int], None] | None
 def ingest_sequence(ws: Workspace, sequence: Sequence, sift: SiftParams, *, workers: int | None = None,
                     limit: int | None = None, progress: Progress = None, structure_progress: Progress = None,
                     structure: bool = True, skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
-                    vectors_progress: Progress = None, self_check_progress: Progress = None) -> IngestReport:
-    """SIFT every frame of ``sequence`` the store lacks (``Workspace.add_features``), then its global
-    vectors, its structure and its self-check (``structure=False``: SIFT only); resumable."""
+                    vectors_progress: Progress = None, self_check_progress: Progress = None,
+                    repair: bool = False) -> IngestReport:
+    """SIFT every frame of ``sequence`` the store lacks (``Workspace.add_features``; ``repair``: and those
+    whose features are damaged), then its global vectors, its structure and its self-check
+    (``structure=False``: SIFT only); resumable."""
     report = ws.add_features(sequence, sift, workers=workers, limit=limit, progress=progress,
-                             skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp)
+                             skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair)
     if structure and ws.stored_frame_count(sequence.source, sequence.camera):
         build_global_vectors(ws, sequence.source, sequence.camera, progress=vectors_progress)
         build_structure(ws, sequence.source, sequence.camera, progress=structure_progress)

@@ -21,12 +21,15 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from visloc.db import CameraRecord, EmptyStoreError, FeatureStore, ImageRecord, SkippedFrame
+from visloc.db import CameraRecord, DamagedStoreError, EmptyStoreError, FeatureStore, ImageRecord, SkippedFrame
+from visloc.db.blobs import repair_hint
+from visloc.db.integrity import forget_damage, forget_derived, scan
+from visloc.db.provenance import StoredSource, record_sources, replace_images, same_checksums, stored_sources
 from visloc.errors import InputError
 from visloc.features.sift import extract_sift, make_sift, undistort_keypoints
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, check_image_size, header_size_px, require_max_image_mp
 from visloc.params import SiftParams
-from visloc.sources.drives import Frame, Sequence, load_gray
+from visloc.sources.drives import Frame, Sequence, file_digest, read_image
 
 SIFT_SETTINGS_KEY = "sift"
 
@@ -42,10 +45,16 @@ class IngestReport:
     n_attitudes_filled: int = 0  # stored images whose missing attitude this run filled in (schema-1 stores)
     n_accuracies_filled: int = 0  # stored images whose missing geotag accuracy this run filled in (schema < 3)
     n_bad_skipped: int = 0  # frames the store records as skipped because they could not be described
+    n_repaired: int = 0  # stored images whose BLOBs failed their checksum, described again from their files
+    n_source_changed: int = 0  # stored images whose file changed since, described again
+    n_sources_recorded: int = 0  # stored images from before sources were recorded, found unchanged
+    n_derived_repaired: int = 0  # damaged rows of structure, global vectors or encoders, dropped to be rebuilt
 
     @property
     def images_per_s(self) -> float:
-        return self.n_added / self.seconds if self.seconds > 0 else 0.0
+        """Images described per second (added, repaired or described again)."""
+        described = self.n_added + self.n_repaired + self.n_source_changed
+        return described / self.seconds if self.seconds > 0 else 0.0
 
 
 def require_sift_settings(store: FeatureStore, params: SiftParams) -> None:
@@ -82,14 +91,14 @@ def _init_worker(params: SiftParams, single_thread: bool = True) -> None:
 # undistort its keypoints with (None, None: stored as detected), the size the calibration states
 # (None: any), and the image size limit in megapixels
 WorkItem = tuple[Frame, SiftParams, np.ndarray | None, np.ndarray | None, tuple[int, int] | None, float]
-Extracted = tuple[Frame, np.ndarray, np.ndarray, float, tuple[int, int]]
+Extracted = tuple[Frame, np.ndarray, np.ndarray, float, tuple[int, int], tuple[str, int]]
 
 
 def _extract_frame(item: WorkItem) -> Extracted:
     """SIFT of one frame; ``InputError`` naming the frame's file when it cannot be described."""
     frame, params, K, distortion, calibrated_size, max_image_mp = item
     check_image_size(frame.image_path, header_size_px(frame.image_path), max_image_mp)
-    gray = load_gray(frame.image_path)
+    gray, sha256, n_bytes = read_image(frame.image_path)
     size = (gray.shape[1], gray.shape[0])
     check_image_size(frame.image_path, size, max_image_mp)
     if calibrated_size is not None and size != tuple(calibrated_size):
@@ -100,7 +109,7 @@ def _extract_frame(item: WorkItem) -> Extracted:
     sift_ms = (time.perf_counter() - start) * 1000.0
     keypoints = features.keypoints_f32 if distortion is None else undistort_keypoints(features.keypoints_f32, K,
                                                                                        distortion)
-    return frame, keypoints, features.descriptors_u8, sift_ms, size
+    return frame, keypoints, features.descriptors_u8, sift_ms, size, (sha256, n_bytes)
 
 
 def _undistortion(sequence: Sequence) -> tuple[np.ndarray | None, np.ndarray | None]:
@@ -167,6 +176,7 @@ def ingest(
     limit: int | None = None,
     skip_bad_frames: bool = False,
     max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
+    repair: bool = False,
 ) -> IngestReport:
     """Add every frame of ``sequence`` missing from ``store``. ``progress(done, total)`` is told of
     the start (0 done) and of each image done.
@@ -176,57 +186,136 @@ def ingest(
     before; with ``skip_bad_frames`` it is recorded in the store as skipped, with the reason, and the
     ingest goes on. A frame recorded as skipped by an earlier run is tried again and, if still bad,
     skipped again. ``limit`` stops after that many new images (for sampling and tests).
+
+    A stored frame whose image file changed since (or that was stored before files were recorded and
+    now describes otherwise) is described again, in place. A stored frame whose features fail their
+    checksum is described again with ``repair`` (and the damaged structure, global vectors and encoders
+    of the camera dropped, for the build steps to make again); without it, the first damage found
+    stops the ingest with a ``DamagedStoreError`` naming it.
     """
     start = time.perf_counter()
     max_image_mp = require_max_image_mp(max_image_mp)
     require_sift_settings(store, params)
     _refuse_mixed_undistortion(store, sequence)
-    stored = store.stored_frames(sequence.source, sequence.camera)
+    stored = stored_sources(store, sequence.source, sequence.camera)
+    redo = _stale(store, sequence, stored, repair)
     skipped_before = {f.frame for f in store.skipped_frames(sequence.source, sequence.camera)}
     missing = [f for f in sequence.frames if f.frame not in stored]
-    todo = missing if limit is None else missing[:limit]
+    todo = [f for f in sequence.frames if f.frame in redo.frames] + (missing if limit is None else missing[:limit])
     workers = workers or min(os.cpu_count() or 1, 8)
     pending: list[tuple[ImageRecord, np.ndarray, np.ndarray]] = []
-    added, bad = 0, []
+    replacing: list[tuple[ImageRecord, np.ndarray, np.ndarray]] = []
+    added, bad, recorded, differed = 0, [], {}, 0
     size_px = sequence.image_size_px
     if progress:
         progress(0, len(todo))
     try:
         for done, (frame, result) in enumerate(_extracted(todo, params, workers, sequence, max_image_mp), 1):
             if isinstance(result, InputError):
-                if not (skip_bad_frames or frame.frame in skipped_before):
+                if not (skip_bad_frames or frame.frame in skipped_before) or frame.frame in stored:
                     raise InputError(f"{result} (frame {frame.frame} of {sequence.name}); the images before it "
                                      "are stored. Fix or remove that frame, or ingest with --skip-bad-frames to "
                                      "skip such frames (the store records which)") from None
                 bad.append(SkippedFrame(sequence.source, sequence.camera, frame.frame, str(frame.image_path),
                                         str(result)))
             else:
-                _, keypoints, descriptors, sift_ms, size_px = result
+                _, keypoints, descriptors, sift_ms, size_px, (sha256, n_bytes) = result
                 record = ImageRecord(
                     source=sequence.source, camera=sequence.camera, frame=frame.frame, path=str(frame.image_path),
                     timestamp_s=frame.timestamp_s, lat_deg=frame.lat_deg, lon_deg=frame.lon_deg,
                     alt_m=frame.alt_m, heading_deg=frame.heading_deg, width_px=size_px[0], height_px=size_px[1],
                     sift_ms=sift_ms, roll_rad=frame.roll_rad, pitch_rad=frame.pitch_rad, yaw_rad=frame.yaw_rad,
-                    position_accuracy_m=frame.position_accuracy_m,
+                    position_accuracy_m=frame.position_accuracy_m, source_sha256=sha256, source_bytes=n_bytes,
                 )
-                pending.append((record, keypoints, descriptors))
+                if frame.frame not in stored:
+                    pending.append((record, keypoints, descriptors))
+                elif frame.frame in redo.unrecorded and _same_features(store, stored[frame.frame].image_id,
+                                                                       keypoints, descriptors):
+                    recorded[frame.frame] = (sha256, n_bytes)
+                else:
+                    differed += frame.frame in redo.unrecorded
+                    # a repair that gives back the very bytes first written leaves what was made from them
+                    restored = frame.frame in redo.damaged and same_checksums(stored[frame.frame], keypoints,
+                                                                              descriptors)
+                    replacing.append((record, keypoints, descriptors, restored))
             if len(pending) >= batch_size or (bad and not pending):
                 added += store.add_images(pending, skipped=bad)
                 pending, bad = [], []
+            if len(replacing) >= batch_size:
+                _replace(store, sequence, replacing)
+                replacing = []
             if progress:
                 progress(done, len(todo))
     finally:
         # Commit what finished, also on Ctrl-C, on a bad image further on or on a dead worker.
         if pending or bad:
             added += store.add_images(pending, skipped=bad)
-        if size_px is not None and (added or store.get_camera(sequence.source, sequence.camera) is None):
+        if replacing:
+            _replace(store, sequence, replacing)
+        if recorded:
+            record_sources(store, sequence.source, sequence.camera, recorded)
+        if size_px is not None and (added or redo.frames or store.get_camera(sequence.source, sequence.camera) is None):
             store.set_camera(CameraRecord(sequence.source, sequence.camera, sequence.P_rect, *size_px,
                                           T_camera_imu=sequence.T_camera_imu))
     filled = backfill_poses(store, sequence)
     n_skipped_bad = len(store.skipped_frames(sequence.source, sequence.camera))
     return IngestReport(sequence.source, sequence.camera, len(sequence), len(sequence) - len(missing), added,
                         time.perf_counter() - start, n_attitudes_filled=filled,
-                        n_accuracies_filled=backfill_accuracies(store, sequence), n_bad_skipped=n_skipped_bad)
+                        n_accuracies_filled=backfill_accuracies(store, sequence), n_bad_skipped=n_skipped_bad,
+                        n_repaired=len(redo.damaged), n_source_changed=len(redo.changed) + differed,
+                        n_sources_recorded=len(recorded), n_derived_repaired=redo.n_derived)
+
+
+@dataclass(frozen=True)
+class _Stale:
+    """Stored frames of a sequence to describe again: ``damaged`` (their BLOBs fail), ``changed``
+    (their file is not the one they were made from), ``unrecorded`` (stored before files were
+    recorded: described again and compared). ``n_derived``: damaged derived rows dropped."""
+
+    damaged: frozenset[int]
+    changed: frozenset[int]
+    unrecorded: frozenset[int]
+    n_derived: int
+
+    @property
+    def frames(self) -> frozenset[int]:
+        return self.damaged | self.changed | self.unrecorded
+
+
+def _stale(store: FeatureStore, sequence: Sequence, stored: dict[int, StoredSource], repair: bool) -> _Stale:
+    """Which stored frames of ``sequence`` must be described again; damaged structure, global vectors
+    and encoders of its camera are dropped here (the build steps make them again)."""
+    damage = list(scan(store, source=sequence.source, camera=sequence.camera))
+    if damage and not repair:
+        raise DamagedStoreError(f"{store.label}: {damage[0].image}: {damage[0].problem}; {repair_hint(store.label)}")
+    derived = [d for d in damage if d.table != "images"]
+    if derived:
+        forget_damage(store, derived)
+    damaged = {d.frame for d in damage if d.table == "images"}
+    changed, unrecorded = set(), set()
+    for f in sequence.frames:
+        if f.frame not in stored or f.frame in damaged:
+            continue
+        known = stored[f.frame]
+        if known.source_sha256 is None:
+            unrecorded.add(f.frame)
+        elif file_digest(f.image_path) not in (None, (known.source_sha256, known.source_bytes)):
+            changed.add(f.frame)
+    in_sequence = {f.frame for f in sequence.frames}
+    return _Stale(frozenset(damaged & in_sequence), frozenset(changed), frozenset(unrecorded), len(derived))
+
+
+def _same_features(store: FeatureStore, image_id: int, keypoints: np.ndarray, descriptors: np.ndarray) -> bool:
+    stored_keypoints, stored_descriptors = store.features([image_id])[image_id]
+    return (np.array_equal(stored_descriptors, descriptors)
+            and np.array_equal(stored_keypoints, np.asarray(keypoints, np.float32)))
+
+
+def _replace(store: FeatureStore, sequence: Sequence, batch: list) -> None:
+    """Replace stored images in place; drop what was made from those not ``restored`` to their first bytes."""
+    ids = replace_images(store, [(record, keypoints, descriptors) for record, keypoints, descriptors, _ in batch])
+    changed = [image_id for image_id, (*_, restored) in zip(ids, batch) if not restored]
+    forget_derived(store, sequence.source, sequence.camera, changed)
 
 
 def _refuse_mixed_undistortion(store: FeatureStore, sequence: Sequence) -> None:

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from visloc.store.database import GeoDatabase, QuerySet
+from visloc.db.connection import sqlite_error_line
 from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecord, SelfCheckRecord, SelfCheckTable,
                        SkippedFrame,
                        StoredImage, StoreError, StructureRecord, StructureTable, VectorTable)
@@ -73,13 +74,13 @@ class Workspace:
         except StoreError as exc:
             raise InputError(str(exc)) from None
         except sqlite3.Error as exc:
-            raise InputError(f"{self.path}: SQLite: {exc}") from None
+            raise InputError(sqlite_error_line(str(self.path), exc)) from None
         try:
             yield store
         except StoreError as exc:
             raise InputError(str(exc)) from None
         except sqlite3.Error as exc:
-            raise InputError(f"{self.path}: SQLite: {exc}") from None
+            raise InputError(sqlite_error_line(str(self.path), exc)) from None
         finally:
             store.close()
 
@@ -124,13 +125,14 @@ class Workspace:
 
     def add_features(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None,
                      limit: int | None = None, progress: Callable[[int, int], None] | None = None,
-                     skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP) -> IngestReport:
+                     skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
+                     repair: bool = False) -> IngestReport:
         """SIFT every frame of ``sequence`` that the store lacks, into the store (``visloc.store.ingest``, also
         for ``skip_bad_frames`` and ``max_image_mp``); resumable. ``visloc.store.build.ingest_sequence`` adds
         what the refined methods need after it."""
         with self._store(create=True) as store:
             report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit,
-                            skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp)
+                            skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair)
             self._sift = stored_sift_params(store)
         return report
 
