@@ -95,13 +95,26 @@ def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespac
                      skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp, repair=repair)
 
 
+_NOTES_SHOWN: set[str] = set()
+
+
+def _open_source(*args, **kwargs) -> Sequence:
+    """``open_source``, telling the user once what reading it changed (e.g. intrinsics scaled to the images)."""
+    seq = open_source(*args, **kwargs)
+    for note in seq.notes:
+        if note not in _NOTES_SHOWN:
+            _NOTES_SHOWN.add(note)
+            print(f"visloc: {note}", file=sys.stderr)
+    return seq
+
+
 # -- commands -----------------------------------------------------------------------------------
 
 def cmd_ingest(a: argparse.Namespace) -> int:
     sift = sift_params(a)
     refuse_camera_for_csv(a.source, "--camera", a.camera)
     cameras = a.camera or [kitti_camera(a.source, a.drive, None)]
-    sequences = [open_source(a.source, drive=a.drive, camera=camera) for camera in cameras]
+    sequences = [_open_source(a.source, drive=a.drive, camera=camera) for camera in cameras]
     seq, ws = sequences[0], None
     try:
         # only once every source opened: a bad source creates no store file; a store this command
@@ -139,7 +152,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
     method = method_of(a)
     require_writable_output(a.json, "--json")
     require_exports(a)
-    seq = open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
+    seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
     ws = Workspace(a.db)  # reading: a missing store is an error, never created
     db = ws.load_database(*choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
                                            prefer=PAPER_DATABASE_CAMERA.get(seq.camera, ())), sift)
@@ -250,8 +263,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         # the paper's protocol (right database for left queries) where the drive has both, else the query camera
         db_camera = kitti_camera(a.root, a.drive, a.db_camera, (*PAPER_DATABASE_CAMERA.get(query_camera, ()),
                                                                query_camera))
-        db_seq = open_source(a.root, drive=a.drive, camera=db_camera)
-    query_seq = open_source(a.root, drive=a.drive, camera=query_camera)
+        db_seq = _open_source(a.root, drive=a.drive, camera=db_camera)
+    query_seq = _open_source(a.root, drive=a.drive, camera=query_camera)
     # check the series before any slow work
     schedule = series_schedule(query_seq.timestamps_s, filt.dt_s, a.steps, a.sampling)
     if not schedule:
@@ -301,8 +314,8 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
         drive = folder.name.removesuffix("_sync")
         rows = []
         for protocol in drive_protocols(folder):
-            db_seq = open_source(root, drive=drive, camera=protocol.db_camera)
-            query_seq = open_source(root, drive=drive, camera=protocol.query_camera)
+            db_seq = _open_source(root, drive=drive, camera=protocol.db_camera)
+            query_seq = _open_source(root, drive=drive, camera=protocol.query_camera)
             results, db, _ = _evaluate_sources(a, ws, db_seq, query_seq, methods, sift,
                                                label=f"{drive} {protocol.key} ")
             for method, result in zip(methods, results):
@@ -344,7 +357,7 @@ def cmd_bench(a: argparse.Namespace) -> int:
     require_output(a.json, "--json", a.db)
     for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
         require_output(path, flag, path)  # its missing folder (as out/) is made
-    open_source(a.root, drive=a.drive, camera="image_00")  # a missing drive fails here, before any slow work
+    _open_source(a.root, drive=a.drive, camera="image_00")  # a missing drive fails here, before any slow work
     for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
         make_folder_of(path, flag)
     result = run_bench(a.root, a.drive, Path(a.db), Path(a.fast_db), params, say=lambda t: print(t, flush=True))
@@ -361,7 +374,7 @@ def cmd_track(a: argparse.Namespace) -> int:
     method = with_method_flags(a, REFINED_METHOD if a.exact else REFINED_FAST_METHOD, base.init_var)
     require_output(a.json, "--json", a.db)
     require_exports(a, a.db)
-    seq = open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
+    seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
     filt = track_filter(seq, params, base)
     indices = list(range(0, len(seq), params.stride))
     if a.frames is not None:
@@ -370,7 +383,7 @@ def cmd_track(a: argparse.Namespace) -> int:
         ws = Workspace(a.db, create=True)
         if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
             db_camera = kitti_only_camera(a.source, "--db-camera", a.db_camera, seq.camera)
-            _ingest(ws, open_source(a.source, drive=a.drive, camera=db_camera), sift, a)
+            _ingest(ws, _open_source(a.source, drive=a.drive, camera=db_camera), sift, a)
             source = seq.source
         else:
             source, db_camera = choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
@@ -398,6 +411,10 @@ def cmd_upgrade(a: argparse.Namespace) -> int:
     else:
         print(f"{a.db}: schema version {ws.migrated_from} -> {STORE_SCHEMA_VERSION}, every image and cached count kept; "
               "'visloc ingest' on its drives fills in what the new version adds")
+        if ws.checksums_filled:
+            print(f"{a.db}: computed the checksums of its {ws.checksums_filled} stored arrays as they are now (from "
+                  "here on a changed byte is caught; damage from before cannot be told apart); the next 'visloc "
+                  "ingest' of each drive describes its images once more to record which files they were made from")
     return 0
 
 

@@ -252,6 +252,20 @@ def read_kitti_calibration(calib_path: Path, camera: str) -> np.ndarray | None:
     return P
 
 
+def read_kitti_image_size(calib_path: Path, camera: str) -> tuple[int, int] | None:
+    """(width, height) in pixels of the rectified images, ``S_rect_0X`` of ``calib_cam_to_cam.txt``;
+    None if the file or the entry is absent."""
+    if not calib_path.is_file():
+        return None
+    key = "S_rect_" + camera[-2:]
+    values = _calib_numbers(calib_path, _calib_entries(calib_path), key, 2)
+    if values is None:
+        return None
+    if not (np.all(values >= 1) and np.all(values == np.round(values))):
+        raise InputError(f"{calib_path}: {key} must be two whole numbers of pixels >= 1")
+    return int(values[0]), int(values[1])
+
+
 def _rigid(entries: dict[str, str], path: Path, r_key: str = "R", t_key: str = "T") -> np.ndarray:
     R, t = _calib_numbers(path, entries, r_key, 9), _calib_numbers(path, entries, t_key, 3)
     if R is None or t is None:

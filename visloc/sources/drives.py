@@ -39,7 +39,7 @@ import io
 import math
 import os
 import re
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -49,10 +49,12 @@ from visloc.sources.calibration import (
     CALIBRATION_FILE,
     read_calibration,
     read_kitti_calibration,
+    read_kitti_image_size,
     read_kitti_extrinsics,
     read_text,
 )
 from visloc.errors import InputError
+from visloc.sources.imagesize import header_size_px
 from visloc.features.sift import to_gray_u8
 from visloc.geo import yaw_enu_to_heading_deg
 from visloc.geometry.projective import CameraModel
@@ -89,6 +91,7 @@ class Sequence:
     # OpenCV distortion coefficients of the images (CSV calibration.json); ingest undistorts keypoints
     # to the pinhole K = P_rect[:, :3]. None: the images are already pinhole (KITTI's rectified ones).
     distortion: np.ndarray | None = None
+    notes: tuple[str, ...] = ()  # what reading it changed, for the user (e.g. intrinsics scaled to the images)
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -267,7 +270,9 @@ def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
                             position_accuracy_m=accuracy))
     calib = read_kitti_calibration(folder.parent / "calib_cam_to_cam.txt", camera)
     extrinsics = read_kitti_extrinsics(folder.parent, camera) if calib is not None else None
-    return Sequence(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib, T_camera_imu=extrinsics)
+    size = read_kitti_image_size(folder.parent / "calib_cam_to_cam.txt", camera) if calib is not None else None
+    return Sequence(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib, image_size_px=size,
+                    T_camera_imu=extrinsics)
 
 
 # -- folder of images + CSV ------------------------------------------------------
@@ -402,5 +407,30 @@ def open_source(path: Path | None, *, drive: str | None = None, camera: str = "i
     data root, ``default_data_root()``)."""
     path = default_data_root() if path is None else Path(path)
     if path.suffix.lower() == ".csv":
-        return open_csv(path)
-    return open_kitti(path, drive, camera)
+        return fit_calibration(open_csv(path))
+    return fit_calibration(open_kitti(path, drive, camera))
+
+
+def fit_calibration(sequence: Sequence) -> Sequence:
+    """``sequence`` with a calibration that fits its images, judged from the first image's header.
+
+    Images of the calibration's size: unchanged. Images resized from it (the same aspect ratio, to a
+    pixel): the intrinsics scaled to their size, and a note saying so (``Sequence.notes``). Any other
+    size: ``InputError`` naming the image, both sizes and the calibration."""
+    if sequence.image_size_px is None or sequence.P_rect is None or not sequence.frames:
+        return sequence
+    first = sequence.frames[0].image_path
+    size = header_size_px(first)
+    if size is None or tuple(size) == tuple(sequence.image_size_px):
+        return sequence
+    (w, h), (w0, h0) = size, sequence.image_size_px
+    if abs(h0 * w / w0 - h) > 1.0:
+        raise InputError(f"{first}: image is {w}x{h} px but the calibration of {sequence.name} is for {w0}x{h0} px, "
+                         "another aspect ratio: give the calibration of these images")
+    sx, sy = w / w0, h / h0
+    # pixel centres: x + 0.5 = sx (x0 + 0.5), as a resize maps them
+    S = np.array([[sx, 0.0, (sx - 1.0) / 2.0], [0.0, sy, (sy - 1.0) / 2.0], [0.0, 0.0, 1.0]])
+    note = (f"{sequence.name}: images are {w}x{h} px, the calibration is for {w0}x{h0} px: its intrinsics are "
+            f"scaled by {sx:.4g} x {sy:.4g} to fit them")
+    return replace(sequence, P_rect=S @ np.asarray(sequence.P_rect, float), image_size_px=(w, h),
+                   notes=(*sequence.notes, note))

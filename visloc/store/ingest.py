@@ -21,7 +21,8 @@ from dataclasses import dataclass, replace
 import cv2
 import numpy as np
 
-from visloc.db import CameraRecord, DamagedStoreError, EmptyStoreError, FeatureStore, ImageRecord, SkippedFrame
+from visloc.db import (CameraRecord, DamagedStoreError, EmptyStoreError, FeatureStore, ImageRecord,
+                       SettingsMismatchError, SkippedFrame)
 from visloc.db.blobs import repair_hint
 from visloc.db.integrity import forget_damage, forget_derived, scan
 from visloc.db.provenance import StoredSource, record_sources, replace_images, same_checksums, stored_sources
@@ -59,7 +60,10 @@ class IngestReport:
 
 def require_sift_settings(store: FeatureStore, params: SiftParams) -> None:
     """Record the SIFT settings in a new store; refuse a store built with others."""
-    store.require_setting(SIFT_SETTINGS_KEY, params.as_dict(), what="SIFT settings")
+    try:
+        store.require_setting(SIFT_SETTINGS_KEY, params.as_dict(), what="SIFT settings")
+    except SettingsMismatchError:
+        raise SettingsMismatchError(_sift_difference(store, params)) from None
 
 
 def check_sift_settings(store: FeatureStore, params: SiftParams) -> None:
@@ -68,7 +72,21 @@ def check_sift_settings(store: FeatureStore, params: SiftParams) -> None:
     if stored is None:
         raise EmptyStoreError(f"{store.label}: no features yet (build it with 'visloc ingest')")
     if stored != params.as_dict():
-        store.require_setting(SIFT_SETTINGS_KEY, params.as_dict(), what="SIFT settings")  # raises, naming the diff
+        raise SettingsMismatchError(_sift_difference(store, params))
+
+
+def _sift_difference(store: FeatureStore, params: SiftParams) -> str:
+    """"STORE: built with other SIFT settings (name: store X, asked Y; ...)", each setting as it takes
+    effect (a setting the store does not record has its default, e.g. image_scale 1.0)."""
+    stored = store.get_setting(SIFT_SETTINGS_KEY)
+    try:
+        theirs = SiftParams(**stored).__dict__
+    except (TypeError, ValueError):
+        theirs = dict(stored) if isinstance(stored, dict) else {}
+    ours = params.__dict__
+    diffs = "; ".join(f"{k}: store {theirs.get(k)!r}, asked {ours.get(k)!r}" for k in sorted(set(ours) | set(theirs))
+                      if theirs.get(k) != ours.get(k))
+    return f"{store.label}: built with other SIFT settings ({diffs})"
 
 
 def stored_sift_params(store: FeatureStore) -> SiftParams | None:

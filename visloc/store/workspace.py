@@ -66,6 +66,7 @@ class Workspace:
             self._sift = stored_sift_params(store)
             # opening for writing migrates a store of an older schema version in place: from which, if it did
             self.migrated_from: int | None = store.migrated_from
+            self.checksums_filled: int = store.checksums_filled  # arrays whose checksums that migration computed
 
     @contextmanager
     def _store(self, *, create: bool = False) -> Iterator[FeatureStore]:
