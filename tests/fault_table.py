@@ -18,6 +18,7 @@ import pytest
 FAULT_MODULES = (
     "test_faults_input",
     "test_faults_store",
+    "test_faults_trust",
     "test_faults_process",
     "test_faults_params",
     "test_faults_dashboard",

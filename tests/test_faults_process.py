@@ -45,6 +45,10 @@ FAULTS = [
           "kill -INT to an ingest started in the background (SIGINT ignored, as a shell does for & jobs), "
           "with one and with two worker processes",
           "Stops cleanly: 'interrupted', exit 130, every finished image kept"),
+    Fault("sigterm-ingest", "signals",
+          "kill (SIGTERM) to an ingest in progress",
+          "It stops as on Ctrl-C: the finished images committed, one line saying SIGTERM stopped it and how "
+          "many images the store keeps, exit 143; running it again goes on"),
     Fault("dashboard-sigint-in-background", "signals",
           "kill -INT to a dashboard started in the background (SIGINT ignored)",
           "The server stops: 'interrupted', exit 130"),
@@ -206,6 +210,30 @@ def test_sigint_stops_an_ingest_started_in_the_background(tmp_path, fault, worke
     assert 8 <= len(interrupted) < n_frames
     assert_no_half_images(interrupted)
     assert f"interrupted; {db_path} keeps {len(interrupted)} images" in err
+
+
+@pytest.mark.parametrize("fault", params([CASES["sigterm-ingest"]]))
+def test_sigterm_stops_an_ingest_as_ctrl_c_does(tmp_path, fault):
+    n_frames = 200
+    csv_path = write_csv_drive(tmp_path / "long", n_frames=n_frames, step_px=60)
+    db_path = tmp_path / "store.sqlite"
+    proc = ingest_process(csv_path, db_path, 2)
+    try:
+        wait_for_rows(db_path, 8, proc, timeout_s=600)
+        os.kill(proc.pid, signal.SIGTERM)
+        _, err = proc.communicate(timeout=600)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    stopped = snapshot(db_path)
+    assert 8 <= len(stopped) < n_frames
+    assert_no_half_images(stopped)
+    assert f"visloc: stopped by SIGTERM; {db_path} keeps {len(stopped)} images" in err and "Traceback" not in err
+    again = run_cli("ingest", csv_path, "--db", db_path, "--workers", "2")
+    assert again.returncode == 0, again.stderr
+    assert f"{n_frames - len(stopped)} added, {len(stopped)} already stored" in again.stdout
 
 
 @pytest.mark.parametrize("fault", params([CASES["dashboard-sigint-in-background"]]))

@@ -27,3 +27,15 @@ def test_every_fault_in_the_tables_is_collected_as_a_test():
                      if not (f"[{f.id}]" in names or f"-{f.id}]" in names or f"[{f.id}-" in names
                              or f"-{f.id}-" in names))
     assert not missing, f"faults listed but not tested: {missing}"
+
+
+def test_the_readme_performance_notes_are_what_their_json_renders():
+    """The checksums' measured cost in the README is rendered from docs/results/checksum_cost.json (written by
+    scripts/checksum_cost.py), so it cannot drift from what was measured."""
+    import json
+
+    import checksum_cost
+
+    rendered = checksum_cost.render(json.loads(checksum_cost.OUT.read_text()))
+    assert rendered in (REPO / "README.md").read_text()
+    assert checksum_cost.update_readme(rendered) == (REPO / "README.md").read_text()

@@ -87,12 +87,17 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
 
 def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,
             structure: bool = True, repair: bool = False):
-    return ingest_sequence(ws, seq, sift, workers=a.workers, limit=limit, structure=structure,
-                     progress=progress_reporter(f"ingest {seq.name}", "images"),
-                     vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
-                     structure_progress=progress_reporter(f"structure {seq.name}", "images"),
-                     self_check_progress=progress_reporter(f"self-check {seq.name}", "images"),
-                     skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp, repair=repair)
+    report = ingest_sequence(ws, seq, sift, workers=a.workers, limit=limit, structure=structure,
+                             progress=progress_reporter(f"ingest {seq.name}", "images"),
+                             vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
+                             structure_progress=progress_reporter(f"structure {seq.name}", "images"),
+                             self_check_progress=progress_reporter(f"self-check {seq.name}", "images"),
+                             skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp, repair=repair)
+    if not repair and report.n_source_changed:  # ingest itself prints its whole report
+        n = report.n_source_changed
+        print(f"visloc: {a.db}: {seq.name}: {n} image{'s' if n != 1 else ''} described again (their image file "
+              "changed since they were stored)", file=sys.stderr)
+    return report
 
 
 _NOTES_SHOWN: set[str] = set()

@@ -7,8 +7,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from visloc.db import FeatureStore
 from visloc.db.integrity import Damage, missing_schema, row_counts, scan, sqlite_problems
+from visloc.store.workspace import Workspace
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,9 @@ class CheckReport:
         out = [f"{label}: SQLite integrity check: {p}" for p in self.sqlite_problems]
         out += [f"{label}: missing {m}" for m in self.missing]
         out += [f"  {image}: {'; '.join(problems)}" for image, problems in self.damaged_images().items()]
-        checked = ", ".join(f"{n} {table.replace('_', ' ')}" for table, n in self.counts.items())
+        names = {"images": ("image", "images"), "structures": ("structure row", "structure rows"),
+                 "global_vectors": ("global vector", "global vectors"), "arrays": ("array", "arrays")}
+        checked = ", ".join(f"{n} {names.get(table, (table, table))[n != 1]}" for table, n in self.counts.items())
         if self.clean:
             out.append(f"{label}: no damage found ({checked} checked; SQLite's integrity check: ok)")
             return out
@@ -56,7 +58,7 @@ class CheckReport:
 
 def check_store(path: str | Path, progress: Callable[[int, int], None] | None = None) -> CheckReport:
     """Check the store at ``path`` without changing it."""
-    with FeatureStore(path, read_only=True, lacking_ok=True) as store:
+    with Workspace.inspect(path) as store:
         problems = tuple(sqlite_problems(store))
         missing = tuple(missing_schema(store))
         damage = tuple(scan(store, progress=progress))

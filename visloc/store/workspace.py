@@ -68,6 +68,21 @@ class Workspace:
             self.migrated_from: int | None = store.migrated_from
             self.checksums_filled: int = store.checksums_filled  # arrays whose checksums that migration computed
 
+    @staticmethod
+    @contextmanager
+    def inspect(path: str | Path) -> Iterator[FeatureStore]:
+        """The store at ``path`` read as it is, never changed, also when it lacks tables (``visloc check``)."""
+        try:
+            store = FeatureStore(path, read_only=True, lacking_ok=True)
+        except StoreError as exc:
+            raise InputError(str(exc)) from None
+        except sqlite3.Error as exc:
+            raise InputError(sqlite_error_line(str(path), exc)) from None
+        try:
+            yield store
+        finally:
+            store.close()
+
     @contextmanager
     def _store(self, *, create: bool = False) -> Iterator[FeatureStore]:
         try:
