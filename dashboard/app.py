@@ -33,7 +33,7 @@ from visloc.dashboard.gui import Handles, build_gui, paper_values
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionLog
-from visloc.dashboard.state import CONTROLLED, Controls, Run, Shown, discover_stores, first_choices
+from visloc.dashboard.state import CONTROLLED, Allowed, Controls, Run, Shown, discover_stores, first_choices
 
 PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
 
@@ -41,8 +41,10 @@ PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
 class DashboardApp:
     def __init__(self, server: viser.ViserServer, store_path: Path, *, db_camera: str | None = "image_01",
                  query_camera: str | None = "image_00", db_source: str | None = None,
-                 query_source: str | None = None):
+                 query_source: str | None = None, allowed: Allowed | None = None):
         self.server = server
+        # the stores the page may open: by default the start store's folder (``visloc dashboard --allow``)
+        self.allowed = allowed or Allowed.of([Path(store_path).parent], store_path)
         self.preferred = ((db_source, db_camera), (query_source, query_camera))  # None: any
         self.controls = Controls(store_request=(1, str(store_path)))
         self.shown = Shown()
@@ -248,6 +250,9 @@ class DashboardApp:
         if not path or path == ".":
             self._store_error("Other store: type the path of a store file first")
             return
+        if not self.allowed.admits(path):  # nothing outside is opened, or looked at
+            self._store_error(self.allowed.refusal(path))
+            return
         try:
             workspace = visloc.Workspace(path, read_only=True)  # the page never changes a store
             datasets = workspace.datasets()
@@ -262,7 +267,7 @@ class DashboardApp:
         names = [d.name for d in datasets]
         db_choice, q_choice = first_choices(datasets, *self.preferred)
         g = self.gui
-        g.store.options = discover_stores(Path(path))
+        g.store.options = discover_stores(Path(path), self.allowed)
         g.store.value = path
         g.db.options, g.queries.options = names, names
         g.db.value, g.queries.value = db_choice, q_choice

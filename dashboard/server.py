@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import ipaddress
+import sys
 import threading
 from pathlib import Path
 
 import viser
 import viser._messages  # viser has no API for the page title; see name_the_tab
 
+import visloc
 from visloc.dashboard.app import DashboardApp
+from visloc.dashboard.state import Allowed
 
 PAGE_TITLE = "visloc"
 
@@ -26,18 +30,51 @@ def name_the_tab(server: viser.ViserServer, title: str = PAGE_TITLE) -> None:
         queue(message(source=f"document.title = {title!r};"))
 
 
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` is this machine only (localhost, 127.0.0.0/8, ::1)."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a name or an interface's address: other machines may reach it
+        return False
+
+
+def allowed_stores(store_path: Path, allow: list[Path] | None) -> Allowed:
+    """What the page may open: stores inside the folders ``allow`` (default: the store's folder), and
+    the store itself. A folder named in ``allow`` that is not one is refused (``--allow``)."""
+    for folder in allow or ():
+        if not Path(folder).is_dir():
+            raise visloc.InputError(f"--allow {folder}: " + ("not a folder" if Path(folder).exists()
+                                                             else "no such folder"))
+    return Allowed.of(allow if allow else [Path(store_path).parent], store_path)
+
+
+def public_warning(host: str, port: int, allowed: Allowed) -> str:
+    """What serving beyond this machine exposes, and the safer way to look from elsewhere."""
+    folders = ", ".join(str(f) for f in allowed.folders) or "none"
+    return (f"visloc dashboard: warning: serving on {host}: anyone who reaches port {port} can open the stores "
+            f"under {folders}; to look from another machine, keep the default host and use an SSH tunnel "
+            f"(ssh -L {port}:localhost:{port} this-machine)")
+
+
 def serve(store_path: Path, *, host: str = "127.0.0.1", port: int = 8080, db_camera: str | None = "image_01",
           query_camera: str | None = "image_00", db_source: str | None = None, query_source: str | None = None,
-          ready: threading.Event | None = None,
+          allow: list[Path] | None = None, ready: threading.Event | None = None,
           stop: threading.Event | None = None, announce=print) -> None:
     """Serve the dashboard until ``stop`` is set (or forever). viser moves to the next free
-    port when ``port`` is taken, so the URL announced is the one actually served."""
+    port when ``port`` is taken, so the URL announced is the one actually served. The page opens
+    only stores inside the folders ``allow`` (default: the store's folder) and ``store_path`` itself;
+    a host other than this machine's loopback is warned of on stderr."""
+    allowed = allowed_stores(store_path, allow)  # before anything is served
     server = viser.ViserServer(host=host, port=port, label="visloc", verbose=False)
     name_the_tab(server)
     try:  # Ctrl-C or kill -INT at any moment from here on stops every thread, so the process can end
         app = DashboardApp(server, store_path, db_camera=db_camera, query_camera=query_camera,
-                           db_source=db_source, query_source=query_source)
+                           db_source=db_source, query_source=query_source, allowed=allowed)
         try:
+            if not is_loopback(host):
+                print(public_warning(host, server.get_port(), allowed), file=sys.stderr, flush=True)
             announce(f"visloc dashboard: http://{host}:{server.get_port()}  (store {store_path}; Ctrl-C stops it)")
             if ready is not None:
                 ready.set()

@@ -109,14 +109,41 @@ class Shown:
     runs_done: int = 0
 
 
-def discover_stores(*paths: Path) -> list[str]:
-    """Store files to offer: the given ones plus SQLite files beside them."""
+@dataclass(frozen=True)
+class Allowed:
+    """What the page may open: store files inside ``folders`` (``visloc dashboard --allow``), and the
+    store it was started on wherever that is. Paths are compared resolved (``..`` and symbolic links
+    followed), so neither climbs out of a folder."""
+
+    folders: tuple[Path, ...]
+    start: Path | None = None  # the store named on the command line, resolved
+
+    @classmethod
+    def of(cls, folders, start: Path | str | None = None) -> Allowed:
+        return cls(tuple(dict.fromkeys(Path(f).resolve() for f in folders)),
+                   Path(start).resolve() if start is not None else None)
+
+    def admits(self, path: Path | str) -> bool:
+        try:
+            resolved = Path(path).resolve()
+        except (OSError, RuntimeError, ValueError):  # a loop of links, a NUL byte: nothing to open
+            return False
+        return resolved == self.start or any(resolved.is_relative_to(f) for f in self.folders)
+
+    def refusal(self, path: str) -> str:
+        """The one line a path outside is refused with (the path as typed: where it leads is not said)."""
+        folders = ", ".join(str(f) for f in self.folders) or "none"
+        return f"{path}: outside the folders this dashboard may open ({folders}); restart it with --allow to add one"
+
+
+def discover_stores(path: Path, allowed: Allowed) -> list[str]:
+    """Store files to offer: ``path`` plus the SQLite files beside it, those the page may open."""
     found: list[str] = []
-    for p in paths:
-        candidates = [p] + (sorted(p.parent.glob("*")) if p.parent.is_dir() else [])
-        for c in candidates:
-            if (c == p or c.suffix in STORE_SUFFIXES) and str(c) not in found and not c.is_dir():
-                found.append(str(c))
+    candidates = [path] + (sorted(path.parent.glob("*")) if path.parent.is_dir() else [])
+    for c in candidates:
+        if (c == path or c.suffix in STORE_SUFFIXES) and str(c) not in found and allowed.admits(c) \
+                and not c.is_dir():
+            found.append(str(c))
     return found
 
 

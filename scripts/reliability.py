@@ -31,7 +31,12 @@ checks:
 - **Nothing hangs**: waits for another process are bounded, a dead worker ends the command.
 - **Reading never writes**: `visloc info` and the dashboard open a store read-only (it can be on
   a read-only medium); only ingest and `visloc upgrade` migrate a store of an older version.
-- **Nothing from a file or a store reaches the dashboard page as HTML**.
+- **Nothing from a file or a store reaches the dashboard page as HTML**, and the page opens only
+  the stores inside the folders it was started with (`--allow`; by default the store's folder).
+- **A damaged store is named, never trusted**: every stored array is checked against the CRC-32
+  written with it when it is read; a mismatch stops the command (or shows in the page) with one
+  line naming the store, the image and `visloc check`, and `visloc ingest` of the drive repairs it.
+  Images whose file changed since they were stored are described again.
 - **Limits**: images over 20 megapixels are refused from their header before decoding
   (`--max-image-mp` raises or lowers the limit; SIFT needs about 230 bytes per pixel).
 

@@ -217,15 +217,17 @@ def test_two_tabs_see_the_same_session(dashboard, browser):
         b.close()
 
 
-def test_a_bad_store_is_reported_in_the_page_and_the_server_lives_on(dashboard, browser, tmp_path):
+def test_a_bad_store_is_reported_in_the_page_and_the_server_lives_on(dashboard, browser, kitti_evaluation):
+    folder = kitti_evaluation[0] / "bad_stores"  # inside the store's folder: the page may open it
+    folder.mkdir(exist_ok=True)
     page = open_page(browser, dashboard.url)
     try:
         go_to_step(page, 1)
         query = row(page, "query")
         page.get_by_text("Data", exact=True).click()
-        missing = tmp_path / "missing.sqlite"
+        missing = folder / "missing.sqlite"
         assert "does not exist" in open_other_store(page, missing).inner_text()
-        not_a_store = tmp_path / "notes.sqlite"
+        not_a_store = folder / "notes.sqlite"
         not_a_store.write_text("not a database")
         assert "not a SQLite database" in open_other_store(page, not_a_store).inner_text()
         assert not_a_store.read_text() == "not a database"  # nothing written to the bad file

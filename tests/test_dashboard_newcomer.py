@@ -276,12 +276,13 @@ def test_the_run_downloads_as_geojson_and_csv(dashboard, browser, tmp_path):
         page.close()
 
 
-def test_a_long_error_wraps_inside_the_panel(dashboard, browser, tmp_path):
+def test_a_long_error_wraps_inside_the_panel(dashboard, browser, kitti_evaluation):
     page = open_on_current_step(browser, dashboard.url)
     try:
         page.get_by_text("Data", exact=True).click()
-        deep = tmp_path.joinpath(*[f"a_rather_long_folder_name_{i}" for i in range(6)]) / "not_a_store.sqlite"
-        deep.parent.mkdir(parents=True)
+        # inside the store's folder, which the page may open
+        deep = kitti_evaluation[0].joinpath(*[f"a_rather_long_folder_name_{i}" for i in range(6)]) / "not_a_store.sqlite"
+        deep.parent.mkdir(parents=True, exist_ok=True)
         deep.write_text("not a database")
         message = open_other_store(page, deep)
         assert "not a SQLite database" in message.inner_text()

@@ -1,31 +1,43 @@
 """Text from files and stores in the dashboard: a drive folder, a store file or a path typed into
 "Other store" named like HTML or Markdown reaches the page as text, never as markup or script.
+And the page opens only stores inside the folders it was started with (``--allow``).
 
-One dashboard (``visloc dashboard`` in a subprocess) serves every case, on a store holding two
+One dashboard (``visloc dashboard`` in a subprocess) serves the text cases, on a store holding two
 CSV drives with hostile folder names and itself named like markup; one headless Chromium page
-looks at it. Screenshots go to ``out/screenshots/faults_*.png``.
+looks at it. Another serves the folders cases; a third, on 0.0.0.0, only prints its warning.
+Screenshots go to ``out/screenshots/faults_*.png``.
 """
 
 from __future__ import annotations
 
 import hashlib
+import os
 import re
+import shutil
+import signal
+import socket
 import sqlite3
+import subprocess
+import sys
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
 from fault_table import Fault, params
 from helpers import (
+    SERVER_WORK_S,
+    URL_LINE,
     DashboardProcess,
     control,
     dismiss_webgl_notice,
     open_other_store,
     open_page,
     screenshot,
+    wait_for,
 )
 
-from conftest import run_cli, write_csv_drive
+from conftest import REPO, run_cli, write_csv_drive
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
@@ -56,6 +68,15 @@ FAULTS = [
     Fault(id="dashboard-writes-nothing", area="store file",
           tried="The dashboard on a store: matching every query of the first run",
           gets="The store file stays byte for byte the same: counts are kept in memory, never saved into the store"),
+    Fault(id="dashboard-path-outside", area="dashboard",
+          tried="Opening a store outside the folders the dashboard may open: a copy in a sibling folder, a path "
+                "climbing out with ../, a symbolic link inside an allowed folder pointing out",
+          gets="Refused with one line in the page naming the path and the folders it may open; the store shown "
+               "stays, and the store list offers only stores inside; a store in an allowed folder still opens"),
+    Fault(id="dashboard-public-host-warning", area="dashboard",
+          tried="visloc dashboard --host 0.0.0.0 (reachable from other machines)",
+          gets="A warning on stderr naming the port and the folders anyone reaching it can open, and the SSH "
+               "tunnel to use instead"),
 ]
 
 
@@ -176,3 +197,127 @@ def test_the_dashboard_never_writes_into_the_store(fault, served, hostile_page):
         assert conn.execute("SELECT count(*) FROM pair_counts").fetchone()[0] == 0
     finally:
         conn.close()
+
+
+# -- what the page may open ---------------------------------------------------------------------------------
+
+OUTSIDE = "{}: outside the folders this dashboard may open ({}); restart it with --allow to add one"
+
+
+class Fenced:
+    def __init__(self, base: Path, proc: DashboardProcess):
+        self.allowed, self.more, self.outside = base / "allowed", base / "more", base / "outside"
+        self.store, self.proc = self.allowed / "drives.sqlite", proc
+
+
+def make_fenced_folders(base: Path) -> None:
+    """allowed/ (the store, a copy, a link to outside/), more/ (a second store), outside/ (a copy)."""
+    for name in ("allowed", "more", "outside"):
+        (base / name).mkdir()
+    store = base / "allowed" / "drives.sqlite"
+    for name, offset_px in (("drive_a", 0), ("drive_b", 30)):
+        csv = write_csv_drive(base / name, n_frames=6, offset_px=offset_px)
+        result = run_cli("ingest", csv, "--db", store, "--workers", "1")
+        assert result.returncode == 0, result.stderr
+    for copy in ("allowed/copy.sqlite", "more/second.sqlite", "outside/drives.sqlite"):
+        shutil.copyfile(store, base / copy)
+    (base / "allowed" / "link.sqlite").symlink_to(base / "outside" / "drives.sqlite")
+
+
+@pytest.fixture(scope="module")
+def fenced(tmp_path_factory):
+    """A dashboard that may open allowed/ and more/ (two --allow), on a store in allowed/."""
+    base = tmp_path_factory.mktemp("fenced")
+    make_fenced_folders(base)
+    proc = DashboardProcess("--db", str(base / "allowed" / "drives.sqlite"), "--allow", str(base / "allowed"),
+                            "--allow", str(base / "more"), "--port", "8390")
+    yield Fenced(base, proc)
+    proc.stop()
+
+
+def store_options(page) -> list[str]:
+    """The stores the "Store file" list offers."""
+    control(page, "Store file").locator("input").first.click()
+    options = page.get_by_role("option")
+    options.first.wait_for()
+    texts = options.all_inner_texts()
+    page.keyboard.press("Escape")
+    options.first.wait_for(state="hidden")
+    return texts
+
+
+@pytest.mark.parametrize("fault", params([f for f in FAULTS if f.id == "dashboard-path-outside"]))
+def test_a_store_outside_the_allowed_folders_is_refused(fault, fenced, browser):
+    page = open_page(browser, fenced.proc.url)
+    try:
+        dismiss_webgl_notice(page)
+        page.get_by_text("Data", exact=True).click()
+        panel = store_panel(page)
+        store_box = control(page, "Store file").locator("input").first
+        folders = f"{fenced.allowed.resolve()}, {fenced.more.resolve()}"
+        # the list offers the stores inside allowed/, not the link beside them that leads out
+        assert store_options(page) == [str(fenced.store), str(fenced.allowed / "copy.sqlite")]
+        for path in (fenced.outside / "drives.sqlite", f"{fenced.allowed}/../outside/drives.sqlite",
+                     fenced.allowed / "link.sqlite"):
+            shown = open_other_store(page, path)
+            assert shown.inner_text() == "⚠ " + OUTSIDE.format(path, folders)
+            # the store shown stays
+            assert store_box.input_value() == str(fenced.store)
+            assert panel.locator("xpath=./*[1]").inner_text() == str(fenced.store)
+        message = page.get_by_text("⚠ " + OUTSIDE.format(fenced.allowed / "link.sqlite", folders), exact=True).last
+        message.scroll_into_view_if_needed()  # the line under Open, where the user is looking
+        screenshot(page, f"faults_{fault.id}.png")
+        # a store in the other allowed folder opens
+        second = fenced.more / "second.sqlite"
+        box = control(page, "Other store").locator("input, textarea").first
+        box.fill(str(second))
+        page.get_by_text(f"Open reads {second}", exact=True).wait_for()
+        page.get_by_role("button", name="Open", exact=True).click()
+        page.get_by_text(f"Opened {second}: 2 image series", exact=True).wait_for()
+        assert store_box.input_value() == str(second)
+        assert store_options(page) == [str(second)]
+        assert fenced.proc.alive()
+        assert not any("warning" in line for line in fenced.proc.output), "warned of serving on 127.0.0.1"
+    finally:
+        page.close()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("0.0.0.0", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("fault", params([f for f in FAULTS if f.id == "dashboard-public-host-warning"]))
+def test_serving_beyond_this_machine_is_warned_of(fault, tmp_path):
+    store = tmp_path / "drives.sqlite"  # missing: the page would say so; the warning does not need it
+    proc = subprocess.Popen([sys.executable, "-m", "visloc", "dashboard", "--db", str(store), "--host", "0.0.0.0",
+                             "--port", str(free_port())], cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    out: list[str] = []
+    err: list[str] = []
+
+    def read(stream, lines: list[str]) -> None:
+        for line in stream:
+            lines.append(line)
+
+    for stream, lines in ((proc.stdout, out), (proc.stderr, err)):
+        threading.Thread(target=read, args=(stream, lines), daemon=True).start()
+    try:
+        url = wait_for(lambda: next((m.group(1) for line in list(out) if (m := URL_LINE.search(line))), None),
+                       180, "the URL line")  # Python, numpy, OpenCV and viser import slowly on a busy machine
+        port = int(url.rsplit(":", 1)[1])
+        warning = wait_for(lambda: next((line for line in list(err) if "warning" in line), None), SERVER_WORK_S,
+                           "the warning on stderr")
+        assert warning.rstrip("\n") == (
+            f"visloc dashboard: warning: serving on 0.0.0.0: anyone who reaches port {port} can open the stores "
+            f"under {tmp_path.resolve()}; to look from another machine, keep the default host and use an SSH "
+            f"tunnel (ssh -L {port}:localhost:{port} this-machine)")
+        assert err == [warning], err  # one line, and nothing else
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

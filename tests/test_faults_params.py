@@ -47,6 +47,8 @@ FAULTS = [
     Fault("track-json-folder", O, "track --json naming an existing folder", REFUSED.format("--json and the folder")),
     Fault("drives-out-dir-missing-parent", O, "evaluate-drives --out-dir two levels below an existing folder",
           REFUSED.format("--out-dir and the missing folder")),
+    Fault("dashboard-allow-missing", P, "dashboard --allow naming a folder that does not exist",
+          REFUSED.format("--allow and the folder; nothing is served")),
 ]
 
 
@@ -104,6 +106,8 @@ def _case(fault_id: str, tmp: Path, db_csv: Path, query_csv: Path, store: Path):
         "drives-out-dir-missing-parent": (["evaluate-drives", tmp / "kitti", "--db", fresh, "--modes", "paper",
                                            "--steps", "2", "--out-dir", tmp / "no" / "out"],
                                           ["--out-dir", str(tmp / "no" / "out")], fresh),
+        "dashboard-allow-missing": (["dashboard", "--db", store, "--allow", tmp / "no" / "stores"],
+                                    ["--allow", str(tmp / "no" / "stores"), "no such folder"], None),
     }[fault_id]
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import sqlite3
 import subprocess
@@ -18,7 +19,7 @@ import pytest
 
 from conftest import KITTI_DRIVE, REPO, run_cli
 from fault_table import Fault, params
-from helpers import one_line_error
+from helpers import SERVER_WORK_S, DashboardProcess, new_page, one_line_error, screenshot
 
 FAULTS = [
     Fault("store-bytes-changed", "store contents",
@@ -26,6 +27,9 @@ FAULTS = [
           "visloc check names each of the 21 frames and exits 2; evaluate stops with one line naming the store, "
           "frame 20 and visloc check, exit 2; visloc ingest of the drive repairs the 21 images, and evaluate "
           "then gives the clean store's figure to 1e-6 m"),
+    Fault("dashboard-damaged-store", "store contents",
+          "The dashboard started on that damaged store",
+          "The page shows one line naming the store, frame 20 and visloc check; the server keeps running"),
     Fault("store-table-lost", "store contents",
           "A store whose structures table is missing",
           "visloc check names it and exits 2; reading commands say the store is damaged and that visloc ingest "
@@ -115,18 +119,24 @@ def copy_of(store: Path, folder: Path) -> Path:
     return folder / store.name
 
 
-@pytest.mark.parametrize("fault", params([CASES["store-bytes-changed"]]))
-def test_changed_bytes_are_named_refused_and_repaired(clean, tmp_path, fault):
-    root, clean_store, clean_errors = clean
-    store = copy_of(clean_store, tmp_path)
+def damaged_copy(store: Path, folder: Path) -> Path:
+    """A copy of ``store`` with a few bytes changed in the descriptor BLOBs of frames 20-40, lengths unchanged."""
+    store = copy_of(store, folder)
     conn = sqlite3.connect(store)
     for frame, blob in conn.execute("SELECT frame, descriptors_u8 FROM images WHERE frame BETWEEN 20 AND 40").fetchall():
         damaged = bytearray(blob)
-        for k in range(0, len(damaged), 997):  # a few bytes, the length unchanged
+        for k in range(0, len(damaged), 997):
             damaged[k] ^= 0x5A
         conn.execute("UPDATE images SET descriptors_u8 = ? WHERE frame = ?", [bytes(damaged), frame])
     conn.commit()
     conn.close()
+    return store
+
+
+@pytest.mark.parametrize("fault", params([CASES["store-bytes-changed"]]))
+def test_changed_bytes_are_named_refused_and_repaired(clean, tmp_path, fault):
+    root, clean_store, clean_errors = clean
+    store = damaged_copy(clean_store, tmp_path)
 
     checked = run_cli("check", "--db", store)
     assert checked.returncode == 2, checked.stdout + checked.stderr
@@ -144,6 +154,29 @@ def test_changed_bytes_are_named_refused_and_repaired(clean, tmp_path, fault):
     assert run_cli("check", "--db", store).returncode == 0
     errors = final_errors(root, store, tmp_path / "repaired.json")
     assert max(abs(a - b) for a, b in zip(errors, clean_errors, strict=True)) <= 1e-6
+
+
+@pytest.mark.browser
+@pytest.mark.parametrize("fault", params([CASES["dashboard-damaged-store"]]))
+def test_the_dashboard_shows_a_damaged_store_in_the_page(clean, tmp_path, browser, fault):
+    _, clean_store, _ = clean
+    store = damaged_copy(clean_store, tmp_path)
+    proc = DashboardProcess("--db", str(store), "--db-camera", "image_00", "--query-camera", "image_00",
+                            "--port", "8395")
+    page = new_page(browser)
+    try:
+        page.goto(proc.url)
+        page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()  # the GUI arrives over the websocket
+        shown = page.get_by_text(re.compile("checksum mismatch")).first
+        shown.wait_for(timeout=SERVER_WORK_S * 1000)
+        text = shown.inner_text()
+        assert str(store) in text and f"{SOURCE}/image_00 frame 20" in text and "visloc check" in text, text
+        assert "Traceback" not in text
+        screenshot(page, f"faults_{fault.id}.png")
+        assert proc.alive()
+    finally:
+        page.close()
+        proc.stop()
 
 
 @pytest.mark.parametrize("fault", params([CASES["store-table-lost"]]))

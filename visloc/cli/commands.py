@@ -349,7 +349,7 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
     only = only_camera(a.db)  # a store of one camera shows it first; a missing or bad store is reported in the page
     serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera or only or "image_01",
           query_camera=a.query_camera or only or "image_00", db_source=a.db_source, query_source=a.query_source,
-          announce=lambda text: print(text, flush=True))
+          allow=a.allow, announce=lambda text: print(text, flush=True))
     return 0
 
 

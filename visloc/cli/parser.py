@@ -234,6 +234,8 @@ def build_parser() -> argparse.ArgumentParser:
     _add_db(p)
     p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port to try first (default %(default)s)")
+    p.add_argument("--allow", action="append", type=Path, default=None, metavar="DIR",
+                   help="a folder whose stores the page may open (repeatable; default: the store's folder)")
     p.add_argument("--db-camera", default=None,
                    help="database camera to show first (default: the store's only camera, else image_01)")
     p.add_argument("--query-camera", default=None,
