@@ -20,7 +20,7 @@ import numpy as np
 from visloc.db.blobs import blob_problem
 from visloc.db.records import DESCRIPTOR_DIM, KEYPOINT_COLUMNS
 from visloc.db.schema import change_name, lacking
-from visloc.db.store import FeatureStore
+from visloc.db.store import FeatureStore, where_drive
 
 CHUNK_ROWS = 64  # rows whose BLOBs are in memory at a time
 
@@ -75,22 +75,13 @@ def _chunks(store: FeatureStore, sql_ids: str, args: list, sql_rows: str) -> Ite
         yield from store.db.query(sql_rows.format(marks=",".join("?" * len(chunk))), chunk)
 
 
-def _where(source: str | None, camera: str | None, prefix: str = "") -> tuple[str, list]:
-    clauses, args = [], []
-    for column, value in (("source", source), ("camera", camera)):
-        if value is not None:
-            clauses.append(f"{prefix}{column} = ?")
-            args.append(value)
-    return ("WHERE " + " AND ".join(clauses)) if clauses else "", args
-
-
 def scan(store: FeatureStore, *, source: str | None = None, camera: str | None = None,
          progress: Callable[[int, int], None] | None = None) -> Iterator[Damage]:
     """Every damaged row of the store (of one drive and camera, when given), image by image: the
     image's own BLOBs, then its structure and global vectors; then the named arrays (the whole
     store only). ``progress(done, total)`` counts images."""
     tables = set(store.db.table_names())
-    where, args = _where(source, camera)
+    where, args = where_drive(source, camera)
     total = store.db.execute(f"SELECT count(*) FROM images {where}", args).fetchone()[0]
     if progress:
         progress(0, total)
@@ -131,7 +122,7 @@ def _image_damage(r: dict) -> Iterator[Damage]:
 
 def _structure_damage(store: FeatureStore, source: str | None, camera: str | None,
                       known: set[int] | None) -> Iterator[Damage]:
-    where, args = _where(source, camera, "i.")
+    where, args = where_drive(source, camera, "i.")
     all_ids = known if known is not None else {r[0] for r in store.db.execute("SELECT id FROM images")}
     ids_sql = (f"SELECT s.rowid FROM structures s LEFT JOIN images i ON i.id = s.image_id {where} "
                "ORDER BY i.source, i.camera, i.frame, s.variant")
@@ -166,7 +157,7 @@ def _structure_damage(store: FeatureStore, source: str | None, camera: str | Non
 
 
 def _vector_damage(store: FeatureStore, source: str | None, camera: str | None) -> Iterator[Damage]:
-    where, args = _where(source, camera, "i.")
+    where, args = where_drive(source, camera, "i.")
     sizes = dict(store.db.execute("SELECT name, length(vector_f32) AS n FROM global_vectors GROUP BY name, n "
                                   "ORDER BY count(*)").fetchall())  # each name's most common size
     ids_sql = (f"SELECT v.rowid FROM global_vectors v LEFT JOIN images i ON i.id = v.image_id {where} "
@@ -249,3 +240,18 @@ def forget_derived(store: FeatureStore, source: str, camera: str, image_ids: Ite
             marks = ",".join("?" * len(chunk))
             store.db.execute(f"DELETE FROM pair_counts WHERE query_image_id IN ({marks}) OR db_image_id IN ({marks})",
                              [*chunk, *chunk])
+
+
+def drive_blobs(store: FeatureStore, source: str, camera: str) -> list[bytes]:
+    """Every BLOB a run loads for (source, camera): its images' keypoints and descriptors, their
+    structure and global vectors (to time what checking them costs)."""
+    blobs = [b for row in store.db.execute(
+        "SELECT keypoints_f32, descriptors_u8 FROM images WHERE source = ? AND camera = ?", [source, camera])
+        for b in row]
+    blobs += [b for row in store.db.execute(
+        "SELECT s.rows_i32, s.points_f64, s.cov_f64 FROM structures s JOIN images i ON i.id = s.image_id "
+        "WHERE i.source = ? AND i.camera = ?", [source, camera]) for b in row]
+    blobs += [r[0] for r in store.db.execute(
+        "SELECT v.vector_f32 FROM global_vectors v JOIN images i ON i.id = v.image_id "
+        "WHERE i.source = ? AND i.camera = ?", [source, camera])]
+    return [b for b in blobs if b is not None]

@@ -224,7 +224,7 @@ class FeatureStore:
     # -- images -----------------------------------------------------------------
 
     def image_count(self, source: str | None = None, camera: str | None = None) -> int:
-        where, args = _where(source, camera)
+        where, args = where_drive(source, camera)
         return next(self.db.query(f"SELECT count(*) AS n FROM images {where}", args))["n"]
 
     def stored_frames(self, source: str, camera: str) -> set[int]:
@@ -257,7 +257,7 @@ class FeatureStore:
         """The frames ingest skipped as bad, of (source, camera) (None: of all), in order."""
         if "skipped_frames" not in self.db.table_names():
             return []
-        where, args = _where(source, camera)
+        where, args = where_drive(source, camera)
         return [SkippedFrame(**r) for r in self.db.query(
             f"SELECT source, camera, frame, path, reason FROM skipped_frames {where} ORDER BY source, camera, frame",
             args)]
@@ -297,7 +297,7 @@ class FeatureStore:
 
     def images(self, source: str | None = None, camera: str | None = None) -> list[StoredImage]:
         """Metadata of the stored images, ordered by (source, camera, timestamp)."""
-        where, args = _where(source, camera)
+        where, args = where_drive(source, camera)
         columns = ", ".join(["id", "n_keypoints", *ImageRecord.__dataclass_fields__])
         rows = self.db.query(
             f"SELECT {columns} FROM images {where} ORDER BY source, camera, timestamp_s, frame", args
@@ -371,7 +371,7 @@ class FeatureStore:
 
     def image_ids(self, source: str | None = None, camera: str | None = None) -> np.ndarray:
         """(N,) int64 image ids in (source, camera, timestamp) order, without loading any metadata."""
-        where, args = _where(source, camera)
+        where, args = where_drive(source, camera)
         rows = self.db.execute(f"SELECT id FROM images {where} ORDER BY source, camera, timestamp_s, frame", args)
         return np.array([r[0] for r in rows], np.int64)
 
@@ -416,14 +416,14 @@ def _count(row: dict, label: str) -> int:
     return n
 
 
-def _where(source: str | None, camera: str | None) -> tuple[str, list]:
+def where_drive(source: str | None, camera: str | None, prefix: str = "") -> tuple[str, list]:
+    """(``WHERE`` clause, its arguments) selecting images of ``source`` and ``camera`` (None: any);
+    ``prefix``: the images table's alias and a dot, e.g. ``"i."``."""
     clauses, args = [], []
-    if source is not None:
-        clauses.append("source = ?")
-        args.append(source)
-    if camera is not None:
-        clauses.append("camera = ?")
-        args.append(camera)
+    for column, value in (("source", source), ("camera", camera)):
+        if value is not None:
+            clauses.append(f"{prefix}{column} = ?")
+            args.append(value)
     return ("WHERE " + " AND ".join(clauses)) if clauses else "", args
 
 

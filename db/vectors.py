@@ -50,10 +50,9 @@ class VectorTable:
         cur = self.db.execute("SELECT image_id, vector_crc32, vector_f32 FROM global_vectors WHERE name = ? "
                               "ORDER BY image_id", [name])
         for k, (image_id, stored_crc, blob) in enumerate(cur):
-            size = len(blob) if out is None and isinstance(blob, bytes) else (0 if out is None else out.shape[1] * 4)
-            problem = blob_problem(blob, size, stored_crc)
-            if problem is None and (size == 0 or size % 4):
-                problem = f"holds {size} bytes, not a float32 vector"
+            if out is None:  # the first vector sets the size every other one must have
+                size = len(blob) if isinstance(blob, bytes) and len(blob) % 4 == 0 else 0
+            problem = blob_problem(blob, size, stored_crc) if size else "is not a float32 vector"
             if problem is not None:
                 raise DamagedStoreError(f"{self.label}: {self._image_name(image_id)} global vector ({name}): "
                                         f"{problem}; {repair_hint(self.label)}")

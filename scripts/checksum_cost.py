@@ -38,7 +38,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from visloc.db import FeatureStore  # noqa: E402
-from visloc.db.integrity import scan  # noqa: E402
+from visloc.db.integrity import drive_blobs, scan  # noqa: E402
 from visloc.features.sift import extract_sift, make_sift  # noqa: E402
 from visloc.sources.drives import default_data_root, file_digest, read_image  # noqa: E402
 from visloc.store.workspace import Workspace  # noqa: E402
@@ -88,15 +88,7 @@ def read_cost(ws: Workspace, source: str, camera: str) -> dict:
 
     load()  # warm the page cache: both sides read the same bytes from memory
     with FeatureStore(ws.path, read_only=True) as store:
-        blobs = [b for row in store.db.execute(
-            "SELECT keypoints_f32, descriptors_u8 FROM images WHERE source = ? AND camera = ?", [source, camera])
-            for b in row]
-        blobs += [b for row in store.db.execute(
-            "SELECT s.rows_i32, s.points_f64, s.cov_f64 FROM structures s JOIN images i ON i.id = s.image_id "
-            "WHERE i.source = ? AND i.camera = ?", [source, camera]) for b in row]
-        blobs += [r[0] for r in store.db.execute(
-            "SELECT v.vector_f32 FROM global_vectors v JOIN images i ON i.id = v.image_id "
-            "WHERE i.source = ? AND i.camera = ?", [source, camera])]
+        blobs = drive_blobs(store, source, camera)
     load_s = _timed(load, 5)
     crc_s = _timed(lambda: [zlib.crc32(b) for b in blobs], 5)
     return {"megabytes": sum(len(b) for b in blobs) / 1e6, "load_ms": load_s * 1e3, "checksums_ms": crc_s * 1e3,

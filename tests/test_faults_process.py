@@ -190,50 +190,43 @@ def test_a_bad_frame_is_named_then_skipped_and_recorded(tmp_path, fault):
     assert "skipped at ingest" not in run_cli("info", "--db", db_path).stdout
 
 
-@pytest.mark.parametrize("fault", params([CASES["sigint-in-background"]]))
-@pytest.mark.parametrize("workers", [1, 2])
-def test_sigint_stops_an_ingest_started_in_the_background(tmp_path, fault, workers):
-    n_frames = 200
-    csv_path = write_csv_drive(tmp_path / "long", n_frames=n_frames, step_px=60)
+def stopped_ingest(tmp_path: Path, signum: int, workers: int, *, background: bool = False):
+    """An ingest of a 200-frame drive sent ``signum`` once it has committed 8 images: (its exit status,
+    its stderr, what the store then holds, the drive's CSV, the store)."""
+    csv_path = write_csv_drive(tmp_path / "long", n_frames=200, step_px=60)
     db_path = tmp_path / "store.sqlite"
-    proc = ingest_process(csv_path, db_path, workers, background=True)
+    proc = ingest_process(csv_path, db_path, workers, background=background)
     try:
         wait_for_rows(db_path, 8, proc, timeout_s=600)
-        os.kill(proc.pid, signal.SIGINT)
+        os.kill(proc.pid, signum)
         _, err = proc.communicate(timeout=600)
     finally:
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
-    assert proc.returncode == 130, err
-    interrupted = snapshot(db_path)
-    assert 8 <= len(interrupted) < n_frames
+    return proc.returncode, err, snapshot(db_path), csv_path, db_path
+
+
+@pytest.mark.parametrize("fault", params([CASES["sigint-in-background"]]))
+@pytest.mark.parametrize("workers", [1, 2])
+def test_sigint_stops_an_ingest_started_in_the_background(tmp_path, fault, workers):
+    status, err, interrupted, _, db_path = stopped_ingest(tmp_path, signal.SIGINT, workers, background=True)
+    assert status == 130, err
+    assert 8 <= len(interrupted) < 200
     assert_no_half_images(interrupted)
     assert f"interrupted; {db_path} keeps {len(interrupted)} images" in err
 
 
 @pytest.mark.parametrize("fault", params([CASES["sigterm-ingest"]]))
 def test_sigterm_stops_an_ingest_as_ctrl_c_does(tmp_path, fault):
-    n_frames = 200
-    csv_path = write_csv_drive(tmp_path / "long", n_frames=n_frames, step_px=60)
-    db_path = tmp_path / "store.sqlite"
-    proc = ingest_process(csv_path, db_path, 2)
-    try:
-        wait_for_rows(db_path, 8, proc, timeout_s=600)
-        os.kill(proc.pid, signal.SIGTERM)
-        _, err = proc.communicate(timeout=600)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
-    assert proc.returncode == 128 + signal.SIGTERM, err
-    stopped = snapshot(db_path)
-    assert 8 <= len(stopped) < n_frames
+    status, err, stopped, csv_path, db_path = stopped_ingest(tmp_path, signal.SIGTERM, 2)
+    assert status == 128 + signal.SIGTERM, err
+    assert 8 <= len(stopped) < 200
     assert_no_half_images(stopped)
     assert f"visloc: stopped by SIGTERM; {db_path} keeps {len(stopped)} images" in err and "Traceback" not in err
     again = run_cli("ingest", csv_path, "--db", db_path, "--workers", "2")
     assert again.returncode == 0, again.stderr
-    assert f"{n_frames - len(stopped)} added, {len(stopped)} already stored" in again.stdout
+    assert f"{200 - len(stopped)} added, {len(stopped)} already stored" in again.stdout
 
 
 @pytest.mark.parametrize("fault", params([CASES["dashboard-sigint-in-background"]]))
