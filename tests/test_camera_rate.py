@@ -22,7 +22,7 @@ from visloc.sources.drives import open_source
 from visloc.pose.structure import VARIANTS, ViewStructure, choose_variant, view_structures
 from visloc.store.build import build_global_vectors, build_structure
 from visloc.retrieval.matching import count_correspondences
-from visloc.store.workspace import Workspace
+from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
 
 DRIVE = "2011_09_26_drive_0005"
 SOURCE = DRIVE + "_sync"
@@ -145,7 +145,7 @@ def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_struc
     assert build_structure(ws, SOURCE, "image_00") == N_FRAMES
     assert build_structure(ws, SOURCE, "image_00") == 0  # resumes: nothing left to do
     conn = sqlite3.connect(path)
-    assert conn.execute("SELECT version FROM visloc_schema").fetchone() == (4,)
+    assert conn.execute("SELECT version FROM visloc_schema").fetchone() == (STORE_SCHEMA_VERSION,)
     assert conn.execute("SELECT * FROM images ORDER BY id").fetchall() == before
     assert conn.execute("SELECT * FROM pair_counts ORDER BY query_image_id, db_image_id").fetchall() == counts
     assert conn.execute("SELECT count(*) FROM structures").fetchone() == (N_FRAMES * len(VARIANTS),)

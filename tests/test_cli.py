@@ -17,7 +17,7 @@ from helpers import one_line_error
 def test_every_command_and_option_has_help_text():
     parser = build_parser()
     sub = next(a for a in parser._actions if a.dest == "command")
-    assert set(sub.choices) == {"ingest", "localize", "evaluate", "evaluate-drives", "info", "upgrade", "dashboard", "bench", "track"}
+    assert set(sub.choices) == {"ingest", "localize", "evaluate", "evaluate-drives", "info", "check", "upgrade", "dashboard", "bench", "track"}
     for name, cmd in sub.choices.items():
         assert cmd.description, name
         for action in cmd._actions:
