@@ -370,11 +370,12 @@ class DashboardApp:
                 s.run = Run(matches, match_key, s.runs_done, c.rate_hz, len(indices))
                 s.matching_key, s.step_key = None, None
                 self.gui.progress.visible = False
+                names = panels.series_names(queries, db)
                 work = (f"{n_new} new image pairs matched in {time.perf_counter() - started:.1f} s" if n_new
                         else "all image pairs cached")
                 self._show_status(f"Ready (run {s.runs_done}, {method.name}, τ1 {match.tau1:g}, τ2 {match.tau2:g}): "
-                                  f"{len(matches)} queries of {queries.camera} against {len(db)} images of "
-                                  f"{db.camera}; {work}")
+                                  f"{len(matches)} queries of {names[0]} against {len(db)} images of "
+                                  f"{names[1]}; {work}")
             self.request_apply()
 
         self._jobs.submit("matching", match_all)

@@ -10,6 +10,7 @@ import viser
 
 import visloc
 from visloc.dashboard.explain import HINTS, help_html
+from visloc.dashboard.runpanels import TIMELINE_TITLES, TIMELINES, timeline_series
 from visloc.dashboard.panels import legend_html, map_legend_html, placeholder, status_html
 from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, css
 from visloc.dashboard.state import CONTROLLED
@@ -70,6 +71,7 @@ class Handles:
     run_summary: viser.GuiMarkdownHandle
     map_badge: viser.GuiHtmlHandle
     map: viser.GuiImageHandle
+    timelines: dict[str, viser.GuiUplotHandle]  # error, sigma, nees, inliers, latency per step (runpanels.timeline)
 
 
 def _param_sliders(gui, folder: str, shown: dict[str, float]) -> dict[str, viser.GuiSliderHandle]:
@@ -111,6 +113,18 @@ def _plots(gui) -> tuple[viser.GuiUplotHandle, viser.GuiUplotHandle]:
         title="Error per step (m), the paper's Figure 4", aspect=1.6, scales={"x": {"time": False}}, legend=static,
         axes=({"label": "query time (s)"}, {"label": "error (m)"}))
     return counts_plot, error_plot
+
+
+def timeline_plots(gui, aspect: float = 2.0) -> dict[str, viser.GuiUplotHandle]:
+    """One plot per timeline (``runpanels.TIMELINES``), empty until a run is drawn."""
+    plots = {}
+    for kind in TIMELINES:
+        columns = len(timeline_series(kind))
+        plots[kind] = gui.add_uplot((np.zeros(1),) + tuple(np.full(1, np.nan) for _ in range(columns - 1)),
+                                    timeline_series(kind), title=TIMELINE_TITLES[kind], aspect=aspect,
+                                    legend={"live": False}, scales={"x": {"time": False}},
+                                    axes=({"label": "time since the run's first query (s)"}, {}))
+    return plots
 
 
 def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
@@ -166,6 +180,9 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         counts_plot, error_plot = _plots(gui)
         run_summary = gui.add_markdown("")
         gui.add_html('<div style="height:48px"></div>')  # room below the last plot: nothing ends at the edge
+    with panel.add_tab("Timelines"):
+        timelines = timeline_plots(gui)
+        gui.add_html('<div style="height:48px"></div>')
     with panel.add_tab("Map"):
         map_badge = gui.add_html("")
         map_image = gui.add_image(placeholder("No run yet"), label="top-down map (north up, east right)",
@@ -178,4 +195,4 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
                    reset=reset, geojson=geojson, csv=csv, store=store, store_path=store_path_box, open=open_button,
                    store_message=store_message, db=db, queries=queries, store_info=store_info, step_badge=step_badge,
                    figure=figure, numbers=numbers, counts_plot=counts_plot, error_plot=error_plot,
-                   run_summary=run_summary, map_badge=map_badge, map=map_image)
+                   run_summary=run_summary, map_badge=map_badge, map=map_image, timelines=timelines)

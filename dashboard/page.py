@@ -12,7 +12,7 @@ import numpy as np
 import viser
 
 import visloc
-from visloc.dashboard import mapview, panels, scene
+from visloc.dashboard import mapview, panels, runpanels, scene
 from visloc.dashboard.gui import Handles
 from visloc.dashboard.state import Run
 
@@ -27,6 +27,14 @@ def run_file_name(run: Run) -> str:
     tau1, tau2 = run.matches.match_params.tau1, run.matches.match_params.tau2
     which = "partial" if run.partial else f"run{run.number}"
     return f"visloc_{which}_{run.matches.method.name}_tau1-{tau1:g}_tau2-{tau2:g}_{run.rate_hz:g}Hz"
+
+
+def draw_timelines(plots: dict, steps: list[visloc.SavedStep], k: int, other=None) -> None:
+    """Every timeline over ``steps``, step ``k`` marked (``other``: a comparison run's steps)."""
+    for kind, plot in plots.items():
+        data, y_range = runpanels.timeline(kind, steps, k, other)
+        plot.scales = {"x": {"time": False}, "y": {"auto": False, "range": y_range}}
+        plot.data = tuple(np.asarray(d, float) for d in data)
 
 
 class Page:
@@ -81,7 +89,7 @@ class Page:
             self.follow(rec.truth_m)
         g.step_badge.content = g.map_badge.content = panels.stale_badge_html(note)
         g.numbers.content = panels.step_html(rec, len(run.records), visloc.record_geotags(rec, db.frame),
-                                             queries.camera, db.camera, t0_s, latlon=latlon,
+                                             *panels.series_names(queries, db), t0_s, latlon=latlon,
                                              n_queries=run.n_queries if run.partial else None, stale=bool(note))
         suffix = " — previous run" if note else ""
         data, scales, title = panels.counts_plot(retrieval, db.timestamps_s, rec.query_timestamp_s, t0_s)
@@ -89,6 +97,7 @@ class Page:
         data, scales = panels.error_plot(run.records, k, t0_s)
         g.error_plot.scales, g.error_plot.data = scales, data
         g.error_plot.title = "Error per step (m), the paper's Figure 4" + suffix
+        draw_timelines(g.timelines, visloc.steps_of_records(run.records, t0_s), k)
         g.map.image = mapview.map_image(self.truth_track_m, self.db_m, run.records, k,
                                         note="previous run - re-matching" if note else None)
         if not self.pictures_shown:

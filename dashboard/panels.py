@@ -59,6 +59,14 @@ def map_legend_html() -> str:
             f'is centred on the current step (magenta ring: its truth, magenta ellipse: its estimate).</div>')
 
 
+def series_names(queries, db) -> tuple[str, str]:
+    """What to call the queries and the database in a line: their cameras, or, when the cameras share a name (two
+    CSV drives are both "camera"), their drives and cameras."""
+    if queries.camera != db.camera:
+        return queries.camera, db.camera
+    return f"{queries.source}/{queries.camera}", f"{db.source}/{db.camera}"
+
+
 def status_html(message: str, *, error: bool = False) -> str:
     """A status line: wraps anywhere (long paths included), never clipped or scrolled sideways."""
     color, weight = ("#b00020", "600") if error else ("#333", "400")
@@ -292,5 +300,5 @@ def step_figure(queries: visloc.QuerySet, db: visloc.GeoDatabase, q_index: int, 
     return visloc.correspondence_figure(
         q_gray, d_gray, queries.keypoints_f32[q_index][pairs[:, 0], :2], db.keypoints_f32[best][pairs[:, 1], :2],
         width_px=FIGURE_WIDTH_PX,
-        labels=(f"query {queries.camera} frame {queries.frames[q_index]}",
-                f"best match {db.camera} frame {db.images[best].frame}: {len(pairs)} correspondences"))
+        labels=(f"query {series_names(queries, db)[0]} frame {queries.frames[q_index]}",
+                f"best match {series_names(queries, db)[1]} frame {db.images[best].frame}: {len(pairs)} correspondences"))

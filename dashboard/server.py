@@ -85,3 +85,44 @@ def serve(store_path: Path, *, host: str = "127.0.0.1", port: int = 8080, db_cam
             app.close()
     finally:
         server.stop()
+
+
+def saved_run_files(runs: list[Path]) -> list[tuple[str, Path]]:
+    """Every run the files given hold, in order (``evaluate-drives``' JSON: each drive's runs beside it).
+    A file that is no run is refused here, in one line naming it, before anything is served."""
+    files: list[tuple[str, Path]] = []
+    for path in runs:
+        files += visloc.run_files(path)
+    if not files:
+        raise visloc.InputError("--run: give at least one run file")
+    return files
+
+
+def serve_runs(runs: list[Path], *, host: str = "127.0.0.1", port: int = 8080, ready: threading.Event | None = None,
+               stop: threading.Event | None = None, announce=print) -> None:
+    """Serve the saved-run viewer on the runs in ``runs`` (the first shown, the second, if any, compared with
+    it) until ``stop`` is set. It opens only those files."""
+    from visloc.dashboard.runview import RunViewer
+
+    files = saved_run_files(runs)
+    visloc.load_run(files[0][1])  # a first run that cannot be read is said here, not only in the page
+    compare = len(visloc.run_files(runs[0])) if len(runs) > 1 else None
+    server = viser.ViserServer(host=host, port=port, label="visloc", verbose=False)
+    name_the_tab(server, f"{PAGE_TITLE}: saved runs")
+    try:
+        viewer = RunViewer(server, files, compare=compare)
+        try:
+            if not is_loopback(host):
+                print(f"visloc dashboard: warning: serving on {host}: anyone who reaches port {server.get_port()} "
+                      "can read these runs", file=sys.stderr, flush=True)
+            announce(f"visloc dashboard: http://{host}:{server.get_port()}  ({len(files)} saved run(s); "
+                     "Ctrl-C stops it)")
+            if ready is not None:
+                ready.set()
+            stop = stop or threading.Event()
+            while not stop.wait(0.5):
+                pass
+        finally:
+            viewer.close()
+    finally:
+        server.stop()

@@ -63,6 +63,18 @@ def kitti_evaluation(kitti_root, tmp_path_factory):
     return tmp, json.loads(out.read_text()), result.stdout
 
 
+@pytest.fixture(scope="session")
+def kitti_two_runs(kitti_evaluation, kitti_root):
+    """Two saved runs of the same series, as ``evaluate`` wrote them: the session's evaluation (the paper's
+    parameters) and the same at τ1 0.7, matched on the same store."""
+    tmp, _, _ = kitti_evaluation
+    other = tmp / "eval_tau1_0.7.json"
+    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
+                     "--start-frames", "0,25,50", "--tau1", "0.7", "--json", other, timeout=1800)
+    assert result.returncode == 0, result.stderr
+    return tmp / "eval.json", other
+
+
 def panorama(seed: int = 7, width_px: int = 2400, height_px: int = 240) -> np.ndarray:
     """A textured strip: blurred noise plus random shapes, rich in SIFT keypoints."""
     rng = np.random.default_rng(seed)

@@ -252,3 +252,15 @@ def open_other_store(page, path: Path | str):
 def choose(page, label: str, option: str) -> None:
     control(page, label).locator("input").first.click()
     page.get_by_role("option", name=option, exact=True).click()
+
+
+def settled(locator, what: str) -> bytes:
+    """A screenshot of ``locator`` once two consecutive ones, half a second apart, are identical:
+    the 3D view has drawn what it was sent and stopped changing."""
+    shots = [locator.screenshot()]
+
+    def still() -> bytes | None:
+        shots.append(locator.screenshot())
+        return shots[-1] if shots[-1] == shots[-2] else None
+
+    return wait_for(still, SERVER_WORK_S, what, poll_s=0.5)

@@ -23,6 +23,7 @@ from visloc.pose.structure import VARIANTS, ViewStructure, choose_variant, view_
 from visloc.store.build import build_global_vectors, build_structure
 from visloc.retrieval.matching import count_correspondences
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
+from visloc.results.saved import load_run
 
 DRIVE = "2011_09_26_drive_0005"
 SOURCE = DRIVE + "_sync"
@@ -198,6 +199,13 @@ def test_track_localizes_every_frame_and_writes_its_json(store, kitti_root, tmp_
     # the refined measurement works here: most frames posed, and no view within the exclusion window
     geometry = [f for f in run["per_frame"] if f["measurement_source"] == "geometry"]
     assert len(geometry) >= 15
+    # the dashboard reads it back (visloc dashboard --run): every frame, in the database's frame
+    saved = load_run(out)
+    db_frame = Workspace(store).load_database(SOURCE, "image_00").frame
+    assert run["frame_origin_deg"] == [db_frame.origin_lat_deg, db_frame.origin_lon_deg]
+    assert saved.kind == "track" and saved.n_steps == 30 and saved.frame == db_frame
+    assert [s.estimate_error_m for s in saved.series[0]] == [f["error_m"] for f in run["per_frame"]]
+    assert [s.truth_m for s in saved.series[0]] == [tuple(f["truth_m"]) for f in run["per_frame"]]
     assert all(abs(v - f["frame"]) >= 10 for f in geometry for v in f["view_frames"])
     assert np.median([f["measurement_error_m"] for f in geometry]) < 1.0
 

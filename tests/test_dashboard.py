@@ -33,6 +33,7 @@ from helpers import (
     row,
     run_number,
     screenshot,
+    settled,
     status_text,
     wait_for,
 )
@@ -65,18 +66,6 @@ def wait_for_step_figure(page, previous_src: str | None = None) -> str:
         return src if height > 120 and src != previous_src else None
 
     return wait_for(shown, SERVER_WORK_S, "the step's picture")
-
-
-def settled(locator, what: str) -> bytes:
-    """A screenshot of ``locator`` once two consecutive ones, half a second apart, are identical:
-    the 3D view has drawn what it was sent and stopped changing."""
-    shots = [locator.screenshot()]
-
-    def still() -> bytes | None:
-        shots.append(locator.screenshot())
-        return shots[-1] if shots[-1] == shots[-2] else None
-
-    return wait_for(still, SERVER_WORK_S, what, poll_s=0.5)
 
 
 def test_page_loads_with_its_controls_and_panels(dashboard, browser):

@@ -184,12 +184,19 @@ def test_the_map_follows_the_step_and_the_plots_read_as_data(dashboard, browser)
             assert "--" not in text, text
         assert "estimate 2σ" in " ".join(legends.all_inner_texts())
         # the last plot ends inside the panel once scrolled to
-        plots = page.locator(".uplot")
+        plots = page.locator(".uplot >> visible=true")  # the tab shown: its plots
         last = plots.nth(plots.count() - 1)
         last.scroll_into_view_if_needed()
         box, viewport = last.bounding_box(), page.viewport_size
         assert box["y"] + box["height"] <= viewport["height"], (box, viewport)
         screenshot(page, "newcomer_plots.png")
+        # every per-step signal over time, in its own tab
+        page.get_by_role("tab", name="Timelines").click()
+        for title in ("Error per step (m) and the estimate's 2σ", "NEES per step (2 if the covariance is honest)",
+                      "PnP inliers per step", "Latency per step (ms)"):
+            page.get_by_text(title, exact=True).wait_for()
+        screenshot(page, "newcomer_timelines.png")
+        page.get_by_role("tab", name="Current step").click()
         go_to_step(page, 2)
         page.get_by_role("tab", name="Map").click()
         before = wait_for(lambda: map_src(page), SERVER_WORK_S, "the map")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from visloc.bench.run import BenchParams, run_bench
 from visloc.cli.choices import (PAPER_DATABASE_CAMERA, require_exports, write_exports, choose_database, exclusion_for, kitti_camera, kitti_only_camera,
-                            make_folder_of, only_camera, refuse_camera_for_csv, require_output, store_for_writing)
+                            make_folder_of, refuse_camera_for_csv, require_output, store_for_writing)
 from visloc.errors import InputError, ParameterError
 from visloc.protocols.evaluation import evaluate, series_schedule
 from visloc.tracking.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
@@ -338,18 +338,6 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
                      [(f"all, {r['mode']}", r) for r in report["pooled"]]))
     write_json(out_dir / "drives.json", report)
     print(f"wrote {out_dir / 'drives.json'} and one JSON per drive, protocol and method beside it")
-    return 0
-
-
-def cmd_dashboard(a: argparse.Namespace) -> int:
-    if not 1 <= a.port <= 65535:
-        raise InputError(f"--port {a.port}: must be in 1..65535")
-    from visloc.dashboard import serve  # on demand: the browser app (viser) is only needed here
-
-    only = only_camera(a.db)  # a store of one camera shows it first; a missing or bad store is reported in the page
-    serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera or only or "image_01",
-          query_camera=a.query_camera or only or "image_00", db_source=a.db_source, query_source=a.query_source,
-          allow=a.allow, announce=lambda text: print(text, flush=True))
     return 0
 
 

@@ -83,7 +83,9 @@ calibration.json beside its CSV.""",
     "dashboard": """\
 examples:
   visloc dashboard                                  # the default store, http://127.0.0.1:8080
-  visloc dashboard --db out/my_drive.sqlite --port 8090""",
+  visloc dashboard --db out/my_drive.sqlite --port 8090
+  visloc dashboard --run out/results/track_2011_09_26_drive_0001_stereo.json      # a saved run, no store needed
+  visloc dashboard --run out/a.json --run out/b.json   # two runs compared""",
     "bench": f"""\
 examples:
   visloc bench {KITTI} --drive 2011_09_26_drive_0001 --json out/bench.json

@@ -14,7 +14,7 @@ import sqlite3
 import sys
 from pathlib import Path
 
-from visloc.cli import commands
+from visloc.cli import commands, serving
 from visloc.cli.stopping import interrupted_status, interrupted_text, stop_on_signal
 from visloc.db.connection import sqlite_error_line
 from visloc.db import StoreError
@@ -230,8 +230,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = _command(sub, "dashboard", help="browser dashboard: scrub through a drive, tune the method live",
                        description="Serve the viser dashboard for a store built by 'visloc ingest' or 'visloc "
                                    "evaluate'. Prints the URL actually served (viser moves to the next free port "
-                                   "when --port is taken). A missing or bad store is reported in the page.")
+                                   "when --port is taken). A missing or bad store is reported in the page. With "
+                                   "--run it shows saved runs instead, without their store.")
     _add_db(p)
+    p.add_argument("--run", action="append", type=Path, default=None, metavar="JSON",
+                   help="open a run that evaluate, evaluate-drives or track wrote (its --json, or drives.json); "
+                        "a second --run is drawn beside the first to compare")
     p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port to try first (default %(default)s)")
     p.add_argument("--allow", action="append", type=Path, default=None, metavar="DIR",
@@ -245,7 +249,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--query-source", default=None,
                    help="query drive/dataset to show first (default: the database's drive, or another drive "
                         "when the store holds several and the cameras do not tell)")
-    p.set_defaults(func=commands.cmd_dashboard)
+    p.set_defaults(func=serving.cmd_dashboard)
 
     p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",
                        description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "

@@ -124,6 +124,7 @@ class TrackRun:
     params: dict
     frames: list[TrackFrame] = field(default_factory=list)
     wall_s: float = 0.0
+    frame_origin_deg: tuple[float, float] | None = None  # (lat, lon) of the local frame of every *_m position
 
     def summary(self) -> dict:
         f = self.frames
@@ -148,7 +149,7 @@ class TrackRun:
                                                   and x.measurement_side == side]).as_dict() for side in SIDES}},
             "estimate_calibration": calibration([x.estimate_nees for x in f]).as_dict(),
             "wall_s": self.wall_s, "sustained_hz": len(f) / self.wall_s if self.wall_s > 0 else None,
-            "params": self.params,
+            "params": self.params, "frame_origin_deg": self.frame_origin_deg,
         }
 
     def as_json(self) -> dict:
@@ -209,7 +210,8 @@ def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoData
     indices = list(range(0, len(seq), params.stride)) if indices is None else list(indices)
     run = TrackRun(seq.name, f"{db.source}/{db.camera}", "fast" if params.fast else "exact",
                    {"track": params.as_dict(), "query_sift": sift.as_dict(), "filter": localizer.filter_params.as_dict(),
-                    **(path_params or {})})
+                    **(path_params or {})},
+                   frame_origin_deg=(db.frame.origin_lat_deg, db.frame.origin_lon_deg))
     localizer.reset()
     shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
     start = time.perf_counter()

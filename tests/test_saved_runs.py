@@ -1,0 +1,135 @@
+"""Saved runs read back: the JSON that ``evaluate`` wrote on the real drive, opened as the dashboard
+opens it (``visloc.load_run``), compared with a second run, and what the viewer draws from it."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import visloc
+from visloc.dashboard import runpanels as rp
+
+from conftest import run_cli
+from helpers import one_line_error
+
+pytestmark = [pytest.mark.kitti]
+
+
+def test_an_evaluation_reads_back_step_for_step_in_local_metres(kitti_evaluation):
+    tmp, report, _ = kitti_evaluation
+    run = visloc.load_run(tmp / "eval.json")
+    assert run.kind == "evaluation" and len(run.series) == len(report["series"]) == 3
+    assert [len(s) for s in run.series] == [len(s) for s in report["series"]]
+    assert run.series[0][0].truth_m == pytest.approx((0.0, 0.0), abs=1e-9)  # the frame: the first truth
+    for series, written in zip(run.series, report["series"]):
+        for step, record in zip(series, written):
+            assert step.frame == record["query_frame"] and step.estimate_error_m == record["estimate_error_m"]
+            # the positions in metres give back the errors the file states (geodesic on WGS84)
+            e = np.subtract(step.estimate_m, step.truth_m)
+            assert float(np.hypot(*e)) == pytest.approx(record["estimate_error_m"], abs=0.01)
+            assert step.estimate_cov_m2 == record["estimate_cov_m2"]
+    assert run.params == report["params"]
+    figures = visloc.run_figures(run)
+    assert figures["steps"] == sum(len(s) for s in report["series"])
+    assert figures["final estimate error mean (m)"] == pytest.approx(report["final_error_m"]["mean"])
+
+
+def test_kitti_two_runs_compare_in_one_frame_and_say_which_parameters_differ(kitti_two_runs):
+    a = visloc.load_run(kitti_two_runs[0])
+    b = visloc.load_run(kitti_two_runs[1], a.frame)
+    assert b.frame == a.frame
+    assert b.series[0][0].truth_m == pytest.approx(a.series[0][0].truth_m, abs=1e-9)  # the same query, same place
+    differ = {name: (x, y) for name, x, y in visloc.params_that_differ(a, b)}
+    assert differ["match.tau1"][1] == 0.7 and differ["match.tau1"][0] != 0.7
+    assert "match.tau2" not in differ
+    html = rp.runs_html(a, b)
+    assert "Parameters that differ" in html and "tau1" in html
+
+
+def test_drives_json_lists_the_runs_beside_it(kitti_two_runs, tmp_path):
+    folder = kitti_two_runs[0].parent
+    index = folder / "drives.json"
+    index.write_text(json.dumps({"root": "x", "drives": {"d": [
+        {"mode": "paper", "protocol_label": "left queries, right database", "file": kitti_two_runs[0].name},
+        {"mode": "paper", "protocol_label": "τ1 0.7", "file": kitti_two_runs[1].name},
+        {"mode": "refined", "file": "not_there.json"}]}}))
+    files = visloc.run_files(index)
+    assert [p for _, p in files] == [kitti_two_runs[0], kitti_two_runs[1]]  # a file that is not beside it is left out
+    assert files[0][0] == "d, left queries, right database, paper"
+    index.unlink()
+
+
+@pytest.mark.parametrize("content, says", [
+    (None, "no such file"), ("{ not json", "not JSON (line 1"), ("[1, 2]", "a JSON object was expected"),
+    ('{"mode": "paper"}', "neither 'series' nor 'per_frame'"), ('{"series": [[]]}', "holds no steps"),
+    ('{"per_frame": [{"frame": 0}]}', "frame 0 has no truth_m"),
+])
+def test_a_file_that_is_no_run_is_one_line_naming_it(tmp_path, content, says):
+    path = tmp_path / "run <img src=x>.json"
+    if content is not None:
+        path.write_text(content)
+    with pytest.raises(visloc.InputError) as info:
+        visloc.load_run(path)
+    assert str(path) in str(info.value) and says in str(info.value) and "\n" not in str(info.value)
+    result = run_cli("dashboard", "--run", path, "--port", "8391", timeout=120)  # refused before serving
+    one_line_error(result, str(path), says)
+
+
+def test_what_a_run_file_says_reaches_the_page_as_text(kitti_evaluation, tmp_path):
+    report = json.loads((kitti_evaluation[0] / "eval.json").read_text())
+    report["series"][0][0]["fallback_reason"] = "<img src=x onerror=alert(1)>"
+    report["params"]["mode"] = "<script>alert(2)</script>"
+    path = tmp_path / "evil.json"
+    path.write_text(json.dumps(report))
+    run = visloc.load_run(path)
+    step_page = rp.step_html(run.series[0][0], len(run.series[0]), None, 1.0)
+    runs_page = rp.runs_html(run, None)
+    for page in (step_page, runs_page):
+        assert "<img" not in page and "<script" not in page
+    assert "&#60;img" in step_page and "&#60;script" in runs_page
+    assert rp.jump_choices(run.series[0])[-1].startswith("step 1: fell back (<img")  # a dropdown shows text
+
+
+def test_the_timelines_mark_the_current_step_and_the_fallbacks(kitti_evaluation):
+    run = visloc.load_run(kitti_evaluation[0] / "eval.json")
+    series = run.series[0]
+    series[2].fallback_reason, series[3].gated = "too few inliers", True
+    for kind in rp.TIMELINES:
+        data, (low, high) = rp.timeline(kind, series, 4)
+        assert all(len(column) == len(series) for column in data)
+        assert len(data) == len(rp.timeline_series(kind, {k: "red" for k in
+                                                          ("estimate", "measurement", "ellipse", "compare",
+                                                           "current")}))
+        fell_back, gated, current = data[-3], data[-2], data[-1]
+        assert np.isfinite(current).sum() <= 1 and (np.isnan(current[:4]).all())
+        assert np.isnan(fell_back[[0, 1, 3]]).all() and np.isnan(gated[[0, 1, 2]]).all()
+        assert low == 0.0 and high > 0.0
+    data, _ = rp.timeline("error", series, 4)
+    assert data[-1][4] == series[4].estimate_error_m
+    worst = visloc.worst_steps(series, 3)
+    assert series[worst[0]].estimate_error_m == max(s.estimate_error_m for s in series)
+    choices = rp.jump_choices(series, 3)
+    assert [rp.step_of_choice(c) for c in choices[:3]] == [k + 1 for k in worst]
+    assert "fell back (too few inliers)" in choices[3] and choices[4] == "step 4: gated"
+
+
+def test_the_scale_marks_read_well_at_every_zoom():
+    assert [rp.nice_length_m(x) for x in (0.013, 0.4, 3.7, 18.0, 260.0)] == [0.01, 0.2, 2.0, 10.0, 200.0]
+    assert rp.length_text(0.05) == "5 cm" and rp.length_text(20.0) == "20 m"
+    for distance_m in (0.5, 5.0, 50.0, 500.0):
+        marks = rp.scale_marks(np.array([10.0, -4.0, 0.0]), distance_m)
+        length = np.linalg.norm(marks["bar"][1] - marks["bar"][0])
+        assert distance_m / 10 <= length <= distance_m / 4 + 1e-9  # a tenth to a quarter of the view
+        north = marks["arrow"][1] - marks["arrow"][0]
+        assert north[0] == 0.0 and north[1] > 0.0  # it points north
+    # a refined 2σ ellipse of a few centimetres: invisible at drive scale, readable when followed
+    cov = [[0.004, 0.0], [0.0, 0.003]]
+    assert rp.ellipse_px(cov, 300.0) < 3.0
+    step = visloc.SavedStep(0, 0, 0.0, (0.0, 0.0), (0.01, 0.0), cov, 0.063, 0.01, None, None, None, None, None,
+                            None, False, None, None, None, None)
+    assert rp.ellipse_px(cov, rp.follow_distance_m(step, 1.0)) > 100.0
+    assert rp.ellipse_px(rp.magnified(cov, 100.0), 300.0) > 50.0  # ×100: tens of pixels at 300 m
+    assert rp.ground_point((0.0, 0.0, 10.0), (0.6, 0.0, -0.8)) == pytest.approx([7.5, 0.0, 0.0])
+    assert rp.ground_point((0.0, 0.0, 10.0), (0.0, 0.0, 1.0)) is None
