@@ -16,7 +16,7 @@ from visloc.dashboard.scene import (CURRENT_RGB, DATABASE_RGB, ELLIPSE_RGB, ESTI
 
 MAP_WIDTH_PX = 620
 VIEW_HEIGHT_PX = 300
-ZOOM_HALF_M = 25.0  # the close-up shows this many metres either side of the current step
+ZOOM_HALF_M = 25.0  # the close-up shows at most this many metres above and below the current step
 MARGIN_PX = 16
 HEADER_PX, FOOTER_PX = 30, 28
 FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -45,6 +45,13 @@ class View:
         x = (p[:, 0] - self.center_m[0]) * self.px_per_m + self.width_px / 2
         y = self.height_px / 2 - (p[:, 1] - self.center_m[1]) * self.px_per_m
         return np.clip(np.round(np.c_[x, y]), -10_000, 10_000).astype(np.int32)
+
+
+def closeup_half_m(whole: View) -> float:
+    """Half the close-up's height in metres: ``ZOOM_HALF_M``, or a quarter of what the whole-run view shows when
+    that is less (a short drive's close-up is then still closer than its overview), at least 2 m."""
+    whole_half_m = (whole.height_px - 2 * MARGIN_PX) / (2 * whole.px_per_m)
+    return float(max(min(ZOOM_HALF_M, whole_half_m / 4), 2.0))
 
 
 def nice_length_m(max_m: float) -> float:
@@ -145,9 +152,12 @@ def map_image(truth_track_m: np.ndarray, db_m: np.ndarray, records: list[visloc.
     views = [whole]
     if k is not None and 0 <= k < len(records):
         center = np.asarray(records[k].truth_m, float)
-        scale = (VIEW_HEIGHT_PX - 2 * MARGIN_PX) / (2 * ZOOM_HALF_M)
+        half_m = closeup_half_m(whole)
+        scale = (VIEW_HEIGHT_PX - 2 * MARGIN_PX) / (2 * half_m)
+        wide_m, tall_m = width_px / scale, VIEW_HEIGHT_PX / scale  # what the picture shows, edge to edge
         views.append(draw_view(View(center, scale, width_px, VIEW_HEIGHT_PX),
-                               f"Around step {k + 1} ({2 * ZOOM_HALF_M:g} m across)", truth_track_m, db_m, records, k))
+                               f"Around step {k + 1} ({wide_m:.3g} m by {tall_m:.3g} m)", truth_track_m, db_m,
+                               records, k))
     img = np.concatenate(views, axis=0)
     if note:
         img = (0.55 * img + 0.45 * 235).astype(np.uint8)  # dimmed: not the run the controls ask for

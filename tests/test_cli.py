@@ -212,7 +212,8 @@ def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):
                    "--start-frames 'x'")
     one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "2",
                            "--start-frames", "3,20,21"),
-                   "no series of 2 queries starts at [20, 21] (allowed start frames: 0..13)")
+                   "no series of 2 queries starts at [20, 21] (this drive's series start at frames 0..13: pick start "
+                   "frames there, or leave out --start-frames for every series)")
     one_line_error(run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "9"),
                    "too short for 9 queries")
 

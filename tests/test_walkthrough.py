@@ -2,9 +2,10 @@
 its marker goes to bash from the checkout's root, as a user pastes it, and the dashboard it ends
 with is opened in headless Chromium.
 
-It writes into ``out/byod/`` of the checkout (its paths are the README's), removed first. Only
-the data root changes, and only when ``VISLOC_DATA`` points elsewhere than the README's
-``../shared/data/kitti``.
+It runs in a temporary folder that stands for the checkout (its ``.venv`` and ``scripts`` linked
+in), so the README's paths (``out/byod/...``) are the temporary folder's and a user's own results
+in the checkout's ``out/byod/`` are never touched. Only the data root changes: the README's
+``../shared/data/kitti`` becomes the drive folder the tests use, by its absolute path.
 """
 
 from __future__ import annotations
@@ -13,14 +14,13 @@ import csv
 import json
 import os
 import re
-import shutil
 import signal
 import subprocess
 import threading
 
 import geojson
 import pytest
-from helpers import control, dismiss_webgl_notice, new_page, run_number, screenshot, wait_for
+from helpers import control, dismiss_webgl_notice, new_page, run_number, wait_for
 
 from conftest import REPO
 
@@ -28,7 +28,6 @@ pytestmark = [pytest.mark.kitti, pytest.mark.slow, pytest.mark.browser]
 
 MARKER = "<!-- the walk-through: tests/test_walkthrough.py runs this block as it is -->"
 README_ROOT = "../shared/data/kitti"
-OUT = REPO / "out" / "byod"
 URL_LINE = re.compile(r"visloc dashboard: (http://\S+)")
 WALK_S = 3600  # everything before the dashboard: two CSV drives, an ingest, a series, an evaluation
 
@@ -41,14 +40,24 @@ def walkthrough_block() -> str:
     return after.split("```bash\n", 1)[1].split("```", 1)[0]
 
 
-def test_the_readme_walkthrough_runs_as_written(kitti_root, browser):
+def checkout_stand_in(folder):
+    """A folder where the README's commands run as in the checkout: its .venv and scripts linked in."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for name in (".venv", "scripts"):
+        (folder / name).symlink_to(REPO / name, target_is_directory=True)
+    return folder
+
+
+def test_the_readme_walkthrough_runs_as_written(kitti_root, browser, tmp_path):
     script = walkthrough_block()
     commands = [line for line in script.splitlines() if line.strip() and not line.lstrip().startswith("#")]
     assert commands[-1].startswith("visloc dashboard"), "the walk-through ends by opening the dashboard"
-    if kitti_root.resolve() != (REPO / README_ROOT).resolve():
-        script = script.replace(README_ROOT, str(kitti_root))
-    shutil.rmtree(OUT, ignore_errors=True)
-    proc = subprocess.Popen(["bash", "-euo", "pipefail", "-c", script], cwd=REPO, stdout=subprocess.PIPE,
+    script = script.replace(README_ROOT, str(kitti_root.resolve()))
+    here = checkout_stand_in(tmp_path / "checkout")
+    user_results = REPO / "out" / "byod"
+    before = sorted(p.relative_to(user_results) for p in user_results.rglob("*")) if user_results.exists() else None
+    out = here / "out" / "byod"
+    proc = subprocess.Popen(["bash", "-euo", "pipefail", "-c", script], cwd=here, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True,
                             env={**os.environ, "PYTHONUNBUFFERED": "1"})
     output: list[str] = []
@@ -66,14 +75,14 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser):
         log = "".join(output)
         assert found.is_set(), f"the walk-through stopped (exit {proc.returncode}) before the dashboard:\n{log}"
         # what the commands before the dashboard wrote
-        series = geojson.loads((OUT / "series_40.geojson").read_text())
+        series = geojson.loads((out / "series_40.geojson").read_text())
         assert series.is_valid, series.errors()
         kinds = {f["properties"]["kind"] for f in series["features"]}
         assert {"truth track", "measurement track", "estimate track", "estimate"} <= kinds
         assert len([f for f in series["features"] if f["properties"]["kind"] == "estimate"]) == 6
-        evaluation = json.loads((OUT / "evaluation.json").read_text())
+        evaluation = json.loads((out / "evaluation.json").read_text())
         assert evaluation["n_series"] == len(evaluation["series"]) == 3
-        rows = list(csv.DictReader((OUT / "evaluation.csv").open()))
+        rows = list(csv.DictReader((out / "evaluation.csv").open()))
         assert len(rows) == sum(len(s) for s in evaluation["series"])
         assert "1.85" not in log  # the paper's figure for its own drive is not a comparison for this one
         # the dashboard shows the query drive against the database drive and fills in a run
@@ -88,7 +97,7 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser):
             queries = page.get_by_text("Queries", exact=True).last  # the Data fold's, after the fold named so
             assert queries.locator("xpath=../../..").locator("input").first.input_value() == "queries/camera"
             dismiss_webgl_notice(page)
-            screenshot(page, "walkthrough_dashboard.png")
+            page.screenshot(path=str(tmp_path / "walkthrough_dashboard.png"))
         finally:
             page.close()
     finally:
@@ -99,3 +108,5 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser):
             except subprocess.TimeoutExpired:
                 os.killpg(proc.pid, signal.SIGKILL)
                 proc.wait()
+    after = sorted(p.relative_to(user_results) for p in user_results.rglob("*")) if user_results.exists() else None
+    assert after == before, "the walk-through touched the checkout's out/byod/"

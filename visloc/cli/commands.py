@@ -208,7 +208,8 @@ def _start_indices(a: argparse.Namespace, query_seq: Sequence, schedule: list[li
     allowed = {query_seq.frames[s[0]].frame for s in schedule}
     if wanted - allowed:
         raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at "
-                         f"{sorted(wanted - allowed)[:5]} (allowed start frames: {min(allowed)}..{max(allowed)})")
+                         f"{sorted(wanted - allowed)[:5]} (this drive's series start at frames {min(allowed)}.."
+                         f"{max(allowed)}: pick start frames there, or leave out --start-frames for every series)")
     return wanted
 
 

@@ -83,8 +83,10 @@ def measurement_calibration(records: Sequence[StepRecord]) -> dict:
 
 
 def _reason_kind(reason: str) -> str:
-    """A fallback reason without its numbers, to count reasons of one kind together."""
-    kind = re.sub(r"\[[^\]]*\]|\([^)]*\)|(?<![\w.-])-?\d+(\.\d+)?(?![\w-])", "#", reason)  # lists, (...), numbers
+    """A fallback reason with its numbers as N (its lists as [...]), to count reasons of one kind together:
+    "PnP RANSAC: 7 inliers (need 12)" is "PnP RANSAC: N inliers (need N)"."""
+    kind = re.sub(r"\[[^\]]*\]", "[...]", reason)
+    kind = re.sub(r"(?<![\w.-])-?\d+(\.\d+)?(?![\w-])", "N", kind)
     return re.sub(r"\s+", " ", kind).strip()
 
 
