@@ -147,12 +147,12 @@ def map_image(truth_track_m: np.ndarray, db_m: np.ndarray, records: list[visloc.
     truth_track_m = np.asarray(truth_track_m, float).reshape(-1, 2)
     db_m = np.asarray(db_m, float).reshape(-1, 2)
     everything = np.concatenate([truth_track_m, db_m] + [positions([r.estimate_m for r in records])])
-    whole = draw_view(View.fitting(everything, width_px, VIEW_HEIGHT_PX), "Whole run", truth_track_m, db_m,
-                      records, k)
+    overview = View.fitting(everything, width_px, VIEW_HEIGHT_PX)
+    whole = draw_view(overview, "Whole run", truth_track_m, db_m, records, k)
     views = [whole]
     if k is not None and 0 <= k < len(records):
         center = np.asarray(records[k].truth_m, float)
-        half_m = closeup_half_m(whole)
+        half_m = closeup_half_m(overview)
         scale = (VIEW_HEIGHT_PX - 2 * MARGIN_PX) / (2 * half_m)
         wide_m, tall_m = width_px / scale, VIEW_HEIGHT_PX / scale  # what the picture shows, edge to edge
         views.append(draw_view(View(center, scale, width_px, VIEW_HEIGHT_PX),

@@ -55,21 +55,31 @@ def axis_ticks(lo_m: float, hi_m: float, step_m: float) -> list[float]:
     return [round(first + i * step_m, 9) for i in range(int((hi_m - first) // step_m) + 1)]
 
 
-def follow_distance_m(step: SavedStep, magnification: float) -> float:
-    """How far the camera stands from the current estimate so that its 2σ ellipse (as drawn) spans about a
-    third of the view."""
+def drawn_factor(cov_m2, magnification: float, largest_m: float) -> float:
+    """How many times larger an ellipse is drawn: ``magnification``, but never so much that its 2σ major axis
+    exceeds ``largest_m`` (a quarter of the drive), and never smaller than true size. A paper run's ellipses
+    (tens of metres) stay true; a refined run's (centimetres) grow until they can be seen."""
+    if cov_m2 is None:
+        return 1.0
+    major_m = 4.0 * math.sqrt(max(np.linalg.eigvalsh(np.asarray(cov_m2, float)).max(), 1e-12))
+    return float(max(1.0, min(magnification, largest_m / major_m)))
+
+
+def magnified(cov: list[list[float]] | None, factor: float) -> np.ndarray | None:
+    """A covariance drawn ``factor`` times larger (its ellipse's axes scale by that factor)."""
+    return None if cov is None else np.asarray(cov, float) * factor**2
+
+
+def follow_distance_m(step: SavedStep, factor: float, farthest_m: float) -> float:
+    """How far the camera stands from the current estimate so that its 2σ ellipse (drawn ``factor`` times larger)
+    spans about a third of the view; at most ``farthest_m`` (the scene must stay in view), at least 1 m."""
     sigma = step.estimate_sigma_m or step.measurement_sigma_m or 1.0
-    return max(6.0 * 2.0 * sigma * magnification, 1.0)
+    return float(min(max(6.0 * 2.0 * sigma * factor, 1.0), max(farthest_m, 1.0)))
 
 
-def marker_m(sigma_m: float | None, magnification: float) -> float:
+def marker_m(sigma_m: float | None, factor: float) -> float:
     """A position marker's size: a quarter of the (drawn) 1σ, so it sits inside the ellipse (1 cm to 1 m)."""
-    return float(np.clip(0.25 * (sigma_m or 1.0) * magnification, 0.01, 1.0))
-
-
-def magnified(cov: list[list[float]] | None, magnification: float) -> np.ndarray | None:
-    """A covariance drawn ``magnification`` times larger (its ellipse's axes scale by that factor)."""
-    return None if cov is None else np.asarray(cov, float) * magnification**2
+    return float(np.clip(0.25 * (sigma_m or 1.0) * factor, 0.01, 1.0))
 
 
 def ellipse_px(cov_m2, view_distance_m: float, view_px: float = 800.0, fov_rad: float = math.radians(50)) -> float:
@@ -191,7 +201,7 @@ def table_html(rows: list[tuple], header: tuple | None = None) -> str:
 def step_html(step: SavedStep, n_steps: int, other: SavedStep | None, magnification: float) -> str:
     """Every field of the step as the file has it (the comparison's beside it when there is one)."""
     title = (f"<b>Step {step.step + 1} of {n_steps}</b>, frame {step.frame}, {step.time_s:.1f} s"
-             + ("" if magnification == 1.0 else f"; ellipses drawn ×{magnification:g}"))
+             + ("" if magnification == 1.0 else f"; ellipses drawn up to ×{magnification:g}"))
     names = list(step.fields) + [k for k in (other.fields if other else {}) if k not in step.fields]
     rows = [(k, step.fields.get(k), other.fields.get(k)) if other else (k, step.fields.get(k)) for k in names]
     return f"<div>{title}</div>" + table_html(rows, ("field", "this run", "comparison") if other else ("field", "value"))

@@ -84,6 +84,7 @@ class RunViewer:
         self._lock = threading.RLock()
         self._stop = threading.Event()
         server.scene.set_up_direction("+z")
+        self._largest_m, self._farthest_m, self._marker_m = 10.0, 200.0, 0.1  # set for each series drawn
         self._build_gui(compare)
         server.on_client_connect(self._tab_opened)
         server.scene.on_click()(self._clicked)  # a click near the trajectory jumps to the nearest step
@@ -211,8 +212,12 @@ class RunViewer:
         """The whole series: truth, measurements, estimate track and ellipses, the comparison, the grid."""
         s, sc = self.state, self.scene
         series, mag = self._series(), s.magnification
-        self._marker_m = rp.marker_m(np.median([x.estimate_sigma_m or 1.0 for x in series]), mag)
         truth = scene.positions([x.truth_m for x in series])
+        span_m = float(max(np.nanmax(truth, axis=0) - np.nanmin(truth, axis=0))) if len(truth) else 10.0
+        self._largest_m, self._farthest_m = max(span_m, 4.0) / 4.0, 2.0 * max(span_m, 10.0) + 20.0
+        typical = float(np.median([x.estimate_sigma_m or 1.0 for x in series]))
+        self._marker_m = rp.marker_m(typical, rp.drawn_factor([[typical**2, 0.0], [0.0, typical**2]], mag,
+                                                              self._largest_m))
         meas = scene.positions([x.measurement_m for x in series])
         est = scene.positions([x.estimate_m for x in series])
         with self.server.atomic():
@@ -241,13 +246,13 @@ class RunViewer:
                     sc.add_line_segments(name, np.zeros((0, 2, 3)), colors=COMPARE_RGB)
         self._apply_layers()
 
-    @staticmethod
-    def _ellipses(series, which: str, magnification: float) -> np.ndarray:
+    def _ellipses(self, series, which: str, magnification: float) -> np.ndarray:
         out = []
         for x in series:
             centre, cov = getattr(x, f"{which}_m"), getattr(x, f"{which}_cov_m2")
             if centre is not None and cov is not None and (which == "estimate" or x.measurement_source == "geometry"):
-                loop = visloc.covariance_ellipse_m(np.asarray(centre), rp.magnified(cov, magnification), n_sigma=2.0)
+                factor = rp.drawn_factor(cov, magnification, self._largest_m)
+                loop = visloc.covariance_ellipse_m(np.asarray(centre), rp.magnified(cov, factor), n_sigma=2.0)
                 out.append(scene.closed_loop_segments(loop, Z + 0.03))
         return np.concatenate(out) if out else np.zeros((0, 2, 3))
 
@@ -309,7 +314,8 @@ class RunViewer:
         if other:
             other_step = min(other, key=lambda x: abs(x.time_s - step.time_s))
         mag = s.magnification
-        marker = rp.marker_m(step.estimate_sigma_m, mag)  # inside the ellipse, whatever its size
+        factor = rp.drawn_factor(step.estimate_cov_m2, mag, self._largest_m)  # the current estimate's ellipse
+        marker = rp.marker_m(step.estimate_sigma_m, factor)  # inside the ellipse, whatever its size
         with self.server.atomic():
             tx, ty = step.truth_m
             sc.add_icosphere("/current/truth", radius=marker, color=scene.TRUTH_RGB, position=(tx, ty, Z))
@@ -321,11 +327,12 @@ class RunViewer:
                                 (step.measurement_m, step.measurement_cov_m2 if step.measurement_source == "geometry"
                                  else None)):
                 if centre is not None and cov is not None:
+                    drawn = rp.magnified(cov, rp.drawn_factor(cov, mag, self._largest_m))
                     loops.append(scene.closed_loop_segments(visloc.covariance_ellipse_m(
-                        np.asarray(centre), rp.magnified(cov, mag), n_sigma=2.0), Z + 0.08))
+                        np.asarray(centre), drawn, n_sigma=2.0), Z + 0.08))
             sc.add_line_segments("/current/ellipse", np.concatenate(loops) if loops else np.zeros((0, 2, 3)),
                                  colors=scene.CURRENT_RGB, thickness=3.0, thickness_units="screen")
-            sc.add_label("/current/label", f"step {s.k + 1}" + ("" if mag == 1.0 else f", ellipse ×{mag:g}"),
+            sc.add_label("/current/label", f"step {s.k + 1}" + ("" if factor == 1.0 else f", ellipse ×{factor:.3g}"),
                          position=(tx, ty, 1.0), anchor="bottom-center")
         self.step_table.content = rp.step_html(step, len(series), other_step, mag)
         draw_timelines(self.plots, series, s.k, other)
@@ -337,7 +344,8 @@ class RunViewer:
         """Camera follows: look at the current estimate from a distance that frames its (drawn) ellipse."""
         step = self._series()[self.state.k]
         centre = np.array([*(step.estimate_m or step.truth_m), 0.0])
-        distance = rp.follow_distance_m(step, self.state.magnification)
+        factor = rp.drawn_factor(step.estimate_cov_m2, self.state.magnification, self._largest_m)
+        distance = rp.follow_distance_m(step, factor, self._farthest_m)
         offset = np.asarray(client.camera.position) - np.asarray(client.camera.look_at)
         offset = offset / max(np.linalg.norm(offset), 1e-9) * distance
         with client.atomic():

@@ -77,7 +77,7 @@ def test_the_3d_view_zooms_from_the_drive_to_one_ellipse_and_layers_hide(viewer,
     whole = settled(canvas, "the whole drive drawn")
     (tmp_path / "whole_drive.png").write_bytes(whole)
     choose(page, "Ellipses drawn", "×100")
-    page.get_by_text(re.compile(r"ellipses drawn ×100$")).wait_for()
+    page.get_by_text(re.compile(r"ellipses drawn up to ×100$")).wait_for()
     control(page, "Camera follows").locator("input").first.check()
     zoomed = settled(canvas, "the view framing the current ellipse")
     (tmp_path / "one_ellipse.png").write_bytes(zoomed)

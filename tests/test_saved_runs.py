@@ -129,7 +129,34 @@ def test_the_scale_marks_read_well_at_every_zoom():
     assert rp.ellipse_px(cov, 300.0) < 3.0
     step = visloc.SavedStep(0, 0, 0.0, (0.0, 0.0), (0.01, 0.0), cov, 0.063, 0.01, None, None, None, None, None,
                             None, False, None, None, None, None)
-    assert rp.ellipse_px(cov, rp.follow_distance_m(step, 1.0)) > 100.0
+    assert rp.ellipse_px(cov, rp.follow_distance_m(step, 1.0, 500.0)) > 100.0
     assert rp.ellipse_px(rp.magnified(cov, 100.0), 300.0) > 50.0  # ×100: tens of pixels at 300 m
+    # magnified, but never beyond a quarter of the drive: a paper run's 10 m ellipse stays true, and the camera
+    # that follows it stays near the drive
+    assert rp.drawn_factor(cov, 100.0, 30.0) == 100.0 and rp.drawn_factor(cov, 100.0, 12.65) < 100.0
+    assert rp.drawn_factor([[100.0, 0.0], [0.0, 100.0]], 100.0, 25.0) == 1.0
+    assert rp.drawn_factor([[1.0, 0.0], [0.0, 1.0]], 100.0, 25.0) == pytest.approx(6.25)
+    paper_step = visloc.SavedStep(0, 0, 0.0, (0.0, 0.0), (5.0, 0.0), [[100.0, 0.0], [0.0, 100.0]], 10.0, 5.0, None,
+                                  None, None, None, None, None, False, None, None, None, None)
+    assert rp.follow_distance_m(paper_step, 1.0, 220.0) == 120.0
+    assert rp.follow_distance_m(paper_step, 100.0, 220.0) == 220.0
     assert rp.ground_point((0.0, 0.0, 10.0), (0.6, 0.0, -0.8)) == pytest.approx([7.5, 0.0, 0.0])
     assert rp.ground_point((0.0, 0.0, 10.0), (0.0, 0.0, 1.0)) is None
+
+
+def test_the_map_close_up_is_closer_than_the_overview_and_says_its_size(kitti_evaluation):
+    from visloc.dashboard import mapview
+
+    run = visloc.load_run(kitti_evaluation[0] / "eval.json")
+    series = run.series[0]  # a 50-frame stretch, about 60 m: shorter than the usual 50 m close-up is useful for
+    truth = np.array([s.truth_m for s in series])
+    overview = mapview.View.fitting(truth, mapview.MAP_WIDTH_PX, mapview.VIEW_HEIGHT_PX)
+    half_m = mapview.closeup_half_m(overview)
+    overview_half_m = (overview.height_px - 2 * mapview.MARGIN_PX) / (2 * overview.px_per_m)
+    assert half_m <= overview_half_m / 4 + 1e-9 and half_m >= 2.0
+    long_drive = mapview.View.fitting(np.array([[0.0, 0.0], [2000.0, 900.0]]), mapview.MAP_WIDTH_PX,
+                                      mapview.VIEW_HEIGHT_PX)
+    assert mapview.closeup_half_m(long_drive) == mapview.ZOOM_HALF_M
+    # the map draws with a close-up on any step (saved steps carry the records' names)
+    image = mapview.map_image(truth, truth, series, 3)
+    assert image.ndim == 3 and image.shape[0] > mapview.VIEW_HEIGHT_PX
