@@ -39,3 +39,17 @@ def test_the_readme_performance_notes_are_what_their_json_renders():
     rendered = checksum_cost.render(json.loads(checksum_cost.OUT.read_text()))
     assert rendered in (REPO / "README.md").read_text()
     assert checksum_cost.update_readme(rendered) == (REPO / "README.md").read_text()
+
+
+def test_the_readme_saved_run_timings_are_what_their_json_renders():
+    """The saved-run opening times in the README are rendered from docs/results/saved_run_open.json (written by
+    scripts/saved_run_open.py), and every run file the results hold was timed."""
+    import json
+
+    import saved_run_open
+
+    result = json.loads(saved_run_open.OUT.read_text())
+    rendered = saved_run_open.render(result)
+    assert rendered in (REPO / "README.md").read_text()
+    assert {r["kind"] for r in result["runs"]} == {"track", "evaluation"}
+    assert all(r["steps"] > 0 and r["first_screen_s"] > 0 and r["command_to_url_s"] > 0 for r in result["runs"])
