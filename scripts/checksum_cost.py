@@ -1,7 +1,7 @@
 """What the store's checksums cost, measured on the real drives: writing (ingest) and reading (every run).
 
     python scripts/checksum_cost.py [--db out/results/visloc.sqlite] [--root ../shared/data/kitti]
-    python scripts/checksum_cost.py --readme     # README's performance notes from docs/results/checksum_cost.json
+    python scripts/checksum_cost.py --page     # the performance page from docs/results/checksum_cost.json
 
 For each drive and camera a store holds (every drive of the data root, when the store was built by
 ``scripts/results.py run``):
@@ -17,7 +17,7 @@ For each drive and camera a store holds (every drive of the data root, when the 
 * a re-ingest that finds nothing to do: the time to check every stored image of the drive against
   its checksums and its file.
 
-Writes docs/results/checksum_cost.json; ``--readme`` renders the README's section from it.
+Writes docs/results/checksum_cost.json; ``--page`` renders its section of docs/performance.md from it.
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ from visloc.store.workspace import Workspace  # noqa: E402
 
 OUT = REPO / "docs" / "results" / "checksum_cost.json"
 RESULTS = REPO / "out" / "results"
-README = REPO / "README.md"
-BEGIN, END = "<!-- checksum-cost: begin (python scripts/checksum_cost.py --readme) -->", "<!-- checksum-cost: end -->"
+PAGE = REPO / "docs" / "performance.md"
+BEGIN, END = "<!-- checksum-cost: begin (python scripts/checksum_cost.py --page) -->", "<!-- checksum-cost: end -->"
 
 
 def _timed(fn, repeats: int = 1) -> float:
@@ -164,25 +164,25 @@ def render(result: dict) -> str:
     ])
 
 
-def update_readme(text: str) -> str:
-    readme = README.read_text()
+def update_page(text: str) -> str:
+    page = PAGE.read_text()
     pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.DOTALL)
-    if not pattern.search(readme):
-        raise SystemExit(f"{README}: no section between {BEGIN} and {END}")
-    return pattern.sub(lambda _: text, readme)
+    if not pattern.search(page):
+        raise SystemExit(f"{PAGE}: no section between {BEGIN} and {END}")
+    return pattern.sub(lambda _: text, page)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
     parser.add_argument("--root", type=Path, default=default_data_root())
-    parser.add_argument("--readme", action="store_true", help="only render the README's section from the JSON")
+    parser.add_argument("--page", action="store_true", help="only render its section of docs/performance.md from the JSON")
     a = parser.parse_args()
-    if not a.readme:
+    if not a.page:
         result = measure(a.db)
         OUT.write_text(json.dumps(result, indent=1) + "\n")
         print(f"wrote {OUT}", file=sys.stderr)
-    README.write_text(update_readme(render(json.loads(OUT.read_text()))))
+    PAGE.write_text(update_page(render(json.loads(OUT.read_text()))))
     return 0
 
 

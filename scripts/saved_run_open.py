@@ -1,14 +1,14 @@
 """How long a saved run takes to open in the dashboard (``visloc dashboard --run FILE``), measured.
 
     python scripts/saved_run_open.py [--results out/results]
-    python scripts/saved_run_open.py --readme    # README's performance notes from docs/results/saved_run_open.json
+    python scripts/saved_run_open.py --page    # the performance page from docs/results/saved_run_open.json
 
 For every run file the results hold (``track_*.json`` and each drive's ``evaluate`` JSON named in
 ``drives.json``), medians of 5 in this process: reading it (``visloc.load_run``) and the viewer's
 first screen on a viser server (its first series and first step drawn: tracks, ellipses, grid,
 timelines, tables), then the command itself: from starting ``visloc dashboard --run FILE`` to the
 URL it prints (Python and its libraries starting included; the page is served from then on), median
-of 3. Writes docs/results/saved_run_open.json; ``--readme`` renders the README's section from it.
+of 3. Writes docs/results/saved_run_open.json; ``--page`` renders its section of docs/performance.md from it.
 """
 
 from __future__ import annotations
@@ -33,8 +33,8 @@ import visloc  # noqa: E402
 from visloc.dashboard.runview import RunViewer  # noqa: E402
 
 OUT = REPO / "docs" / "results" / "saved_run_open.json"
-README = REPO / "README.md"
-BEGIN, END = "<!-- saved-run-open: begin (python scripts/saved_run_open.py --readme) -->", "<!-- saved-run-open: end -->"
+PAGE = REPO / "docs" / "performance.md"
+BEGIN, END = "<!-- saved-run-open: begin (python scripts/saved_run_open.py --page) -->", "<!-- saved-run-open: end -->"
 URL = re.compile(r"visloc dashboard: http://\S+")
 
 
@@ -116,24 +116,24 @@ def render(result: dict) -> str:
     ])
 
 
-def update_readme(text: str) -> str:
-    readme = README.read_text()
+def update_page(text: str) -> str:
+    page = PAGE.read_text()
     pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.DOTALL)
-    if not pattern.search(readme):
-        raise SystemExit(f"{README}: no section between {BEGIN} and {END}")
-    return pattern.sub(lambda _: text, readme)
+    if not pattern.search(page):
+        raise SystemExit(f"{PAGE}: no section between {BEGIN} and {END}")
+    return pattern.sub(lambda _: text, page)
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--results", type=Path, default=REPO / "out" / "results")
-    parser.add_argument("--readme", action="store_true", help="only render the README's section from the JSON")
+    parser.add_argument("--page", action="store_true", help="only render its section of docs/performance.md from the JSON")
     a = parser.parse_args()
-    if not a.readme:
+    if not a.page:
         result = measure(a.results)
         OUT.write_text(json.dumps(result, indent=1) + "\n")
         print(f"wrote {OUT}", file=sys.stderr)
-    README.write_text(update_readme(render(json.loads(OUT.read_text()))))
+    PAGE.write_text(update_page(render(json.loads(OUT.read_text()))))
     return 0
 
 

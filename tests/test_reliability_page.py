@@ -29,20 +29,20 @@ def test_every_fault_in_the_tables_is_collected_as_a_test():
     assert not missing, f"faults listed but not tested: {missing}"
 
 
-def test_the_readme_performance_notes_are_what_their_json_renders():
-    """The checksums' measured cost in the README is rendered from docs/results/checksum_cost.json (written by
+def test_the_performance_notes_are_what_their_json_renders():
+    """The checksums' measured cost on docs/performance.md is rendered from docs/results/checksum_cost.json (written by
     scripts/checksum_cost.py), so it cannot drift from what was measured."""
     import json
 
     import checksum_cost
 
     rendered = checksum_cost.render(json.loads(checksum_cost.OUT.read_text()))
-    assert rendered in (REPO / "README.md").read_text()
-    assert checksum_cost.update_readme(rendered) == (REPO / "README.md").read_text()
+    assert rendered in (REPO / "docs" / "performance.md").read_text()
+    assert checksum_cost.update_page(rendered) == (REPO / "docs" / "performance.md").read_text()
 
 
-def test_the_readme_saved_run_timings_are_what_their_json_renders():
-    """The saved-run opening times in the README are rendered from docs/results/saved_run_open.json (written by
+def test_the_saved_run_timings_are_what_their_json_renders():
+    """The saved-run opening times on docs/performance.md are rendered from docs/results/saved_run_open.json (written by
     scripts/saved_run_open.py), and every run file the results hold was timed."""
     import json
 
@@ -50,6 +50,6 @@ def test_the_readme_saved_run_timings_are_what_their_json_renders():
 
     result = json.loads(saved_run_open.OUT.read_text())
     rendered = saved_run_open.render(result)
-    assert rendered in (REPO / "README.md").read_text()
+    assert rendered in (REPO / "docs" / "performance.md").read_text()
     assert {r["kind"] for r in result["runs"]} == {"track", "evaluation"}
     assert all(r["steps"] > 0 and r["first_screen_s"] > 0 and r["command_to_url_s"] > 0 for r in result["runs"])
