@@ -59,7 +59,7 @@ def nice_length_m(max_m: float) -> float:
     if not max_m > 0:
         return 1.0
     base = 10.0 ** np.floor(np.log10(max_m))
-    return float(max(f * base for f in (1.0, 2.0, 5.0) if f * base <= max_m))
+    return float(max(f * base for f in (1.0, 2.0, 5.0) if f * base <= max_m * (1 + 1e-9)))  # 2 × 0.1 may exceed 0.2 by a rounding
 
 
 def _label(img: np.ndarray, text: str, xy: tuple[int, int], scale: float = 0.55, color=INK, thick: int = 1) -> None:

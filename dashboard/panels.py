@@ -297,8 +297,9 @@ def step_figure(queries: visloc.QuerySet, db: visloc.GeoDatabase, q_index: int, 
         missing = queries.paths[q_index] if q_gray is None else db.images[best].path
         return placeholder(f"Image file not reachable:\n{missing}\n(the store keeps features, not images)")
     pairs = visloc.correspondences(queries.descriptors_u8[q_index], db.descriptors_u8[best], match)
+    names = series_names(queries, db)
     return visloc.correspondence_figure(
         q_gray, d_gray, queries.keypoints_f32[q_index][pairs[:, 0], :2], db.keypoints_f32[best][pairs[:, 1], :2],
         width_px=FIGURE_WIDTH_PX,
-        labels=(f"query {series_names(queries, db)[0]} frame {queries.frames[q_index]}",
-                f"best match {series_names(queries, db)[1]} frame {db.images[best].frame}: {len(pairs)} correspondences"))
+        labels=(f"query {names[0]} frame {queries.frames[q_index]}",
+                f"best match {names[1]} frame {db.images[best].frame}: {len(pairs)} correspondences"))

@@ -9,6 +9,7 @@ import math
 import numpy as np
 
 from visloc import SavedRun, SavedStep, flat_params, params_that_differ, run_figures, worst_steps
+from visloc.dashboard.mapview import nice_length_m as map_length_m
 from visloc.dashboard.panels import text
 from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, css
 
@@ -21,10 +22,8 @@ COLOURS = {"estimate": css(ESTIMATE_RGB), "measurement": css(MEASUREMENT_RGB), "
 
 
 def nice_length_m(target_m: float) -> float:
-    """The 1-2-5 × 10^k length nearest below ``target_m`` (at least 1 cm): a scale bar's length."""
-    target_m = max(float(target_m), 0.01)
-    power = 10.0 ** math.floor(math.log10(target_m))
-    return max(m * power for m in (1.0, 2.0, 5.0) if m * power <= target_m * (1 + 1e-9))
+    """A scale bar's length: the map's 1-2-5 × 10^k length not above ``target_m``, at least 1 cm."""
+    return map_length_m(max(float(target_m), 0.01))
 
 
 def length_text(length_m: float) -> str:

@@ -26,7 +26,6 @@ import argparse
 import hashlib
 import json
 import os
-import re
 import sys
 import time
 import zlib
@@ -36,7 +35,9 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "scripts"))
 
+from page_sections import replace_section  # noqa: E402
 from visloc.db import FeatureStore  # noqa: E402
 from visloc.db.integrity import drive_blobs, scan  # noqa: E402
 from visloc.features.sift import extract_sift, make_sift  # noqa: E402
@@ -165,11 +166,7 @@ def render(result: dict) -> str:
 
 
 def update_page(text: str) -> str:
-    page = PAGE.read_text()
-    pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.DOTALL)
-    if not pattern.search(page):
-        raise SystemExit(f"{PAGE}: no section between {BEGIN} and {END}")
-    return pattern.sub(lambda _: text, page)
+    return replace_section(PAGE, BEGIN, END, text)
 
 
 def main() -> int:

@@ -26,10 +26,12 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "scripts"))
 
 import viser  # noqa: E402
 
 import visloc  # noqa: E402
+from page_sections import replace_section  # noqa: E402
 from visloc.dashboard.runview import RunViewer  # noqa: E402
 
 OUT = REPO / "docs" / "results" / "saved_run_open.json"
@@ -117,11 +119,7 @@ def render(result: dict) -> str:
 
 
 def update_page(text: str) -> str:
-    page = PAGE.read_text()
-    pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.DOTALL)
-    if not pattern.search(page):
-        raise SystemExit(f"{PAGE}: no section between {BEGIN} and {END}")
-    return pattern.sub(lambda _: text, page)
+    return replace_section(PAGE, BEGIN, END, text)
 
 
 def main() -> int:
