@@ -7,14 +7,13 @@ asked with what is shown (``Shown``) and does the difference, in order: open a s
 a database and its queries (background), match every query (background, cancelled by a
 newer request), run the filter (instant), draw the step. Background jobs hand their
 results back and ask for an apply in turn. A control moved by the program calls its
-callback like a user's move does; that only records the same value again, so no guard is
-needed.
+callback like a user's move does; that only records the same value again: no guard needed.
 
 Everything shown comes from the engine's public API (``import visloc``); ``page`` draws it.
-All browser tabs share one state: what one tab changes, every tab sees, and a line says how
-many tabs are open and which one made the last change (``session``). The first run is shown
-as it is matched (the queries matched so far, filtered); a later run replaces the one shown
-only when it is complete, and until then the page marks its numbers as the previous run's.
+All browser tabs share one state, and a line says how many tabs are open and which one made
+the last change (``session``). A run is shown as it is matched; a later run over the same
+queries and method fills in over the one shown, its steps as they are matched and the
+previous run's beyond them, marked as such (``Run.shown``).
 """
 
 from __future__ import annotations
@@ -28,11 +27,11 @@ import numpy as np
 import viser
 
 import visloc
-from visloc.dashboard import panels
-from visloc.dashboard.gui import Handles, build_gui, paper_values
+from visloc.dashboard import panels, runpanels
+from visloc.dashboard.gui import Handles, build_gui, enable_for_mode, paper_values, saved_values, tuned_from_html
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
-from visloc.dashboard.session import SessionLog
+from visloc.dashboard.session import SessionView
 from visloc.dashboard.state import CONTROLLED, Allowed, Controls, Run, Shown, discover_stores, first_choices
 
 PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
@@ -41,13 +40,15 @@ PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
 class DashboardApp:
     def __init__(self, server: viser.ViserServer, store_path: Path, *, db_camera: str | None = "image_01",
                  query_camera: str | None = "image_00", db_source: str | None = None,
-                 query_source: str | None = None, allowed: Allowed | None = None):
+                 query_source: str | None = None, allowed: Allowed | None = None,
+                 tune_from: tuple[Path, visloc.LiveSettings] | None = None):
         self.server = server
         # the stores the page may open: by default the start store's folder (``visloc dashboard --allow``)
         self.allowed = allowed or Allowed.of([Path(store_path).parent], store_path)
         self.preferred = ((db_source, db_camera), (query_source, query_camera))  # None: any
         self.controls = Controls(store_request=(1, str(store_path)))
         self.shown = Shown()
+        self._view: Run | None = None  # what is drawn of the run shown (``Run.shown``)
         self._lock = threading.RLock()  # guards controls and shown; callbacks re-enter it from apply
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -57,11 +58,14 @@ class DashboardApp:
         server.scene.set_up_direction("+z")
         self.gui = build_gui(server, str(store_path))
         self.page = Page(server, self.gui)
-        self.session = SessionLog()
-        self._tab_lines: dict[int, viser.GuiHtmlHandle] = {}  # each tab's own "(this is tab N)"
+        self.session = SessionView(self.gui.session)  # how many tabs, and which one changed what
         server.on_client_connect(self._tab_opened)
         server.on_client_disconnect(self._tab_closed)
         self._connect(self.gui)
+        if tune_from is not None:  # a saved run's settings: the controls move to them before the first apply
+            values, moved = saved_values(tune_from[1])
+            self._set_controls(values)
+            self.gui.tuned_from.content = tuned_from_html(tune_from[0], tune_from[1], moved)
         self._threads = [threading.Thread(target=loop, name=f"visloc-dashboard-{name}", daemon=True)
                          for name, loop in (("apply", self._apply_loop), ("play", self._play_loop))]
         for t in self._threads:
@@ -76,7 +80,7 @@ class DashboardApp:
                 with self._lock:
                     setattr(self.controls, field, convert(handle.value))
                 if field not in ("play",):  # playback moves the step by itself: the move that counts is Play
-                    self._changed(event, handle.label, handle.value)
+                    self.session.changed(event, handle.label, handle.value)
                 self.request_apply()
 
             handle.on_update(on_update)
@@ -86,53 +90,54 @@ class DashboardApp:
             (g.step, "step", int), (g.play, "play", bool),
             (g.speed, "speed", lambda v: float(v.rstrip("x"))), (g.follow, "follow", bool),
             (g.latlon, "latlon", bool), (g.db, "db_name", str), (g.queries, "query_name", str),
+            (g.magnify, "magnification", lambda v: runpanels.MAGNIFICATIONS[v]),
         ):
             records(handle, field, convert)
+        for layer, box in g.layers.items():
+            box.on_update(lambda e, layer=layer, box=box: self._layer(e, layer, box.value))
 
         def records_param(handle, name: str, control) -> None:
             def on_update(event) -> None:
                 with self._lock:  # a new dict: a copy of the controls taken earlier keeps its own
                     self.controls.params = {**self.controls.params, name: control.from_shown(float(handle.value))}
-                self._changed(event, handle.label, handle.value)
+                self.session.changed(event, handle.label, handle.value)
                 self.request_apply()
 
             handle.on_update(on_update)
 
         for _, name, spec, _ in CONTROLLED:
             records_param(g.params[name], name, spec.control)
-        g.play.on_update(lambda e: self._changed(e, "Play", "on" if g.play.value else "off"))
+        g.play.on_update(lambda e: self.session.changed(e, "Play", "on" if g.play.value else "off"))
         g.store.on_update(lambda _: self._ask_for_store(g.store.value, only_if_new=True))
         g.store_path.on_update(lambda _: self._store_typed(g.store_path.value.strip()))
-        g.open.on_click(lambda e: (self._changed(e, "Open", Path(g.store_path.value.strip()).name),
+        g.open.on_click(lambda e: (self.session.changed(e, "Open", Path(g.store_path.value.strip()).name),
                                    self._ask_for_store(g.store_path.value.strip())))
-        g.prev_next.on_click(lambda e: (self._changed(e, "Move", g.prev_next.value),
+        g.prev_next.on_click(lambda e: (self.session.changed(e, "Move", g.prev_next.value),
                                         self._move_step(-1 if "Previous" in g.prev_next.value else 1)))
-        g.reset.on_click(lambda e: (self._changed(e, "Paper's parameters", "pressed"), self._reset_to_paper()))
+        g.reset.on_click(lambda e: (self.session.changed(e, "Paper's parameters", "pressed"), self._reset_to_paper()))
         g.geojson.on_click(lambda e: self._download(e.client, "geojson"))
         g.csv.on_click(lambda e: self._download(e.client, "csv"))
 
-    # -- the shared session: tabs and who changed what -----------------------------------------------
+    # -- the shared session's tabs, the 3D view's layers and each tab's scale ----------------------------
+
+    def _layer(self, event, layer: str, shown: bool) -> None:
+        with self._lock:
+            self.controls.hidden = self.controls.hidden - {layer} if shown else self.controls.hidden | {layer}
+        self.session.changed(event, layer, shown)
+        self.request_apply()
 
     def _tab_opened(self, client: viser.ClientHandle) -> None:
-        tab = self.session.connected(client.client_id)
-        self._tab_lines[client.client_id] = client.gui.add_html(
-            panels.session_html(f"This is tab {tab}"), order=self.gui.session.order + 0.001)
-        self._show_session()
+        client.camera.on_update(lambda _: self._rescale(client))  # its own scale bar and north arrow
+        self.session.opened(client)
+
+    def _rescale(self, client: viser.ClientHandle) -> None:
+        with self._lock:
+            if self.page.scale.rescale(client):
+                self.page.apply_layers()
 
     def _tab_closed(self, client: viser.ClientHandle) -> None:
-        self.session.disconnected(client.client_id)
-        self._tab_lines.pop(client.client_id, None)
-        self._show_session()
-
-    def _changed(self, event, label: str, value) -> None:
-        """A tab changed a control: every tab is told which and from where (the page's own moves are not)."""
-        shown = ("on" if value else "off") if isinstance(value, bool) else \
-            f"{value:g}" if isinstance(value, float) else str(value)
-        if self.session.changed(event.client_id, label, shown):
-            self._show_session()
-
-    def _show_session(self) -> None:
-        self.gui.session.content = panels.session_html(self.session.line())
+        self.page.scale.forget(client.client_id)
+        self.session.closed(client)
 
     def _download(self, client: viser.ClientHandle | None, kind: str) -> None:
         """Send the run shown to the tab that asked, as GeoJSON or CSV."""
@@ -158,19 +163,24 @@ class DashboardApp:
 
     def _move_step(self, delta: int) -> None:
         with self._lock:
-            run = self.shown.run
+            run = self._view if self.shown.run is not None else None  # the steps drawn
             if run is not None and run.records:
                 self.gui.step.value = int(np.clip(self.controls.step + delta, 1, len(run.records)))
 
     def _reset_to_paper(self) -> None:
         with self._lock:  # every control moves before the next apply looks
-            values = paper_values()
-            for name, value in values.pop("params").items():
-                self.gui.params[name].value = value
-            for name, value in values.items():
-                getattr(self.gui, name).value = value
+            self._set_controls(paper_values())
             self.controls.rerun += 1
+            self.gui.tuned_from.content = ""
         self.request_apply()
+
+    def _set_controls(self, values: dict) -> None:
+        """Move the controls as a user would (``paper_values``' shape); each callback records its value."""
+        values = dict(values)
+        for name, value in values.pop("params").items():
+            self.gui.params[name].value = value
+        for name, value in values.items():
+            getattr(self.gui, name).value = value
 
     def _play_loop(self) -> None:
         while not self._stop.is_set():
@@ -179,7 +189,7 @@ class DashboardApp:
                 wait_s = max(0.1, 1.0 / (c.rate_hz * c.speed))
             self._stop.wait(wait_s)
             with self._lock:
-                run = self.shown.run
+                run = self._view if self.shown.run is not None else None  # the steps drawn
                 if self.controls.play and run is not None and run.records:
                     self.gui.step.value = self.controls.step % len(run.records) + 1  # 1..N, then 1 again
 
@@ -215,35 +225,35 @@ class DashboardApp:
                 self._start_loading(data_key)
             return
         match_key = c.match_key(data_key)
-        self._enable_for_mode(c.method)
+        enable_for_mode(self.gui, c.method)
         run = s.run
         if (run is None or run.match_key != match_key or run.partial) and \
                 match_key not in (s.matching_key, s.failed_key):
             self._start_matching(c, match_key)
+            run = s.run  # a run filling in over a previous one went back to it
         if run is None or not run.matches.retrievals:
             return
-        track_key = (run.match_key, len(run.matches), run.partial, c.filter_key())
+        previous = run.previous
+        track_key = (run.match_key, len(run.matches), run.partial, c.filter_key(),
+                     None if previous is None else previous.match_key)
         if track_key != run.track_key:
             self._track(run, c, track_key)
-        k = int(np.clip(c.step - 1, 0, len(run.records) - 1))  # the slider says 1..N
-        note = (panels.stale_note(run.match_key, s.matching_key)
-                if s.matching_key is not None and s.matching_key != run.match_key and not run.partial else None)
-        if (track_key, k, c.follow, c.latlon, note) != s.step_key:
-            s.step_key = (track_key, k, c.follow, c.latlon, note)
-            self.page.draw_step(run, k, s.db, s.queries, follow=c.follow, latlon=c.latlon, note=note)
-            if (track_key, k) != s.image_key:
-                s.image_key = (track_key, k)
-                self._show_pictures(run, k, s.image_key)
-
-    def _enable_for_mode(self, method_name: str) -> None:
-        """Controls the chosen mode does not use are disabled (their hints say why)."""
-        method = visloc.METHODS.get(method_name)
-        if method is None:
-            return
-        for _, name, spec, _ in CONTROLLED:  # each parameter declares the methods that use it
-            handle, unused = self.gui.params[name], method.name not in spec.methods
-            if handle.disabled != unused:
-                handle.disabled = unused
+        if c.hidden != self.page.hidden:
+            self.page.hidden = c.hidden
+            self.page.apply_layers()
+        view = self._view
+        if (track_key, c.magnification) != s.drawn_key:
+            s.drawn_key = (track_key, c.magnification)
+            self.page.draw_run(view, c.magnification)
+        k = int(np.clip(c.step - 1, 0, len(view.records) - 1))  # the slider says 1..N
+        note = panels.step_note(view, k, s.matching_key)
+        if (track_key, k, c.follow, c.latlon, note, c.magnification) != s.step_key:
+            s.step_key = (track_key, k, c.follow, c.latlon, note, c.magnification)
+            self.page.draw_step(view, k, s.db, s.queries, follow=c.follow, latlon=c.latlon, note=note,
+                                magnification=c.magnification)
+            if (track_key, k, note) != s.image_key:
+                s.image_key = (track_key, k, note)
+                self._show_pictures(view, k, s.image_key)
 
     def _open_store(self, path: str) -> None:
         """Open a store file; a bad file is reported in the page and the previous data stays."""
@@ -318,6 +328,8 @@ class DashboardApp:
             self._show_error(str(exc))
             return
         s.matching_key = match_key
+        if s.run is not None and s.run.partial and s.run.previous is not None:
+            s.run = s.run.previous  # a run superseded while it filled in: back to the complete one it replaced
         if (match.tau1, match.tau2) not in s.caches:  # counts the store keeps for these thresholds
             s.caches[(match.tau1, match.tau2)] = workspace.pair_cache(db, queries, match)
         cache, structures = s.caches[(match.tau1, match.tau2)], s.structures
@@ -333,15 +345,22 @@ class DashboardApp:
                 self._show_status(f"{label}: {done} of {total} queries matched")
 
         def partial(matches: visloc.DriveMatches) -> None:
-            """The queries matched so far, shown while no complete run is (the first run fills in)."""
+            """The queries matched so far, shown as they come: a first run fills in; a later one over the same
+            queries fills in over the run it replaces (``Run.shown``); any other, like a first run."""
             now = time.monotonic()
-            if now - last_partial[0] < PARTIAL_EVERY_S and len(matches) < len(indices):
-                return
+            if (now - last_partial[0] < PARTIAL_EVERY_S and len(matches) > 1) or len(matches) >= len(indices):
+                return  # the first step at once; the last with the whole run
             last_partial[0] = now
             with self._lock:
-                if s.matching_key == match_key and (s.run is None or s.run.partial):
-                    s.run = Run(matches, match_key, s.runs_done + 1, c.rate_hz, len(indices), partial=True)
-                    self.request_apply()
+                if s.matching_key != match_key:
+                    return
+                shown = s.run
+                complete = shown if shown is not None and not shown.partial else getattr(shown, "previous", None)
+                run = Run(matches, match_key, s.runs_done + 1, c.rate_hz, len(indices), partial=True)
+                if run.replaces_in_place(complete):
+                    run.previous = complete
+                s.run = run
+                self.request_apply()
 
         def match_all(cancelled) -> None:
             started = time.perf_counter()
@@ -370,12 +389,8 @@ class DashboardApp:
                 s.run = Run(matches, match_key, s.runs_done, c.rate_hz, len(indices))
                 s.matching_key, s.step_key = None, None
                 self.gui.progress.visible = False
-                names = panels.series_names(queries, db)
-                work = (f"{n_new} new image pairs matched in {time.perf_counter() - started:.1f} s" if n_new
-                        else "all image pairs cached")
-                self._show_status(f"Ready (run {s.runs_done}, {method.name}, τ1 {match.tau1:g}, τ2 {match.tau2:g}): "
-                                  f"{len(matches)} queries of {names[0]} against {len(db)} images of "
-                                  f"{names[1]}; {work}")
+                self._show_status(panels.ready_text(s.runs_done, matches, queries, db, n_new,
+                                                    time.perf_counter() - started))
             self.request_apply()
 
         self._jobs.submit("matching", match_all)
@@ -390,8 +405,12 @@ class DashboardApp:
             return
         gate = c.params_for(visloc.REFINED).gate_chi2 if run.matches.method.measures_pose else 0.0
         run.records = visloc.track_drive(run.matches, s.queries, s.db, filter_params, gate_chi2=gate)
+        previous = run.previous
+        if previous is not None and previous.track_key != (previous.match_key, c.filter_key()):
+            previous.records = visloc.track_drive(previous.matches, s.queries, s.db, filter_params, gate_chi2=gate)
+            previous.track_key = (previous.match_key, c.filter_key())
         run.track_key = track_key
-        self.page.draw_run(run)
+        self._view = run.shown()  # drawn by the apply that follows
 
     def _show_pictures(self, run: Run, k: int, image_key: tuple) -> None:
         """Read the step's images and draw Figure 3 in the background; show them if the step is still on."""

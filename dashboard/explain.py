@@ -12,7 +12,7 @@ HINTS = {
     "prev_next": "One query back or forward",
     "play": "Step through the run by itself",
     "speed": "1x: one step per query interval, as the car drove",
-    "follow": "Keep the 3D view centred on the current step",
+    "follow": "Keep the 3D view on the current estimate, framing its 2σ ellipse",
     "latlon": "Also show latitude and longitude (WGS84, degrees) beside the local east/north metres",
     "mode": "paper: the measurement is the best-matching database image's geotag. refined: a metric pose "
             "solved from the database's own geometry (PnP), the geotag only as fallback. refined-fast: the same "
@@ -58,7 +58,8 @@ TERMS = {
                              "floor of the paper's method at this step",
     "truth": "The query's recorded GPS/IMU position (ground truth)",
     "τ1, τ2": "The two tests a feature pair must pass to count as a correspondence: Lowe's ratio (τ1, lower "
-              "is stricter) and cosine similarity (τ2, higher is stricter)",
+              "is stricter; equation 1: d1²/d2² < τ1²) and cosine similarity (τ2, higher is stricter; equation 2). "
+              "The camera-rate mode (refined-fast) uses neither",
     "R, Q, P0": "The Kalman filter's measurement noise (m), acceleration noise (m/s²) and initial uncertainty "
                 "(m, m/s); changing them re-runs only the filter",
     "gate": "Refined modes: a measurement whose squared Mahalanobis distance to the filter's prediction "

@@ -10,14 +10,20 @@ import viser
 
 import visloc
 from visloc.dashboard.explain import HINTS, help_html
-from visloc.dashboard.runpanels import TIMELINE_TITLES, TIMELINES, timeline_series
+from visloc.dashboard.runpanels import MAGNIFICATIONS, TIMELINE_TITLES, TIMELINES, timeline_series
 from visloc.dashboard.panels import legend_html, map_legend_html, placeholder, status_html
 from visloc.dashboard.scene import CURRENT_RGB, ELLIPSE_RGB, ESTIMATE_RGB, MEASUREMENT_RGB, css
 from visloc.dashboard.state import CONTROLLED
 
 RATES_HZ = ("0.5", "1", "2", "5", "10")
+# the live 3D view's layers: a checkbox each, hiding the scene nodes under these paths
+LAYER_NODES = {"Truth": ("/truth",), "Database geotags": ("/database",),
+               "Measurements": ("/measurement/points", "/measurement/offsets"),
+               "Estimate": ("/estimate/track", "/estimate/points"), "Estimate ellipses": ("/estimate/ellipses",),
+               "Measurement ellipses": ("/measurement/ellipses",),
+               "Cameras": ("/current/query_camera", "/current/match_camera"),
+               "Grid and scale": ("/scale/grid", "/scale/ticks", "/scale/bar", "/scale/north")}
 SPEEDS = ("0.5x", "1x", "2x", "5x")
-PANEL_WIDTH_PX = 460
 
 
 def _decimals(step: float) -> int:
@@ -38,6 +44,50 @@ def paper_values() -> dict[str, object]:
             "params": {name: shown_initial(spec, default) for _, name, spec, default in CONTROLLED}}
 
 
+def saved_values(settings: visloc.LiveSettings) -> tuple[dict[str, object], list[str]]:
+    """The controls' values for a saved run's settings (as ``paper_values``; the paper's where the run
+    records none), and what had to move to fit a control, in words."""
+    values, moved = paper_values(), []
+    if settings.method in visloc.METHODS:
+        values["mode"] = settings.method
+    if settings.rate_hz:
+        nearest = min(RATES_HZ, key=lambda r: abs(math.log(float(r) / settings.rate_hz)))
+        values["rate"] = nearest
+        if abs(math.log(float(nearest) / settings.rate_hz)) > 0.02:  # not a frame interval's jitter
+            moved.append(f"query rate {settings.rate_hz:.3g} Hz → {nearest} Hz")
+    for _, name, spec, _ in CONTROLLED:
+        if name in settings.params:
+            c = spec.control
+            shown = float(c.to_shown(settings.params[name]))
+            fitted = round(float(np.clip(shown, c.low, c.high)), _decimals(c.step))  # to the slider's step
+            if not c.low <= shown <= c.high:
+                moved.append(f"{c.label.split(' (')[0]} {shown:.4g} → {fitted:g}")
+            values["params"][name] = fitted
+    return values, moved
+
+
+def tuned_from_html(path, settings: visloc.LiveSettings, moved: list[str]) -> str:
+    """What the controls started from: the saved run's file, and what could not be taken as it was."""
+    missing = [spec.control.label.split(" (")[0] for _, name, spec, _ in CONTROLLED if name not in settings.params]
+    lines = [f"Started from the saved run {path}"]
+    if moved:
+        lines.append("moved to fit a control: " + "; ".join(moved))
+    if missing:
+        lines.append("not recorded by the run (the paper's): " + ", ".join(missing))
+    return status_html(" · ".join(lines))
+
+
+def enable_for_mode(gui: Handles, method_name: str) -> None:
+    """Controls the chosen mode does not use are disabled (their hints say why)."""
+    method = visloc.METHODS.get(method_name)
+    if method is None:
+        return
+    for _, name, spec, _ in CONTROLLED:  # each parameter declares the methods that use it
+        handle, unused = gui.params[name], method.name not in spec.methods
+        if handle.disabled != unused:
+            handle.disabled = unused
+
+
 @dataclass
 class Handles:
     status: viser.GuiHtmlHandle
@@ -54,6 +104,9 @@ class Handles:
     start: viser.GuiSliderHandle
     params: dict[str, viser.GuiSliderHandle]  # every parameter control, by parameter name (state.CONTROLLED)
     reset: viser.GuiButtonHandle
+    tuned_from: viser.GuiHtmlHandle  # the saved run the controls started from (``--tune-from``), if any
+    layers: dict[str, viser.GuiCheckboxHandle]  # by layer name (LAYER_NODES)
+    magnify: viser.GuiDropdownHandle  # "Ellipses drawn": true size, ×10, ×100
     geojson: viser.GuiButtonHandle
     csv: viser.GuiButtonHandle
     store: viser.GuiDropdownHandle
@@ -129,7 +182,7 @@ def timeline_plots(gui, aspect: float = 2.0) -> dict[str, viser.GuiUplotHandle]:
 
 def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
     gui = server.gui
-    gui.configure_theme(control_layout="fixed", control_width="medium", show_share_button=False,
+    gui.configure_theme(control_layout="fixed", control_width="large", show_share_button=False,
                         titlebar_content=None, show_logo=False)
     gui.set_panel_label("visloc")
     paper, h = paper_values(), HINTS
@@ -146,6 +199,12 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         speed = gui.add_dropdown("Speed", SPEEDS, initial_value="1x", hint=h["speed"])
         follow = gui.add_checkbox("Camera follows", False, hint=h["follow"])
         latlon = gui.add_checkbox("Show lat/lon", False, hint=h["latlon"])
+    with gui.add_folder("3D view layers", expand_by_default=False):
+        magnify = gui.add_dropdown("Ellipses drawn", tuple(MAGNIFICATIONS), initial_value="true size",
+                                   hint="Draw every 2σ ellipse larger than it is: a refined run's are centimetres, "
+                                        "invisible at the scale of a drive. The current step's label says so")
+        layers = {name: gui.add_checkbox(name, True, hint="Show or hide this layer of the 3D view")
+                  for name in LAYER_NODES}
     with gui.add_folder("Matching (re-matches in the background)"):
         mode = gui.add_dropdown("Mode", tuple(visloc.METHODS), initial_value=paper["mode"], hint=h["mode"])
         params = _param_sliders(gui, "matching", paper["params"])
@@ -157,6 +216,7 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
                                hint=h["start"])
         params |= _param_sliders(gui, "queries", paper["params"])
     reset = gui.add_button("Paper's parameters", hint=h["reset"])
+    tuned_from = gui.add_html("")
     with gui.add_folder("Export this run"):
         geojson = gui.add_button("Download GeoJSON", hint=h["geojson"], disabled=True)
         csv = gui.add_button("Download CSV", hint=h["csv"], disabled=True)
@@ -188,11 +248,10 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         map_image = gui.add_image(placeholder("No run yet"), label="top-down map (north up, east right)",
                                   format="png")
         gui.add_html(map_legend_html())
-    panel.dock_left()
-    panel.set_width(PANEL_WIDTH_PX)
+    panel.dock_below(gui.main_panel)
     return Handles(status=status, progress=progress, session=session, step=step, prev_next=prev_next, play=play,
                    speed=speed, follow=follow, latlon=latlon, mode=mode, rate=rate, start=start, params=params,
-                   reset=reset, geojson=geojson, csv=csv, store=store, store_path=store_path_box, open=open_button,
+                   reset=reset, tuned_from=tuned_from, layers=layers, magnify=magnify, geojson=geojson, csv=csv, store=store, store_path=store_path_box, open=open_button,
                    store_message=store_message, db=db, queries=queries, store_info=store_info, step_badge=step_badge,
                    figure=figure, numbers=numbers, counts_plot=counts_plot, error_plot=error_plot,
                    run_summary=run_summary, map_badge=map_badge, map=map_image, timelines=timelines)

@@ -13,8 +13,9 @@ import viser
 
 import visloc
 from visloc.dashboard import mapview, panels, runpanels, scene
-from visloc.dashboard.gui import Handles
+from visloc.dashboard.gui import LAYER_NODES, Handles
 from visloc.dashboard.state import Run
+from visloc.dashboard.viewkit import KeptScene, ScaleFollower, apply_layers, draw_grid
 
 
 def run_file(run: Run, frame: visloc.LocalFrame, name: str, fmt: str) -> bytes:
@@ -40,6 +41,10 @@ def draw_timelines(plots: dict, steps: list[visloc.SavedStep], k: int, other=Non
 class Page:
     def __init__(self, server: viser.ViserServer, gui: Handles):
         self.server, self.gui = server, gui
+        self.scene = KeptScene(server.scene)  # every node kept by name, for the layer checkboxes
+        self.scale = ScaleFollower(server, self.scene)  # each tab's scale bar and north arrow
+        self.hidden: frozenset[str] = frozenset()  # the layers hidden
+        self.largest_m, self.farthest_m = 10.0, 200.0  # a magnified ellipse's largest size; camera-follow's reach
         self.truth_track_m = np.zeros((0, 2))  # every query's truth, for the map
         self.db_m = np.zeros((0, 2))
         self.pictures_shown = False  # a step's pictures are on the page (not the first placeholder)
@@ -58,39 +63,56 @@ class Page:
     def draw_static(self, truth_m: np.ndarray, db_m: np.ndarray) -> None:
         """The drive before any run: grid, database images, the truth track; the view on them."""
         self.truth_track_m, self.db_m = np.asarray(truth_m, float), np.asarray(db_m, float)
-        scene.draw_static(self.server.scene, truth_m, db_m)
+        every = np.concatenate([self.truth_track_m, self.db_m])
+        extent_m = float(max(every.max(axis=0) - every.min(axis=0)))
+        self.largest_m, self.farthest_m = max(extent_m / 4, 1.0), max(1.5 * extent_m, 50.0)
+        scene.draw_static(self.scene, truth_m, db_m)
+        draw_grid(self.scene, every, margin_m=40.0)
+        self.apply_layers()
         look_at, position = scene.initial_view(truth_m, db_m)
         self.server.initial_camera.look_at, self.server.initial_camera.position = look_at, position
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
-        for client in self.server.get_clients().values():
-            client.camera.look_at, client.camera.position = look_at, position
+        for client in self.server.get_clients().values():  # look_at last: viser moves it with a new position
+            client.camera.position, client.camera.look_at = position, look_at
         self.gui.map.image = mapview.map_image(self.truth_track_m, self.db_m, [], None)
 
-    def draw_run(self, run: Run) -> None:
+    def factor(self, magnification: float):
+        """How many times larger each ellipse is drawn (``runpanels.drawn_factor``), as a function of its covariance."""
+        return lambda cov: runpanels.drawn_factor(cov, magnification, self.largest_m)
+
+    def apply_layers(self) -> None:
+        apply_layers(self.scene, LAYER_NODES, set(self.hidden))
+
+    def draw_run(self, run: Run, magnification: float = 1.0) -> None:
         n = len(run.records)
         g = self.gui
         g.step.max = max(2, n)
         if g.step.value > n:
             g.step.value = n
         with self.server.atomic():
-            scene.draw_run(self.server.scene, run.records)
+            scene.draw_run(self.scene, run.records, self.factor(magnification))
+            self.apply_layers()
         g.run_summary.content = ("" if run.partial else panels.run_summary_markdown(run.records, run.matches))
         g.geojson.disabled = g.csv.disabled = n == 0
 
     def draw_step(self, run: Run, k: int, db: visloc.GeoDatabase, queries: visloc.QuerySet, *, follow: bool,
-                  latlon: bool, note: str | None) -> None:
+                  latlon: bool, note: str | None, magnification: float = 1.0) -> None:
         """Step ``k`` (0-based) of ``run``; ``note`` says the run shown is not the one asked for."""
         g = self.gui
         rec, retrieval = run.records[k], run.matches.retrievals[k]
         t0_s = float(queries.timestamps_s[0])
+        shown = runpanels.drawn_factor(rec.estimate_cov_m2, magnification, self.largest_m)
         with self.server.atomic():
-            scene.draw_current(self.server.scene, rec)
+            scene.draw_current(self.scene, rec, self.factor(magnification),
+                               marker_m=runpanels.marker_m(rec.estimate_sigma_m, shown),
+                               label=f"step {k + 1}" + ("" if shown == 1.0 else f", ellipse ×{shown:.3g}"))
+            self.apply_layers()
         if follow:
-            self.follow(rec.truth_m)
+            self.follow(rec.estimate_m or rec.truth_m, runpanels.follow_distance_m(rec, shown, self.farthest_m))
         g.step_badge.content = g.map_badge.content = panels.stale_badge_html(note)
         g.numbers.content = panels.step_html(rec, len(run.records), visloc.record_geotags(rec, db.frame),
                                              *panels.series_names(queries, db), t0_s, latlon=latlon,
-                                             n_queries=run.n_queries if run.partial else None, stale=bool(note))
+                                             matched=self.matched(run), stale=bool(note))
         suffix = " — previous run" if note else ""
         data, scales, title = panels.counts_plot(retrieval, db.timestamps_s, rec.query_timestamp_s, t0_s)
         g.counts_plot.scales, g.counts_plot.data, g.counts_plot.title = scales, data, title + suffix
@@ -110,7 +132,7 @@ class Page:
         best = run.matches.retrievals[k].best_index
         q_gray = panels.read_gray(queries.paths[q_index] if queries.paths else None)
         d_gray = panels.read_gray(db.images[best].path if best is not None else None)
-        figure = panels.step_figure(queries, db, q_index, best, run.matches.match_params, q_gray, d_gray)
+        figure = panels.step_figure(queries, db, q_index, best, run.match_params_of(k), q_gray, d_gray)
 
         def show() -> None:
             self.gui.figure.image, self.pictures_shown = figure, True
@@ -119,21 +141,31 @@ class Page:
             match_heading = heading if best is None or db.images[best].heading_deg is None else \
                 db.images[best].heading_deg
             with self.server.atomic():
-                scene.draw_cameras(self.server.scene, *self.fov_aspect(db), rec.truth_m, heading,
+                scene.draw_cameras(self.scene, *self.fov_aspect(db), rec.truth_m, heading,
                                    panels.frustum_image(q_gray),
                                    None if best is None else tuple(db.east_north_m[best]), match_heading,
                                    panels.frustum_image(d_gray))
+                self.apply_layers()
 
         return show
 
-    def follow(self, target_xy: tuple[float, float]) -> None:
-        """Move every tab's view so it looks at the current step, keeping its viewing angle."""
+    @staticmethod
+    def matched(run: Run) -> tuple[int, int] | None:
+        """(queries matched so far, queries in the run) while ``run`` is being matched, else None."""
+        if not run.partial:
+            return None
+        return (run.fresh_steps if run.fresh_steps is not None else len(run.records)), run.n_queries
+
+    def follow(self, target_xy: tuple[float, float], distance_m: float) -> None:
+        """Move every tab's view to look at the current estimate from ``distance_m`` (framing its ellipse),
+        keeping its viewing angle."""
         target = np.array([target_xy[0], target_xy[1], 0.0])
         for client in self.server.get_clients().values():
             offset = np.asarray(client.camera.position) - np.asarray(client.camera.look_at)
+            offset = offset / max(float(np.linalg.norm(offset)), 1e-9) * distance_m
             with client.atomic():
+                client.camera.position = target + offset  # a position set moves look_at with it: look_at last
                 client.camera.look_at = target
-                client.camera.position = target + offset
 
     @staticmethod
     def fov_aspect(db: visloc.GeoDatabase) -> tuple[float, float]:

@@ -100,6 +100,24 @@ def stale_note(shown_key: tuple, asked_key: tuple) -> str:
     return f"previous run ({say(o for o, _ in differ)}) — re-matching for {say(n for _, n in differ)}…"
 
 
+def step_note(view, k: int, matching_key: tuple | None) -> str | None:
+    """The badge over step ``k`` of ``view`` (``Run.shown``): whose numbers these are when they are not
+    the run being matched (None: they are)."""
+    if view.from_previous(k):
+        return stale_note(view.previous.match_key, view.match_key)
+    if matching_key is not None and matching_key != view.match_key and not view.partial:
+        return stale_note(view.match_key, matching_key)
+    return None
+
+
+def ready_text(number: int, matches, queries, db, n_new_pairs: int, elapsed_s: float) -> str:
+    """The status line once a run is matched."""
+    names, match = series_names(queries, db), matches.match_params
+    work = f"{n_new_pairs} new image pairs matched in {elapsed_s:.1f} s" if n_new_pairs else "all image pairs cached"
+    return (f"Ready (run {number}, {matches.method.name}, τ1 {match.tau1:g}, τ2 {match.tau2:g}): {len(matches)} "
+            f"queries of {names[0]} against {len(db)} images of {names[1]}; {work}")
+
+
 def _fmt(value: float | None, fmt: str = ".2f", unit: str = " m") -> str:
     return "–" if value is None else f"{value:{fmt}}{unit}"
 
@@ -150,12 +168,12 @@ _CELL = "padding:3px 12px 3px 0;border-bottom:1px solid #e9ecef;vertical-align:t
 
 
 def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotags, query_camera: str,
-              db_camera: str, t0_s: float, *, latlon: bool = False, n_queries: int | None = None,
+              db_camera: str, t0_s: float, *, latlon: bool = False, matched: tuple[int, int] | None = None,
               stale: bool = False) -> str:
     """The current step's table: query, best match, measurement and estimate with their errors.
     Positions in local metres (lat/lon too with ``latlon``); every row explains itself on hover.
-    ``n_queries``: the run's size while it is still being matched (``n_steps`` matched so far).
-    ``stale``: the run shown is the previous one (a new one is being matched): the numbers are dimmed."""
+    ``matched``: (queries matched so far, queries in the run) while the run is still being matched.
+    ``stale``: the step shown is the previous run's (a new one is being matched): the numbers are dimmed."""
     best = ("none" if rec.best_db_frame is None else
             f"{db_camera} frame {rec.best_db_frame} ({rec.best_offset_s:+.2f} s), {rec.best_count} correspondences, "
             f"{rec.n_candidates} candidates")
@@ -179,12 +197,12 @@ def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotag
                    f'<span title="{text(TERMS.get(a, ""))}" style="{hint}">{text(a)}</span></td>'
                    f'<td style="{_CELL};overflow-wrap:anywhere">{text(b)}</td></tr>' for a, b in rows)
     title = f"Step {rec.step + 1} of {n_steps}"
-    partial = ("" if n_queries is None or n_queries == n_steps else
-               f'<div style="color:#555;font-size:12px">{text(f"{n_steps} of {n_queries} queries matched so far")}'
+    partial = ("" if matched is None or matched[0] >= matched[1] else
+               f'<div style="color:#555;font-size:12px">{text(f"{matched[0]} of {matched[1]} queries matched so far")}'
                f"</div>")
     frame = "positions: east, north in metres from the database&#39;s origin" + (", then lat, lon" if latlon else "")
     if stale:
-        partial += '<div style="color:#666;font-size:12px">numbers of the previous run, shown until the new one is ready</div>'
+        partial += '<div style="color:#666;font-size:12px">numbers of the previous run, shown until the new run reaches this step</div>'
     dim = "opacity:0.5;" if stale else ""
     return (f'<div style="font-size:13px;line-height:1.45;padding:4px 12px 10px">'
             f'<div style="font-weight:700;margin-bottom:4px">{text(title)}</div>{partial}'

@@ -223,6 +223,8 @@ def runs_html(main: SavedRun, other: SavedRun | None) -> str:
             parts.append("the comparison file does not record its local frame: drawn in its own")
     parts.append("<b>Parameters of this run</b>" + table_html(list(flat_params(main).items()),
                                                               ("parameter", "value")))
+    parts.append("To tune this run live, start the dashboard on the store it ran on from its parameters: "
+                 f"<code>{text(f'visloc dashboard --db STORE --tune-from {main.path}')}</code>")
     return "<br>".join(parts)
 
 

@@ -23,6 +23,7 @@ from visloc.dashboard import scene
 from visloc.dashboard.gui import timeline_plots
 from visloc.dashboard.page import draw_timelines
 from visloc.dashboard.panels import status_html
+from visloc.dashboard.viewkit import SCALE_NODES, KeptScene, ScaleFollower, apply_layers, draw_grid
 
 COMPARE_RGB = rp.COMPARE_RGB
 LAYERS = ("Truth", "Measurements", "Estimate", "Estimate ellipses", "Measurement ellipses", "Comparison",
@@ -30,8 +31,7 @@ LAYERS = ("Truth", "Measurements", "Estimate", "Estimate ellipses", "Measurement
 Z = scene.TRACK_HEIGHT_M
 LAYER_NODES = {"Truth": ("/truth",), "Measurements": ("/measurement/points",), "Estimate": ("/estimate/track",),
                "Estimate ellipses": ("/estimate/ellipses",), "Measurement ellipses": ("/measurement/ellipses",),
-               "Comparison": ("/comparison",), "Grid and scale": ("/scale/grid", "/scale/ticks", "/scale/bar",
-                                                                  "/scale/north")}
+               "Comparison": ("/comparison",), "Grid and scale": SCALE_NODES}
 
 
 @dataclass
@@ -44,26 +44,6 @@ class ViewerState:
     hidden: set[str] = field(default_factory=set)
     follow: bool = False
     play: bool = False
-    scale_key: dict[int, tuple] = field(default_factory=dict)  # per tab: the scale drawn for its view
-
-
-class KeptScene:
-    """The server's scene, keeping a handle of every node added through it (by name), for the layer toggles."""
-
-    def __init__(self, scene_api: viser.SceneApi):
-        self.api, self.nodes = scene_api, {}
-
-    def __getattr__(self, name: str):
-        attr = getattr(self.api, name)
-        if not name.startswith("add_"):
-            return attr
-
-        def add(*args, **kwargs):
-            handle = attr(*args, **kwargs)
-            self.nodes[handle.name] = handle
-            return handle
-
-        return add
 
 
 def unique_labels(files: list[tuple[str, Path]]) -> list[str]:
@@ -79,6 +59,7 @@ class RunViewer:
     def __init__(self, server: viser.ViserServer, files: list[tuple[str, Path]], compare: int | None = None):
         self.server, self.files = server, files
         self.scene = KeptScene(server.scene)
+        self._scale = ScaleFollower(server, self.scene)
         self.labels = unique_labels(files)
         self.state = ViewerState()
         self._lock = threading.RLock()
@@ -221,7 +202,7 @@ class RunViewer:
         meas = scene.positions([x.measurement_m for x in series])
         est = scene.positions([x.estimate_m for x in series])
         with self.server.atomic():
-            self._grid(np.concatenate([truth, est[np.all(np.isfinite(est), axis=1)]]))
+            draw_grid(self.scene, np.concatenate([truth, est[np.all(np.isfinite(est), axis=1)]]))
             sc.add_line_segments("/truth/track", scene.polyline_segments(truth), colors=scene.TRUTH_RGB, thickness=2.0, thickness_units="screen")
             sc.add_point_cloud("/truth/queries", np.c_[truth, np.full(len(truth), Z)], colors=scene.TRUTH_RGB,
                                point_size=self._marker_m, point_shape="circle")
@@ -256,34 +237,9 @@ class RunViewer:
                 out.append(scene.closed_loop_segments(loop, Z + 0.03))
         return np.concatenate(out) if out else np.zeros((0, 2, 3))
 
-    def _grid(self, points_m: np.ndarray) -> None:
-        """A grid in metres with labelled ticks along its west and south edges."""
-        sc = self.scene
-        lo, hi = points_m.min(axis=0), points_m.max(axis=0)
-        extent = float(max(hi - lo)) * 1.2 + 2.0
-        step = rp.grid_step_m(extent)
-        centre = 0.5 * (lo + hi)
-        lo, hi = centre - extent / 2, centre + extent / 2
-        sc.add_grid("/scale/grid", width=extent, height=extent, plane="xy", cell_size=step, section_size=5 * step,
-                    position=(float(centre[0]), float(centre[1]), 0.0))
-        sc.add_frame("/scale/ticks", show_axes=False)  # replaces the previous ticks, whatever their number
-        for i, x in enumerate(rp.axis_ticks(lo[0], hi[0], 5 * step)):
-            sc.add_label(f"/scale/ticks/e{i}", f"{x:g} m E", position=(x, lo[1], 0.0), anchor="top-center",
-                         font_screen_scale=0.8)
-        for i, y in enumerate(rp.axis_ticks(lo[1], hi[1], 5 * step)):
-            sc.add_label(f"/scale/ticks/n{i}", f"{y:g} m N", position=(lo[0], y, 0.0), anchor="center-right",
-                         font_screen_scale=0.8)
-        sc.add_label("/scale/ticks/cell", f"grid: {rp.length_text(step)} cells", position=(lo[0], lo[1], 0.0),
-                     anchor="bottom-left")
-
     def _apply_layers(self) -> None:
-        """Each layer's checkbox shows or hides its nodes (a node hidden hides its children: labels, ticks)."""
-        hidden = self.state.hidden
-        for name, handle in list(self.scene.nodes.items()):
-            layer = next((layer for layer, prefixes in LAYER_NODES.items()
-                          if any(name == p or name.startswith(p + "/") for p in prefixes)), None)
-            if layer is not None and handle.visible != (layer not in hidden):
-                handle.visible = layer not in hidden
+        """Each layer's checkbox shows or hides its nodes."""
+        apply_layers(self.scene, LAYER_NODES, self.state.hidden)
 
     def _toggle(self, layer: str, on: bool) -> None:
         (self.state.hidden.discard if on else self.state.hidden.add)(layer)
@@ -349,8 +305,8 @@ class RunViewer:
         offset = np.asarray(client.camera.position) - np.asarray(client.camera.look_at)
         offset = offset / max(np.linalg.norm(offset), 1e-9) * distance
         with client.atomic():
+            client.camera.position = centre + offset  # a position set moves look_at with it: look_at last
             client.camera.look_at = centre
-            client.camera.position = centre + offset
 
     def _frame_view(self) -> None:
         """The whole series in view, from the south-west and above: for tabs opened from now on, and every tab."""
@@ -365,7 +321,7 @@ class RunViewer:
         initial.look_at, initial.position, initial.up = look_at, position, (0.0, 0.0, 1.0)
         for client in self.server.get_clients().values():
             with client.atomic():
-                client.camera.look_at, client.camera.position = look_at, position
+                client.camera.position, client.camera.look_at = position, look_at  # look_at last (see above)
 
     def _move(self, delta: int) -> None:
         self._show_step(self.state.k + delta)
@@ -395,26 +351,9 @@ class RunViewer:
 
     def _rescale(self, client: viser.ClientHandle) -> None:
         """Redraw the scale bar and the north arrow for the view the tab now has (when it changed enough)."""
-        look_at = np.asarray(client.camera.look_at, float)
-        distance = float(np.linalg.norm(np.asarray(client.camera.position, float) - look_at))
-        marks = rp.scale_marks(look_at, distance)
-        key = (marks["length_m"], tuple(np.round(look_at[:2] / marks["length_m"])))
         with self._lock:
-            if self.state.scale_key.get(client.client_id) == key:
-                return
-            self.state.scale_key[client.client_id] = key
-            sc = self.scene
-            width = marks["length_m"] / 100
-            with self.server.atomic():
-                sc.add_line_segments("/scale/bar", marks["bar"][None], colors=(20, 20, 20), thickness=4.0, thickness_units="screen")
-                sc.add_label("/scale/bar/label", f"scale: {marks['label']}", position=tuple(marks["bar"].mean(axis=0)),
-                             anchor="top-center")
-                a = marks["arrow"]
-                sc.add_arrows("/scale/north", a[None], colors=(200, 30, 30), shaft_radius=width,
-                              head_radius=4 * width, head_length=12 * width)
-                sc.add_label("/scale/north/label", "N", position=tuple(a[1] + [0.0, 0.1 * marks["length_m"], 0.0]),
-                             anchor="bottom-center")
-            self._apply_layers()
+            if self._scale.rescale(client):
+                self._apply_layers()
 
     def _play_loop(self) -> None:
         while not self._stop.is_set():

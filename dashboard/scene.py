@@ -3,7 +3,8 @@
 The scene is the engine's local metric frame: x = east m, y = north m, z = up m, origin at
 the first database image's geotag. The trajectory lies at ground level. Node names are
 paths: ``/truth/...``, ``/database/...``, ``/measurement/...``, ``/estimate/...``,
-``/current/...``.
+``/current/...`` (the grid and scale marks, under ``/scale``, are ``viewkit``'s). Ellipses are
+drawn ``factor(cov)`` times their true size (1 unless the page's "Ellipses drawn" says more).
 """
 
 from __future__ import annotations
@@ -83,23 +84,18 @@ def initial_view(truth_m: np.ndarray, db_m: np.ndarray) -> tuple[tuple, tuple]:
 
 
 def draw_static(scene: viser.SceneApi, truth_m: np.ndarray, db_m: np.ndarray) -> None:
-    """The grid, the database geotags and the whole ground-truth track."""
-    all_xy = np.concatenate([truth_m, db_m])
-    lo, hi = all_xy.min(axis=0), all_xy.max(axis=0)
-    center = 0.5 * (lo + hi)
-    extent_m = float(max(hi - lo)) + 40.0
-    scene.add_grid("/grid", width=extent_m, height=extent_m, plane="xy", cell_size=5.0, section_size=25.0,
-                   position=(float(center[0]), float(center[1]), 0.0))
+    """The database geotags and the whole ground-truth track."""
     scene.add_point_cloud("/database/geotags", np.c_[db_m, np.full(len(db_m), TRACK_HEIGHT_M)],
                           colors=DATABASE_RGB, point_size=0.6, point_shape="circle")
     scene.add_line_segments("/truth/track", polyline_segments(truth_m), colors=TRUTH_RGB, thickness=0.25)
 
 
-def _ellipse_segments(center_m: np.ndarray, cov_m2, z_m: float) -> np.ndarray:
-    return closed_loop_segments(visloc.covariance_ellipse_m(center_m, np.asarray(cov_m2, float), n_sigma=2.0), z_m)
+def _ellipse_segments(center_m: np.ndarray, cov_m2, z_m: float, factor=lambda cov: 1.0) -> np.ndarray:
+    cov = np.asarray(cov_m2, float)
+    return closed_loop_segments(visloc.covariance_ellipse_m(center_m, cov * factor(cov) ** 2, n_sigma=2.0), z_m)
 
 
-def draw_run(scene: viser.SceneApi, records: list[visloc.StepRecord]) -> None:
+def draw_run(scene: viser.SceneApi, records: list[visloc.StepRecord], factor=lambda cov: 1.0) -> None:
     """Every step of a run: truths, measurements (joined to their truth), the estimate track with its
     2-sigma ellipses, and the refined measurements' own 2-sigma ellipses."""
     truth = positions([r.truth_m for r in records])
@@ -117,38 +113,42 @@ def draw_run(scene: viser.SceneApi, records: list[visloc.StepRecord]) -> None:
     ok_est = np.all(np.isfinite(est), axis=1)
     scene.add_point_cloud("/estimate/points", np.c_[est[ok_est], np.full(ok_est.sum(), z + 0.04)],
                           colors=ESTIMATE_RGB, point_size=1.0, point_shape="circle")
-    ellipses = [_ellipse_segments(e, r.estimate_cov_m2, z + 0.03) for r, e in zip(records, est)
+    ellipses = [_ellipse_segments(e, r.estimate_cov_m2, z + 0.03, factor) for r, e in zip(records, est)
                 if np.all(np.isfinite(e)) and r.estimate_cov_m2 is not None]
     if ellipses:
         scene.add_line_segments("/estimate/ellipses", np.concatenate(ellipses), colors=ELLIPSE_RGB, thickness=0.08)
-    own = [_ellipse_segments(m, r.measurement_cov_m2, z + 0.05) for r, m in zip(records, meas)
+    own = [_ellipse_segments(m, r.measurement_cov_m2, z + 0.05, factor) for r, m in zip(records, meas)
            if r.measurement_source == visloc.GEOMETRY and r.measurement_cov_m2]
     scene.add_line_segments("/measurement/ellipses", np.concatenate(own) if own else np.zeros((0, 2, 3)),
                             colors=MEASUREMENT_ELLIPSE_RGB, thickness=0.05)
 
 
-def draw_current(scene: viser.SceneApi, record: visloc.StepRecord) -> None:
-    """The current step: its truth, measurement and estimate as spheres, the estimate's 2-sigma ellipse (the
-    filter's covariance) and a refined measurement's own (its covariance R)."""
+def draw_current(scene: viser.SceneApi, record: visloc.StepRecord, factor=lambda cov: 1.0, marker_m: float = 0.9,
+                 label: str = "") -> None:
+    """The current step: its truth, measurement and estimate as spheres (``marker_m`` across), the estimate's
+    2-sigma ellipse (the filter's covariance) and a refined measurement's own (its covariance R), drawn with a
+    line of constant width on screen so a small one stays visible; ``label`` over it."""
     z = TRACK_HEIGHT_M
     tx, ty = record.truth_m
-    scene.add_icosphere("/current/truth", radius=0.9, color=TRUTH_RGB, position=(tx, ty, z))
+    scene.add_icosphere("/current/truth", radius=marker_m, color=TRUTH_RGB, position=(tx, ty, z))
     if record.measurement_m is not None:
         mx, my = record.measurement_m
-        scene.add_icosphere("/current/measurement", radius=0.9, color=MEASUREMENT_RGB, position=(mx, my, z))
+        scene.add_icosphere("/current/measurement", radius=marker_m, color=MEASUREMENT_RGB, position=(mx, my, z))
     else:
-        scene.add_icosphere("/current/measurement", radius=0.9, color=MEASUREMENT_RGB, visible=False)
+        scene.add_icosphere("/current/measurement", radius=marker_m, color=MEASUREMENT_RGB, visible=False)
     if record.estimate_m is not None and record.estimate_cov_m2 is not None:
         ex, ey = record.estimate_m
         scene.add_line_segments("/current/ellipse", _ellipse_segments(np.array(record.estimate_m),
-                                                                      record.estimate_cov_m2, z + 0.06),
-                                colors=CURRENT_RGB, thickness=0.3)
-        scene.add_icosphere("/current/estimate", radius=0.9, color=ESTIMATE_RGB, position=(ex, ey, z + 0.04))
+                                                                      record.estimate_cov_m2, z + 0.06, factor),
+                                colors=CURRENT_RGB, thickness=3.0, thickness_units="screen")
+        scene.add_icosphere("/current/estimate", radius=marker_m, color=ESTIMATE_RGB, position=(ex, ey, z + 0.04))
     own = (record.measurement_source == visloc.GEOMETRY and record.measurement_m is not None
            and record.measurement_cov_m2 is not None)
-    segments = (_ellipse_segments(np.array(record.measurement_m), record.measurement_cov_m2, z + 0.07) if own
-                else np.zeros((0, 2, 3)))
-    scene.add_line_segments("/current/measurement_ellipse", segments, colors=MEASUREMENT_ELLIPSE_RGB, thickness=0.2)
+    segments = (_ellipse_segments(np.array(record.measurement_m), record.measurement_cov_m2, z + 0.07, factor)
+                if own else np.zeros((0, 2, 3)))
+    scene.add_line_segments("/current/measurement_ellipse", segments, colors=MEASUREMENT_ELLIPSE_RGB, thickness=2.0,
+                            thickness_units="screen")
+    scene.add_label("/current/label", label, position=(tx, ty, 1.0), anchor="bottom-center", visible=bool(label))
 
 
 def draw_cameras(scene: viser.SceneApi, fov_rad: float, aspect: float, query_xy: tuple[float, float],

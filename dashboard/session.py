@@ -54,3 +54,34 @@ class SessionLog:
         control, value, tab, when = last
         who = f" from tab {tab}" if tab is not None else ""
         return f"{shared} · last change: {control} → {value}{who} at {when}"
+
+
+class SessionView:
+    """The session line every tab shows, and each tab's own "This is tab N" under it (viser handles)."""
+
+    def __init__(self, line, html=None):
+        from visloc.dashboard.panels import session_html
+
+        self.log, self.line, self._html = SessionLog(), line, html or session_html
+        self._tab_lines: dict[int, object] = {}  # each tab's own line
+
+    def opened(self, client) -> None:
+        tab = self.log.connected(client.client_id)
+        self._tab_lines[client.client_id] = client.gui.add_html(self._html(f"This is tab {tab}"),
+                                                                order=self.line.order + 0.001)
+        self.show()
+
+    def closed(self, client) -> None:
+        self.log.disconnected(client.client_id)
+        self._tab_lines.pop(client.client_id, None)
+        self.show()
+
+    def changed(self, event, label: str, value) -> None:
+        """A tab changed a control: every tab is told which and from where (the page's own moves are not)."""
+        shown = ("on" if value else "off") if isinstance(value, bool) else \
+            f"{value:g}" if isinstance(value, float) else str(value)
+        if self.log.changed(event.client_id, label, shown):
+            self.show()
+
+    def show(self) -> None:
+        self.line.content = self._html(self.log.line())

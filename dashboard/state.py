@@ -8,8 +8,10 @@ two; see ``visloc.dashboard.app``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+
+import numpy as np
 
 import visloc
 
@@ -48,6 +50,8 @@ class Controls:
     speed: float = 1.0
     follow: bool = False
     latlon: bool = False  # show latitude and longitude beside the local metres
+    magnification: float = 1.0  # the 3D view's ellipses drawn this many times larger (at most)
+    hidden: frozenset[str] = frozenset()  # the 3D view's layers hidden
     rerun: int = 0  # "Paper's parameters" asks for a fresh run even when nothing else changed
 
     def _labelled(self, folder: str) -> tuple:
@@ -83,6 +87,37 @@ class Run:
     partial: bool = False  # still being matched: the queries matched so far
     records: list[visloc.StepRecord] = field(default_factory=list)
     track_key: tuple | None = None
+    # a later run being matched over the same queries: the complete run it replaces, whose steps are shown
+    # beyond the ones matched so far (``shown``)
+    previous: Run | None = None
+    fresh_steps: int | None = None  # in a view made by ``shown``: steps before this one are the new run's
+
+    def replaces_in_place(self, other: Run | None) -> bool:
+        """Whether this run's steps can stand in for ``other``'s one by one: same queries, same method."""
+        return (other is not None and other.matches.method.name == self.matches.method.name
+                and np.array_equal(other.matches.query_indices[:len(self.matches)], self.matches.query_indices)
+                and len(other.matches) == self.n_queries)
+
+    def shown(self) -> Run:
+        """What the page draws: the run itself, or, while it is matched in place of a previous run, its
+        steps so far followed by the previous run's later steps (marked by ``fresh_steps``), so the
+        trajectory and the step slider keep their length and fill in with the new run from the start."""
+        p, m = self.previous, len(self.records)
+        if p is None or not self.partial or m >= len(p.records) or m != len(self.matches):
+            return self
+        a, b = self.matches, p.matches
+        latency_ms = np.concatenate([np.asarray(a.latency_ms, float), np.asarray(b.latency_ms, float)[m:]])
+        matches = replace(a, query_indices=b.query_indices, retrievals=a.retrievals + b.retrievals[m:],
+                          measurements=a.measurements + b.measurements[m:], latency_ms=latency_ms)
+        return replace(self, matches=matches, records=self.records + p.records[m:], fresh_steps=m)
+
+    def from_previous(self, k: int) -> bool:
+        """Whether step ``k`` (0-based) of this view is the previous run's (not matched again yet)."""
+        return self.fresh_steps is not None and k >= self.fresh_steps
+
+    def match_params_of(self, k: int) -> visloc.MatchParams:
+        """The matching parameters step ``k`` was matched with."""
+        return (self.previous if self.from_previous(k) else self).matches.match_params
 
 
 @dataclass
@@ -105,6 +140,7 @@ class Shown:
     matching_key: tuple | None = None  # a match running in the background for these controls
     failed_key: tuple | None = None  # controls whose match failed: not tried again until they change
     step_key: tuple | None = None
+    drawn_key: tuple | None = None  # the run drawn in 3D: (its track key, the ellipses' magnification)
     image_key: tuple | None = None  # the step whose pictures are shown or being read
     runs_done: int = 0
 

@@ -22,6 +22,7 @@ from helpers import (
     RUN_S,
     SERVER_WORK_S,
     DashboardProcess,
+    settled,
     choose,
     control,
     dismiss_webgl_notice,
@@ -92,6 +93,52 @@ def test_match_drive_hands_over_the_run_so_far_after_each_query(tmp_path):
         np.testing.assert_array_equal(p.query_indices, full.query_indices[:len(p)])
         assert [m.east_north_m for m in p.measurements] == [m.east_north_m for m in full.measurements[:len(p)]]
         assert len(visloc.track_drive(p, queries, db, visloc.PAPER_FILTER)) == len(p)
+
+
+def test_a_later_run_fills_in_over_the_previous_one_step_by_step(tmp_path):
+    """While a run is matched again (τ1 moved), the page draws its steps so far and the previous run's after
+    them, each marked by whose it is; a run over other queries or another method does not mix with it."""
+    import numpy as np
+
+    import visloc
+    from conftest import write_csv_drive
+    from visloc.dashboard import panels
+    from visloc.dashboard.state import Controls, Run
+
+    ws = visloc.Workspace(tmp_path / "s.sqlite", create=True)
+    for name, offset in (("dbdrive", 0), ("querydrive", 30)):
+        visloc.ingest_sequence(ws, visloc.open_csv(write_csv_drive(tmp_path / name, n_frames=10, offset_px=offset)),
+                               visloc.SiftParams(), workers=1)
+    db, queries = ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
+    indices = visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0)
+    retrieval = visloc.RetrievalParams(exclusion_s=0.5)
+    asked = Controls(store_request=(1, "s"))
+    old_key, new_key = asked.match_key(("s", "a", "b")), replace(asked, params={**asked.params, "tau1": 0.7}) \
+        .match_key(("s", "a", "b"))
+    old = visloc.match_drive(queries, db, visloc.MatchParams(), retrieval, indices)
+    previous = Run(old, old_key, 1, 1.0, len(indices), records=visloc.track_drive(old, queries, db, visloc.PAPER_FILTER))
+    partials = []
+    visloc.match_drive(queries, db, visloc.MatchParams(tau1=0.7), retrieval, indices, on_step=partials.append)
+    assert len(partials) == len(indices) >= 3
+    for p in partials[:-1]:
+        run = Run(p, new_key, 2, 1.0, len(indices), partial=True,
+                  records=visloc.track_drive(p, queries, db, visloc.PAPER_FILTER))
+        assert run.replaces_in_place(previous)
+        run.previous = previous
+        view, m = run.shown(), len(p)
+        assert len(view.records) == len(view.matches) == len(indices) and view.fresh_steps == m
+        assert view.records[:m] == run.records and view.records[m:] == previous.records[m:]
+        np.testing.assert_array_equal(view.matches.query_indices, old.query_indices)
+        assert [view.from_previous(k) for k in range(len(indices))] == [k >= m for k in range(len(indices))]
+        assert view.match_params_of(0).tau1 == 0.7 and view.match_params_of(len(indices) - 1).tau1 == 0.8
+        assert panels.step_note(view, m - 1, new_key) is None
+        assert panels.step_note(view, m, new_key) == "previous run (τ1 0.8) — re-matching for τ1 0.7…"
+    done = Run(partials[-1], new_key, 2, 1.0, len(indices), records=[], previous=None)
+    assert done.shown() is done and not done.from_previous(len(indices) - 1)
+    other_rate = Run(partials[0], new_key, 2, 1.0, len(indices) - 1, partial=True)
+    assert not other_rate.replaces_in_place(previous)  # another number of queries: fills in like a first run
+    refined = Run(replace(partials[0], method=visloc.REFINED_METHOD), new_key, 2, 1.0, len(indices), partial=True)
+    assert not refined.replaces_in_place(previous)
 
 
 def test_pure_parts_say_what_they_show():
@@ -173,6 +220,33 @@ def test_title_numbering_units_help_and_mode_controls(dashboard, browser):
         page.close()
 
 
+def test_the_3d_view_has_a_scale_layers_and_follows_the_estimate(dashboard, browser, tmp_path):
+    """The live 3D view: a grid labelled in metres, a scale bar and a north arrow (drawn in the canvas: look at
+    the screenshots, kept in the test's folder); a checkbox per layer; "Camera follows" frames the current
+    estimate."""
+    page = open_on_current_step(browser, dashboard.url)
+    try:
+        dismiss_webgl_notice(page)
+        canvas = page.locator("canvas").first
+        whole = settled(canvas, "the whole drive")
+        (tmp_path / "live_whole.png").write_bytes(whole)
+        page.get_by_text("3D view layers", exact=True).click()
+        control(page, "Camera follows").locator("input").first.check()
+        followed = settled(canvas, "the view on the current estimate")
+        (tmp_path / "live_followed.png").write_bytes(followed)
+        assert followed != whole
+        control(page, "Grid and scale").locator("input").first.uncheck()
+        control(page, "Database geotags").locator("input").first.uncheck()
+        bare = settled(canvas, "the view without grid, scale and database")
+        (tmp_path / "live_layers_hidden.png").write_bytes(bare)
+        assert bare != followed
+    finally:
+        for name in ("Grid and scale", "Database geotags"):
+            control(page, name).locator("input").first.check()
+        control(page, "Camera follows").locator("input").first.uncheck()
+        page.close()
+
+
 def test_the_map_follows_the_step_and_the_plots_read_as_data(dashboard, browser):
     page = open_on_current_step(browser, dashboard.url)
     try:
@@ -209,13 +283,17 @@ def test_the_map_follows_the_step_and_the_plots_read_as_data(dashboard, browser)
 
 
 def test_numbers_of_the_previous_run_are_marked_while_rematching(dashboard, browser):
+    """A re-match fills in from the first step: the last step keeps the previous run's numbers, marked,
+    until the new run gets there; the first step shows the new run's as soon as it is matched."""
     page = open_on_current_step(browser, dashboard.url)
     try:
         dismiss_webgl_notice(page)
         runs = run_number(page)
+        go_to_step(page, 10)  # the last step (the slider's 11)
         set_number(page, "τ1 (Lowe ratio)", "0.74")  # counts not in the store: a real re-match
         badge = page.get_by_text("previous run (τ1 0.8) — re-matching for τ1 0.74…", exact=True)
         badge.first.wait_for()
+        page.get_by_text("numbers of the previous run, shown until the new run reaches this step").first.wait_for()
         title = page.locator(".uplot .u-title").first
         wait_for(lambda: "previous run" in title.inner_text(), SERVER_WORK_S, "the plot to say it is the previous run")
         page.get_by_role("tab", name="Map").click()
@@ -225,7 +303,12 @@ def test_numbers_of_the_previous_run_are_marked_while_rematching(dashboard, brow
         page.get_by_role("tab", name="Current step").click()
         badge.first.wait_for()
         screenshot(page, "newcomer_stale.png")
+        go_to_step(page, 0)  # step 1 is matched first: the new run's numbers, whether or not the rest is
+        wait_for(lambda: not any(badge.nth(i).is_visible() for i in range(badge.count())), RUN_S,
+                 "step 1 of the new run")
+        screenshot(page, "newcomer_refilling.png")
         wait_for(lambda: run_number(page) > runs, RUN_S, "the run with τ1 0.74")
+        go_to_step(page, 10)
         badge.first.wait_for(state="detached")
         wait_for(lambda: "previous run" not in title.inner_text(), SERVER_WORK_S, "the plot to be current")
     finally:

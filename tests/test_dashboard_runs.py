@@ -14,7 +14,8 @@ import pytest
 import visloc
 from visloc.dashboard import runpanels as rp
 
-from helpers import DashboardProcess, choose, control, dismiss_webgl_notice, new_page, settled
+from helpers import (RUN_S, SERVER_WORK_S, DashboardProcess, choose, control, dismiss_webgl_notice, new_page, settled,
+                     status_text, wait_for)
 
 pytestmark = [pytest.mark.browser, pytest.mark.kitti, pytest.mark.slow]
 
@@ -87,3 +88,22 @@ def test_the_3d_view_zooms_from_the_drive_to_one_ellipse_and_layers_hide(viewer,
     bare = settled(canvas, "the view without the grid and the comparison")
     (tmp_path / "layers_hidden.png").write_bytes(bare)
     assert bare != zoomed
+
+
+def test_a_saved_run_is_tuned_live_from_its_parameters(browser, kitti_evaluation, kitti_two_runs, tmp_path):
+    """``--tune-from``: the live page on the run's store starts from the run's τ1 (0.7, not the paper's 0.8),
+    matches with it, and says which run it started from."""
+    store = kitti_evaluation[0] / "kitti.sqlite"
+    proc = DashboardProcess("--db", str(store), "--tune-from", str(kitti_two_runs[1]), "--port", "8352")
+    try:
+        page = new_page(browser)
+        page.goto(proc.url)
+        page.get_by_text(re.compile(r"^Started from the saved run .*eval_tau1_0\.7\.json")).wait_for()
+        box = control(page, "τ1 (Lowe ratio)").locator("input:not([type=hidden])")
+        wait_for(lambda: box.input_value() == "0.7", SERVER_WORK_S, "τ1 to read 0.7")
+        wait_for(lambda: re.search(r"^Ready \(run 1, paper, τ1 0\.7, τ2 0\.97\)", status_text(page)), RUN_S,
+                 "the run at τ1 0.7")
+        page.screenshot(path=str(tmp_path / "tuned_from_saved_run.png"))
+        page.close()
+    finally:
+        proc.stop()

@@ -75,6 +75,41 @@ def test_a_file_that_is_no_run_is_one_line_naming_it(tmp_path, content, says):
     assert str(path) in str(info.value) and says in str(info.value) and "\n" not in str(info.value)
     result = run_cli("dashboard", "--run", path, "--port", "8391", timeout=120)  # refused before serving
     one_line_error(result, str(path), says)
+    result = run_cli("dashboard", "--tune-from", path, "--port", "8391", timeout=120)
+    one_line_error(result, str(path), says)
+
+
+def test_a_saved_run_gives_the_live_page_its_settings(kitti_two_runs, tmp_path):
+    """``--tune-from``: the mode, rate, parameters, database and queries a run was made with, as the live
+    controls take them; what a run does not record is left to the paper's, and said."""
+    from visloc.dashboard.gui import paper_values, saved_values, tuned_from_html
+
+    settings = visloc.live_settings(visloc.load_run(kitti_two_runs[1]))
+    report = json.loads(kitti_two_runs[1].read_text())["params"]
+    assert settings.method == report["mode"] == "paper" and settings.rate_hz == pytest.approx(1.0)
+    assert settings.params["tau1"] == 0.7 and settings.params["tau2"] == report["match"]["tau2"]
+    assert settings.params["meas_var_m2"] == report["filter"]["meas_var_m2"]
+    assert (settings.database, settings.queries) == (report["database"], report["queries"])
+    values, moved = saved_values(settings)
+    assert values["params"]["tau1"] == 0.7 and values["mode"] == "paper" and values["rate"] == "1" and not moved
+    assert values["params"]["meas_var_m2"] == paper_values()["params"]["meas_var_m2"]  # R shown as its σ, alike
+    track = tmp_path / "track.json"  # a camera-rate run records its interval, its exclusion and its filter
+    track.write_text(json.dumps({"queries": "d/image_00", "database": "d/image_01", "per_frame": [
+        {"frame": 0, "truth_m": [0, 0]}], "params": {"track": {"fast": True, "exclusion_s": 99.0},
+                                                   "filter": {"dt_s": 0.1034, "accel_var_m2_s4": 4.0}}}))
+    settings = visloc.live_settings(visloc.load_run(track))
+    assert (settings.method, settings.database, settings.queries) == ("refined-fast", "d/image_01", "d/image_00")
+    values, moved = saved_values(settings)
+    assert values["rate"] == "10" and values["params"]["accel_var_m2_s4"] == 2.0  # Q shown as its σ
+    assert moved == ["query rate 9.67 Hz → 10 Hz", "Exclusion 99 → 3"]  # what could not be kept is said
+    said = tuned_from_html(track, settings, moved)
+    assert "Started from the saved run" in said and "τ1" in said  # not recorded by a track run: the paper's
+
+
+def test_tune_from_and_run_are_one_or_the_other(kitti_two_runs):
+    result = run_cli("dashboard", "--run", kitti_two_runs[0], "--tune-from", kitti_two_runs[1], "--port", "8392",
+                     timeout=120)
+    one_line_error(result, "--tune-from", "give one")
 
 
 def test_what_a_run_file_says_reaches_the_page_as_text(kitti_evaluation, tmp_path):

@@ -31,8 +31,8 @@ from visloc.protocols.records import RecordGeotags, StepRecord, record_geotags
 from visloc.protocols.track import TrackFrame, TrackRun, run_track, track_filter, track_localizer
 from visloc.results.export import trajectory_csv, trajectory_geojson, trajectory_text, write_trajectory
 from visloc.results.figures import correspondence_figure
-from visloc.results.saved import (SavedRun, SavedStep, flat_params, load_run, params_that_differ, run_figures,
-                                  run_files, steps_of_records, worst_steps)
+from visloc.results.saved import (LiveSettings, SavedRun, SavedStep, flat_params, live_settings, load_run,
+                                  params_that_differ, run_figures, run_files, steps_of_records, worst_steps)
 from visloc.retrieval.matching import MatchCancelled, PairCountCache, correspondences, nearest_two
 from visloc.retrieval.retrievers import Retrieval, retrieve
 from visloc.sources.drives import Sequence, default_data_root, load_gray, open_csv, open_kitti, open_source
@@ -68,7 +68,7 @@ __all__ = [
     "trajectory_csv", "trajectory_geojson", "trajectory_text", "write_trajectory", "correspondence_figure",
     # saved runs, read back
     "SavedRun", "SavedStep", "flat_params", "load_run", "params_that_differ", "run_figures", "run_files",
-    "steps_of_records", "worst_steps",
+    "steps_of_records", "worst_steps", "LiveSettings", "live_settings",
     # geodesy, errors
     "LocalFrame", "geodesic_distance_m", "InputError", "ParameterError", "VislocError",
 ]

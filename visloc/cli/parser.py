@@ -236,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--run", action="append", type=Path, default=None, metavar="JSON",
                    help="open a run that evaluate, evaluate-drives or track wrote (its --json, or drives.json); "
                         "a second --run is drawn beside the first to compare")
+    p.add_argument("--tune-from", type=Path, default=None, metavar="JSON",
+                   help="tune a saved run live: the page on --db starts from that run's mode, query rate, "
+                        "parameters, database and queries")
     p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default %(default)s, this machine only)")
     p.add_argument("--port", type=int, default=8080, help="port to try first (default %(default)s)")
     p.add_argument("--allow", action="append", type=Path, default=None, metavar="DIR",

@@ -62,14 +62,12 @@ class MatchParams(Params):
         0.8, "Lowe ratio threshold, equation (1): d1^2 / d2^2 < tau1^2", low=0, high=1, open_low=True,
         methods=PAPER_ONLY,
         control=Control("τ1 (Lowe ratio)", 0.5, 1.0, 0.01, "matching",
-                        hint="Lowe's ratio test, equation (1): a query feature's nearest database feature counts "
-                             "only if d1²/d2² < τ1² (d1, d2: distances to the nearest and second-nearest). Lower = "
-                             "stricter, fewer correspondences. Not used by refined-fast"))
+                        # short hints: a tooltip opens above its control and must not hide the one above
+                        hint="Ratio test: lower = stricter"))
     tau2: float = param(
         0.97, "cosine similarity threshold, equation (2): cos(g, f) > tau2", low=-1, high=1, methods=PAPER_ONLY,
         control=Control("τ2 (cosine)", 0.8, 1.0, 0.005, "matching",
-                        hint="Cosine test, equation (2): the pair also needs cosine similarity > τ2. Higher = "
-                             "stricter. Not used by refined-fast"))
+                        hint="Cosine test: higher = stricter"))
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,7 @@ import numpy as np
 
 from visloc.errors import InputError
 from visloc.geo import LocalFrame
+from visloc.params import dashboard_controls
 
 Position = tuple[float, float]
 
@@ -258,6 +259,47 @@ def params_that_differ(a: SavedRun, b: SavedRun) -> list[tuple[str, object, obje
     """(name, a's value, b's value) of every parameter the two runs do not share (None: the run has none)."""
     fa, fb = flat_params(a), flat_params(b)
     return [(k, fa.get(k), fb.get(k)) for k in sorted(set(fa) | set(fb)) if fa.get(k) != fb.get(k)]
+
+
+# where a run file keeps each parameter class's values: ``evaluate`` writes match/retrieval/filter/refined,
+# ``track`` writes track (its exclusion) and filter
+_GROUPS = {"MatchParams": ("match",), "RetrievalParams": ("retrieval", "track"), "FilterParams": ("filter",),
+           "RefinedParams": ("refined",)}
+
+
+@dataclass(frozen=True)
+class LiveSettings:
+    """What the live dashboard starts from to tune a saved run again: its mode, query rate, the value of
+    every parameter with a control that the run records, and the database and queries it ran on."""
+
+    method: str | None  # a ``visloc.METHODS`` name
+    rate_hz: float | None
+    params: dict[str, float]  # by parameter name, in the parameter's own units
+    database: str | None  # dataset names as the store lists them ("<drive>/<camera>")
+    queries: str | None
+
+
+def live_settings(run: SavedRun) -> LiveSettings:
+    """The settings ``run`` was made with, as the live dashboard's controls take them."""
+    p = run.params
+    params: dict[str, float] = {}
+    for cls, name, _, _ in dashboard_controls():
+        for group in _GROUPS.get(cls.__name__, ()):
+            value = _num((p.get(group) or {}).get(name)) if isinstance(p.get(group), dict) else None
+            if value is not None:
+                params[name] = value
+                break
+    if run.kind == TRACK:
+        fast = bool((p.get("track") or {}).get("fast", True))
+        method = "refined-fast" if fast else "refined"
+        database, queries = run.summary.get("database"), run.summary.get("queries")
+    else:
+        mode = p.get("mode")
+        method = f"{mode}-fast" if mode == "refined" and p.get("fast") else mode
+        database, queries = p.get("database"), p.get("queries")
+    dt_s = _num((p.get("filter") or {}).get("dt_s")) if isinstance(p.get("filter"), dict) else None
+    return LiveSettings(method if isinstance(method, str) else None, 1.0 / dt_s if dt_s else None, params,
+                        database if isinstance(database, str) else None, queries if isinstance(queries, str) else None)
 
 
 def _stat(values, fn) -> float | None:
