@@ -72,19 +72,26 @@ def map_src(page) -> str:
     return img.first.evaluate("e => e.currentSrc || e.src")
 
 
-def test_match_drive_hands_over_the_run_so_far_after_each_query(tmp_path):
-    """The engine's ``on_step``: the partial runs the dashboard shows while the first run is matched."""
-    import numpy as np
-
+def two_csv_drives(tmp_path):
+    """A store of two synthetic drives: (database, queries, the queries at 1 Hz)."""
     import visloc
     from conftest import write_csv_drive
 
     ws = visloc.Workspace(tmp_path / "s.sqlite", create=True)
     for name, offset in (("dbdrive", 0), ("querydrive", 30)):
         visloc.ingest_sequence(ws, visloc.open_csv(write_csv_drive(tmp_path / name, n_frames=10, offset_px=offset)),
-                  visloc.SiftParams(), workers=1)
+                               visloc.SiftParams(), workers=1)
     db, queries = ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
-    indices = visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0)
+    return db, queries, visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0)
+
+
+def test_match_drive_hands_over_the_run_so_far_after_each_query(tmp_path):
+    """The engine's ``on_step``: the partial runs the dashboard shows while the first run is matched."""
+    import numpy as np
+
+    import visloc
+
+    db, queries, indices = two_csv_drives(tmp_path)
     partials = []
     full = visloc.match_drive(queries, db, visloc.MatchParams(), visloc.RetrievalParams(exclusion_s=0.5), indices,
                               on_step=partials.append)
@@ -101,16 +108,10 @@ def test_a_later_run_fills_in_over_the_previous_one_step_by_step(tmp_path):
     import numpy as np
 
     import visloc
-    from conftest import write_csv_drive
     from visloc.dashboard import panels
     from visloc.dashboard.state import Controls, Run
 
-    ws = visloc.Workspace(tmp_path / "s.sqlite", create=True)
-    for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-        visloc.ingest_sequence(ws, visloc.open_csv(write_csv_drive(tmp_path / name, n_frames=10, offset_px=offset)),
-                               visloc.SiftParams(), workers=1)
-    db, queries = ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
-    indices = visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0)
+    db, queries, indices = two_csv_drives(tmp_path)
     retrieval = visloc.RetrievalParams(exclusion_s=0.5)
     asked = Controls(store_request=(1, "s"))
     old_key, new_key = asked.match_key(("s", "a", "b")), replace(asked, params={**asked.params, "tau1": 0.7}) \
