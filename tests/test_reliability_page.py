@@ -53,3 +53,18 @@ def test_the_saved_run_timings_are_what_their_json_renders():
     assert rendered in (REPO / "docs" / "performance.md").read_text()
     assert {r["kind"] for r in result["runs"]} == {"track", "evaluation"}
     assert all(r["steps"] > 0 and r["first_screen_s"] > 0 and r["command_to_url_s"] > 0 for r in result["runs"])
+
+
+def test_the_dashboard_feedback_timings_are_what_their_json_renders():
+    """The live dashboard's timings on docs/performance.md are rendered from docs/results/dashboard_feedback.json
+    (written by scripts/dashboard_feedback.py), with every drive of the results store in both modes."""
+    import json
+
+    import dashboard_feedback
+
+    result = json.loads(dashboard_feedback.OUT.read_text())
+    rendered = dashboard_feedback.render(result)
+    assert rendered in (REPO / "docs" / "performance.md").read_text()
+    assert {r["mode"] for r in result["pairs"]} == {"paper", "refined"}
+    assert len({r["queries"] for r in result["pairs"]}) == 3
+    assert all(0 < r["first_rematched_step_s"] < r["rematched_run_s"] for r in result["pairs"])
