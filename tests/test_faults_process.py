@@ -131,6 +131,36 @@ def stored_frames(db_path: Path) -> list[int]:
         conn.close()
 
 
+def test_a_worker_dead_before_the_next_frame_is_handed_out_is_said_too(tmp_path, monkeypatch):
+    """A worker can die between two frames: then the pool refuses the next frame itself (not its result).
+    That too ends the ingest with the one line naming a frame, whatever was in flight coming back first."""
+    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures.process import BrokenProcessPool
+
+    import visloc
+    from visloc.store import ingest as ingest_module
+
+    class DiesAfterTwo(ProcessPoolExecutor):  # a real pool; the third hand-out finds it broken
+        handed = 0
+
+        def submit(self, *args, **kwargs):
+            DiesAfterTwo.handed += 1
+            if DiesAfterTwo.handed > 2:
+                raise BrokenProcessPool("a child process terminated abruptly")
+            return super().submit(*args, **kwargs)
+
+    monkeypatch.setattr(ingest_module, "ProcessPoolExecutor", DiesAfterTwo)
+    seq = visloc.open_csv(write_csv_drive(tmp_path / "d", n_frames=6))
+    frames = [f for f in seq.frames]
+    done = []
+    with pytest.raises(ingest_module.WorkerDiedError) as info:
+        for frame, result in ingest_module._extracted(frames, visloc.SiftParams(), 2, seq, 100.0):
+            done.append(frame)
+    assert done == frames[:2]  # the two in flight came back first
+    message = str(info.value)
+    assert "a SIFT worker process died" in message and str(frames[2].image_path) in message and "\n" not in message
+
+
 @pytest.mark.parametrize("fault", params([CASES["huge-image-header"]]))
 def test_an_image_too_large_is_refused_from_its_header(tmp_path, fault):
     csv_path = write_csv_drive(tmp_path / "drive", n_frames=6)

@@ -163,11 +163,23 @@ def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Se
     pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker, initargs=(params,))
     in_flight: deque[tuple[Frame, Future]] = deque()
     pending = iter(items)
+    def died(frame: Frame) -> WorkerDiedError:
+        return WorkerDiedError(
+            f"{sequence.name}: a SIFT worker process died (killed, or out of memory) while describing "
+            f"{frame.image_path} or a frame after it; the images finished before are stored. Run the same "
+            "command again to go on; if memory is short, lower --workers or --max-image-mp")
+
+    refused: Frame | None = None  # the first frame the pool refused: a worker had died before it was handed out
     try:
         while True:
-            while len(in_flight) < 2 * workers and (item := next(pending, None)) is not None:
-                in_flight.append((item[0], pool.submit(_extract_frame, item)))
+            while refused is None and len(in_flight) < 2 * workers and (item := next(pending, None)) is not None:
+                try:
+                    in_flight.append((item[0], pool.submit(_extract_frame, item)))
+                except BrokenProcessPool:  # the frames in flight come back first, then this one is said
+                    refused = item[0]
             if not in_flight:
+                if refused is not None:
+                    raise died(refused)
                 return
             frame, future = in_flight.popleft()
             try:
@@ -175,10 +187,7 @@ def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Se
             except InputError as exc:
                 yield frame, exc
             except BrokenProcessPool:
-                raise WorkerDiedError(
-                    f"{sequence.name}: a SIFT worker process died (killed, or out of memory) while describing "
-                    f"{frame.image_path} or a frame after it; the images finished before are stored. Run the same "
-                    "command again to go on; if memory is short, lower --workers or --max-image-mp") from None
+                raise died(frame) from None
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
