@@ -48,7 +48,6 @@ class DashboardApp:
         self.preferred = ((db_source, db_camera), (query_source, query_camera))  # None: any
         self.controls = Controls(store_request=(1, str(store_path)))
         self.shown = Shown()
-        self._view: Run | None = None  # what is drawn of the run shown (``Run.shown``)
         self._lock = threading.RLock()  # guards controls and shown; callbacks re-enter it from apply
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -163,9 +162,10 @@ class DashboardApp:
 
     def _move_step(self, delta: int) -> None:
         with self._lock:
-            run = self._view if self.shown.run is not None else None  # the steps drawn
-            if run is not None and run.records:
-                self.gui.step.value = int(np.clip(self.controls.step + delta, 1, len(run.records)))
+            run = self.shown.run
+            n = len(run.shown().records) if run is not None else 0  # the steps drawn
+            if n:
+                self.gui.step.value = int(np.clip(self.controls.step + delta, 1, n))
 
     def _reset_to_paper(self) -> None:
         with self._lock:  # every control moves before the next apply looks
@@ -189,9 +189,10 @@ class DashboardApp:
                 wait_s = max(0.1, 1.0 / (c.rate_hz * c.speed))
             self._stop.wait(wait_s)
             with self._lock:
-                run = self._view if self.shown.run is not None else None  # the steps drawn
-                if self.controls.play and run is not None and run.records:
-                    self.gui.step.value = self.controls.step % len(run.records) + 1  # 1..N, then 1 again
+                run = self.shown.run
+                n = len(run.shown().records) if run is not None else 0  # the steps drawn
+                if self.controls.play and n:
+                    self.gui.step.value = self.controls.step % n + 1  # 1..N, then 1 again
 
     # -- applying: bring the page up to what is asked ------------------------------------------------
 
@@ -233,15 +234,14 @@ class DashboardApp:
             run = s.run  # a run filling in over a previous one went back to it
         if run is None or not run.matches.retrievals:
             return
-        previous = run.previous
-        track_key = (run.match_key, len(run.matches), run.partial, c.filter_key(),
-                     None if previous is None else previous.match_key)
-        if track_key != run.track_key:
-            self._track(run, c, track_key)
+        for r in (run.previous, run):  # the previous run too: its steps are drawn beyond the new run's
+            if r is not None and r.track_key != self._track_key(r, c):
+                self._track(r, c, self._track_key(r, c))
+        track_key = run.track_key
         if c.hidden != self.page.hidden:
             self.page.hidden = c.hidden
             self.page.apply_layers()
-        view = self._view
+        view = run.shown()
         if (track_key, c.magnification) != s.drawn_key:
             s.drawn_key = (track_key, c.magnification)
             self.page.draw_run(view, c.magnification)
@@ -395,8 +395,13 @@ class DashboardApp:
 
         self._jobs.submit("matching", match_all)
 
+    @staticmethod
+    def _track_key(run: Run, c: Controls) -> tuple:
+        """What a run's filtered records depend on: its measurements and the filter's controls."""
+        return run.match_key, len(run.matches), run.partial, c.filter_key()
+
     def _track(self, run: Run, c: Controls, track_key: tuple) -> None:
-        """Filter-only change: rerun the Kalman filter over the run's measurements and redraw it."""
+        """Rerun the Kalman filter over the run's measurements (a filter-only change is just this)."""
         s = self.shown
         try:
             filter_params = replace(c, rate_hz=run.rate_hz).filter_params()
@@ -405,12 +410,7 @@ class DashboardApp:
             return
         gate = c.params_for(visloc.REFINED).gate_chi2 if run.matches.method.measures_pose else 0.0
         run.records = visloc.track_drive(run.matches, s.queries, s.db, filter_params, gate_chi2=gate)
-        previous = run.previous
-        if previous is not None and previous.track_key != (previous.match_key, c.filter_key()):
-            previous.records = visloc.track_drive(previous.matches, s.queries, s.db, filter_params, gate_chi2=gate)
-            previous.track_key = (previous.match_key, c.filter_key())
         run.track_key = track_key
-        self._view = run.shown()  # drawn by the apply that follows
 
     def _show_pictures(self, run: Run, k: int, image_key: tuple) -> None:
         """Read the step's images and draw Figure 3 in the background; show them if the step is still on."""

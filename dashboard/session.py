@@ -10,6 +10,8 @@ from __future__ import annotations
 import threading
 import time
 
+from visloc.dashboard.panels import session_html
+
 
 class SessionLog:
     def __init__(self, clock=time.localtime):
@@ -59,10 +61,8 @@ class SessionLog:
 class SessionView:
     """The session line every tab shows, and each tab's own "This is tab N" under it (viser handles)."""
 
-    def __init__(self, line, html=None):
-        from visloc.dashboard.panels import session_html
-
-        self.log, self.line, self._html = SessionLog(), line, html or session_html
+    def __init__(self, line, html=session_html):
+        self.log, self.line, self._html = SessionLog(), line, html
         self._tab_lines: dict[int, object] = {}  # each tab's own line
 
     def opened(self, client) -> None:

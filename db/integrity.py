@@ -242,6 +242,14 @@ def forget_derived(store: FeatureStore, source: str, camera: str, image_ids: Ite
                              [*chunk, *chunk])
 
 
+def clear_pair_counts(store: FeatureStore) -> int:
+    """Forget every cached image-pair count (a store as ingest leaves it); returns how many there were."""
+    with store.db.atomic():
+        n = store.db.execute("SELECT COUNT(*) FROM pair_counts").fetchone()[0]
+        store.db.execute("DELETE FROM pair_counts")
+    return int(n)
+
+
 def drive_blobs(store: FeatureStore, source: str, camera: str) -> list[bytes]:
     """Every BLOB a run loads for (source, camera): its images' keypoints and descriptors, their
     structure and global vectors (to time what checking them costs)."""

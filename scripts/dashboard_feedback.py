@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import shutil
-import sqlite3
 import sys
 import tempfile
 import time
@@ -107,12 +106,7 @@ def without_counts(store: Path, folder: Path) -> Path:
     """A copy of ``store`` with no cached image-pair counts: what ingest leaves."""
     copy = folder / store.name
     shutil.copy(store, copy)
-    conn = sqlite3.connect(copy)
-    try:
-        conn.execute("DELETE FROM pair_counts")
-        conn.commit()
-    finally:
-        conn.close()
+    visloc.Workspace(copy).clear_pair_counts()
     return copy
 
 

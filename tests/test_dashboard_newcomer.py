@@ -15,7 +15,6 @@ import json
 import re
 from dataclasses import replace
 import shutil
-import sqlite3
 
 import pytest
 from helpers import (
@@ -100,6 +99,20 @@ def test_match_drive_hands_over_the_run_so_far_after_each_query(tmp_path):
         np.testing.assert_array_equal(p.query_indices, full.query_indices[:len(p)])
         assert [m.east_north_m for m in p.measurements] == [m.east_north_m for m in full.measurements[:len(p)]]
         assert len(visloc.track_drive(p, queries, db, visloc.PAPER_FILTER)) == len(p)
+
+
+def test_a_store_forgets_its_cached_counts_as_ingest_left_it(tmp_path):
+    """``Workspace.clear_pair_counts``: what the first-run test and the feedback benchmark start from."""
+    import visloc
+
+    db, queries, indices = two_csv_drives(tmp_path)
+    ws = visloc.Workspace(tmp_path / "s.sqlite")
+    cache = ws.pair_cache(db, queries, visloc.MatchParams())
+    visloc.match_drive(queries, db, visloc.MatchParams(), visloc.RetrievalParams(exclusion_s=0.5), indices, cache=cache)
+    saved = ws.save_pair_counts(cache)
+    assert saved > 0 and ws.clear_pair_counts() == saved and ws.clear_pair_counts() == 0
+    with pytest.raises(visloc.InputError, match="read only"):
+        visloc.Workspace(tmp_path / "s.sqlite", read_only=True).clear_pair_counts()
 
 
 def test_a_later_run_fills_in_over_the_previous_one_step_by_step(tmp_path):
@@ -392,15 +405,12 @@ def test_a_long_error_wraps_inside_the_panel(dashboard, browser, kitti_evaluatio
 def test_the_first_run_fills_in_as_it_is_matched(kitti_evaluation, browser, tmp_path):
     """On a store without cached counts the first run takes a while: the page shows the steps matched
     so far, with the progress, before it is ready."""
+    import visloc
+
     source, _, _ = kitti_evaluation
     store = tmp_path / "fresh.sqlite"
     shutil.copy(source / "kitti.sqlite", store)
-    conn = sqlite3.connect(store)
-    try:
-        conn.execute("DELETE FROM pair_counts")
-        conn.commit()
-    finally:
-        conn.close()
+    assert visloc.Workspace(store).clear_pair_counts() > 0
     proc = DashboardProcess("--db", str(store), "--port", "8424")
     try:
         page = new_page(browser)

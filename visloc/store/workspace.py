@@ -18,6 +18,7 @@ import numpy as np
 
 from visloc.store.database import GeoDatabase, QuerySet
 from visloc.db.connection import sqlite_error_line
+from visloc.db.integrity import clear_pair_counts
 from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecord, SelfCheckRecord, SelfCheckTable,
                        SkippedFrame,
                        StoredImage, StoreError, StructureRecord, StructureTable, VectorTable)
@@ -300,6 +301,13 @@ class Workspace:
             with self._store() as store:
                 store.add_pair_counts(new, cache.match_params.tau1, cache.match_params.tau2)
         return len(new)
+
+    def clear_pair_counts(self) -> int:
+        """Forget every cached image-pair count, as a store is right after ingest; returns how many."""
+        if self.read_only:
+            raise InputError(f"{self.path}: opened read only; its cached counts cannot be cleared")
+        with self._store() as store:
+            return clear_pair_counts(store)
 
     # -- large databases: images from elsewhere, streamed descriptors, stored global vectors --------
 
