@@ -8,6 +8,7 @@ import shutil
 import sqlite3
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -245,3 +246,104 @@ def test_track_on_a_drive_without_calibration_says_what_is_missing(tmp_path):
 
 def test_the_track_command_is_documented():
     assert "visloc track" in (REPO / "README.md").read_text()
+
+
+def test_optical_flow_finds_points_of_a_shifted_real_image_again():
+    seq = open_source(None, drive=DRIVE, camera="image_00")
+    from visloc.pose.flowtrack import follow_points
+    from visloc.sources.drives import load_gray
+    gray = load_gray(seq.frames[0].image_path)
+    shift = np.float32([[1, 0, 3.0], [0, 1, -2.0]])  # the image moved 3 px right, 2 px up
+    moved = cv2.warpAffine(gray, shift, (gray.shape[1], gray.shape[0]))
+    corners = cv2.goodFeaturesToTrack(gray, 200, 0.01, 10).reshape(-1, 2)
+    corners = corners[(corners[:, 0] > 30) & (corners[:, 1] > 30) & (corners[:, 0] < gray.shape[1] - 30)
+                      & (corners[:, 1] < gray.shape[0] - 30)]
+    found, ok = follow_points(gray, moved, corners, corners)  # started where they were: the flow finds the shift
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(np.median(found[ok] - corners[ok], axis=0), [3.0, -2.0], atol=0.05)
+    # a frame of another place: the backward check refuses most of what the forward flow claims
+    other = load_gray(seq.frames[N_FRAMES - 1].image_path)
+    _, ok_other = follow_points(gray, np.roll(other, 150, axis=1), corners, corners)
+    assert ok_other.mean() < ok.mean() - 0.3
+
+
+def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covariance(store):
+    """Real frames: frame 10 localized in full, its map points followed into frames 11-13 by optical flow, each
+    posed against them; the full path poses the same frames on its own. Each pair agrees within their
+    covariances, and the tracked pose is as close to the frame's geotag as the full one, give or take."""
+    from visloc.params import PAPER_FILTER, TRACK
+    from visloc.pose.flowtrack import follow, pose_tracked
+    from visloc.protocols.track import track_filter, track_localizer
+    from visloc.sources.drives import load_gray
+    from visloc.tracking.follower import PointFollower
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    seq = open_source(None, drive=DRIVE, camera="image_00")
+    params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=False)
+    localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
+    pose = localizer.measurer.params
+    follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose, sift,
+                             params, stored=localizer.measurer.structures)
+    from visloc.features.sift import make_sift
+    engine = make_sift(sift)
+    start = 10
+    full = follower._full(load_gray(seq.frames[start].image_path), seq.timestamps_s[start], None, engine, "frame")
+    points = follower._points(full)
+    assert points is not None and len(points) >= 40
+    previous = full.gray
+    for k in range(start + 1, start + 4):
+        gray = load_gray(seq.frames[k].image_path)
+        points = follower._allowed(follow(points, previous, gray, seq.camera_model.K, None), seq.timestamps_s[k])
+        tracked, inliers = pose_tracked(points, points.pixels_px, db.east_north_m, db.geometry(), seq.camera_model,
+                                        pose)
+        assert inliers is not None, tracked.fallback_reason
+        again = follower._full(gray, seq.timestamps_s[k], None, engine, "frame").measurement
+        assert again.source == "geometry"
+        d = tracked.east_north_m - again.east_north_m
+        assert float(d @ np.linalg.solve(tracked.cov_m2 + again.cov_m2, d)) < 13.8  # 99.9 % for 2 degrees
+        truth = np.asarray(db.frame.to_local(seq.frames[k].lat_deg, seq.frames[k].lon_deg), float)
+        assert np.linalg.norm(tracked.east_north_m - truth) < np.linalg.norm(again.east_north_m - truth) + 0.3
+        assert all(abs(db.timestamps_s[v] - seq.timestamps_s[k]) >= 1.0 for v in tracked.view_indices)
+        points = points.subset(inliers.query_rows)
+        previous = gray
+
+
+def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_background_thread(
+        store, kitti_root, tmp_path):
+    runs = []
+    for name in ("a", "b"):
+        out = tmp_path / f"{name}.json"
+        result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
+                         "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "25", "--follow-points",
+                         "--no-background-relocalization", "--json", out)
+        assert result.returncode == 0, result.stderr
+        runs.append(json.loads(out.read_text()))
+    run = runs[0]
+    kinds = [f["kind"] for f in run["per_frame"]]
+    assert kinds[0] == "relocalized" and "tracked" in kinds and set(kinds) <= {"tracked", "relocalized"}
+    assert run["kinds"]["tracked"]["frames"] + run["kinds"]["relocalized"]["frames"] == 25
+    assert 0 < run["cpu_share_of_one_core"] and run["params"]["track"]["follow_points"] is True
+    for f in run["per_frame"]:
+        if f["kind"] == "tracked":
+            assert f["sift_ms"] == 0 and f["followed_points"] >= 15
+            assert f["latency_ms"] == pytest.approx(f["flow_ms"] + f["geometry_ms"] + f["filter_ms"])
+        if f["measurement_source"] == "geometry":  # no view inside the exclusion window, tracked or not
+            assert all(abs(v - f["frame"]) >= 10 for v in f["view_frames"])
+    assert [f["estimate_m"] for f in run["per_frame"]] == [f["estimate_m"] for f in runs[1]["per_frame"]]
+    assert np.median([f["error_m"] for f in run["per_frame"]]) < 1.0
+    assert load_run(tmp_path / "a.json").n_steps == 25  # the dashboard plays it like any track run
+
+
+def test_a_first_fix_refuses_a_lone_far_candidate():
+    from visloc.pose.measurement import Measurement
+    from visloc.tracking.follower import first_fix
+    db_en = np.array([[0.0, 0], [1, 0], [2, 0], [3, 0], [80, 0]])
+    retrieval = Retrieval(np.arange(5), np.array([30, 28, 27, 25, 40]), 4)
+    lone = Measurement(db_en[4], None, "geotag", fallback_reason="no pose")
+    fixed = first_fix(lone, retrieval, db_en)
+    np.testing.assert_allclose(fixed.east_north_m, [2.0, 0.0])
+    assert "first fix" in fixed.fallback_reason
+    near = Measurement(db_en[0], None, "geotag", fallback_reason="no pose")
+    assert first_fix(near, Retrieval(np.arange(5), np.array([40, 28, 27, 25, 3]), 0), db_en) is near
+    posed = Measurement(db_en[4], np.eye(2), "geometry")
+    assert first_fix(posed, retrieval, db_en) is posed

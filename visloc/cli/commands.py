@@ -389,7 +389,7 @@ def cmd_track(a: argparse.Namespace) -> int:
     progress = progress_reporter(f"track {seq.name}", "frames")
     progress(0, len(indices))
     run = run_track(localizer, seq, query_sift, db, params, indices=indices, progress=progress,
-                    path_params={"method": method.as_dict()})
+                    path_params={"method": method.as_dict()}, pose=method.pose)
     print(track_text(run.summary()))
     if a.json:
         write_json(a.json, run.as_json())

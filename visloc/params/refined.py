@@ -142,6 +142,30 @@ class TrackParams(Params):
                                unit="s", low=0, high=MAX_SECONDS, methods=TRACK_ONLY)
     stride: int = param(1, "localize every stride-th frame (1: every frame); the filter's time step follows",
                         kind="integer", low=1, methods=TRACK_ONLY)
+    follow_points: bool = param(False, "between full localizations, follow the last posed frame's map points by "
+                                       "optical flow and pose each frame against them: several times the frame "
+                                       "rate, but on the shared drives not yet as accurate as localizing every "
+                                       "frame in full (the default)",
+                                kind="bool", methods=TRACK_ONLY)
+    relocalize_every: int = param(10, "following points: localize in full at least every this many frames, to "
+                                      "find new map points (0: only when the followed ones no longer serve)",
+                                  kind="integer", low=0, high=MAX_C_INT, methods=TRACK_ONLY)
+    min_followed_points: int = param(40, "following points: fewer followed points than this: localize in full",
+                                     kind="integer", low=6, high=MAX_C_INT, methods=TRACK_ONLY)
+    min_followed_cells: int = param(4, "following points: points in fewer of the image's 4 x 4 cells than this: "
+                                       "localize in full", kind="integer", low=0, high=16, methods=TRACK_ONLY)
+    max_followed_lever_m: float = param(15.0, "following points: a frame farther than this from the nearest view "
+                                              "its points come from: localize in full", unit="m", low=0.1,
+                                        high=1000, methods=TRACK_ONLY)
+    max_followed_sigma_m: float = param(1.0, "following points: the estimate's 1-sigma larger than this: "
+                                             "localize in full", unit="m", low=0.01, high=1000, methods=TRACK_ONLY)
+    background_relocalization: bool = param(True, "following points: full localizations asked for by a tracked "
+                                                  "frame run beside the tracker, so no frame waits for one "
+                                                  "(--no-background-relocalization: the frame that asks waits; "
+                                                  "the run is then reproducible)", kind="bool", methods=TRACK_ONLY)
+    pace_hz: float = param(0.0, "read frames at this rate, as a live camera delivers them, to measure the share "
+                                "of the processor a live run takes (0: as fast as possible)", unit="Hz", low=0,
+                           high=1000, methods=TRACK_ONLY)
 
 
 TRACK = TrackParams()

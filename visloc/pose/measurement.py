@@ -50,6 +50,8 @@ class Measurement:
     side, lever_m:       geometry: "both" when its views lie on both sides of it, else "one"; the distance
                          to the nearest view's geotag, m.
     cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever").
+    inliers:             geometry: the pose's 2D-3D inliers (``visloc.pose.viewpose.MapCorrespondences``), what
+                         ``visloc.pose.flowtrack`` follows into the next frame.
     compute_ms:          wall time this measurement took when it was made (query side: matching,
                          RANSAC, PnP, and any database structure built on the way).
     structure_ms:        of which building database structure that was not cached yet.
@@ -77,6 +79,7 @@ class Measurement:
     structure_ms: float = 0.0
     candidate_inliers: dict[int, int] = field(default_factory=dict, repr=False)
     candidate_structure_matches: dict[int, int] = field(default_factory=dict, repr=False)
+    inliers: object = field(default=None, repr=False)  # geometry: visloc.pose.viewpose.MapCorrespondences
 
     @property
     def sigma_m(self) -> float | None:

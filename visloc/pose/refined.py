@@ -263,7 +263,8 @@ def pose_measurement(
         posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
         reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
         absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m, cov_terms_m2=posed.cov_terms_m2,
-        compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=spent["structure_ms"], **base,
+        compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=spent["structure_ms"],
+        inliers=posed.inliers, **base,
     )
 
 

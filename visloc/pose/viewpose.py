@@ -60,11 +60,12 @@ class _Views:
     points_cov: np.ndarray  # (M, 3, 3)
     pixels: np.ndarray  # (M, 2)
     view_of: np.ndarray  # (M,) database index of the view
+    rows: np.ndarray  # (M, 2) (query row, keypoint row of the view)
 
 
 def _correspondences(chosen: list[int], pairs_of: dict[int, np.ndarray], structure_of: dict[int, dict],
                      query_xy: np.ndarray) -> _Views:
-    points, covs, pixels, view_of = [], [], [], []
+    points, covs, pixels, view_of, rows = [], [], [], [], []
     for i in chosen:
         structure = structure_of[i]
         for q_row, d_row in pairs_of[i].tolist():
@@ -74,8 +75,9 @@ def _correspondences(chosen: list[int], pairs_of: dict[int, np.ndarray], structu
                 covs.append(found[1])
                 pixels.append(query_xy[q_row])
                 view_of.append(i)
+                rows.append((q_row, d_row))
     return _Views(np.array(points).reshape(-1, 3), np.array(covs).reshape(-1, 3, 3), np.array(pixels).reshape(-1, 2),
-                  np.array(view_of, np.int64))
+                  np.array(view_of, np.int64), np.array(rows, np.int64).reshape(-1, 2))
 
 
 def _side(view_centre: np.ndarray, T_world_camera_query: np.ndarray) -> int:
@@ -135,6 +137,25 @@ class PosedViews:
     side: str | None = None
     lever_m: float | None = None
     absolute_sigma_m: float | None = None
+    inliers: "MapCorrespondences | None" = None  # the PnP inliers, what a tracker follows to the next frame
+
+
+@dataclass(frozen=True)
+class MapCorrespondences:
+    """A posed frame's 2D-3D inliers: the map points it saw and where.
+
+    query_rows: (M,) rows of the query's keypoints; view_of, view_rows: (M,) the database view and keypoint row
+    each point belongs to; points_world: (M, 3) m; points_cov: (M, 3, 3) m^2; T_world_camera: (4, 4) the pose;
+    neighbours: view -> the database images its structure was triangulated with."""
+
+    query_rows: np.ndarray
+    view_of: np.ndarray
+    view_rows: np.ndarray
+    points_world: np.ndarray
+    points_cov: np.ndarray
+    T_world_camera: np.ndarray
+    neighbours: dict = None  # view -> the database images its structure was triangulated with
+    view_structure: dict = None  # view -> {keypoint row: (world point, covariance)}: all of its structure
 
 
 def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np.ndarray],
@@ -227,8 +248,12 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
              "lever": lever_covariance_m2(gain.of(side), lever_m)}
     cov = terms["pnp"] + terms["views"] + terms["lever"]
     absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
+    k = pnp.inliers
+    inliers = MapCorrespondences(views.rows[k, 0], views.view_of[k], views.rows[k, 1], views.points_world[k],
+                                 views.points_cov[k], pnp.T_world_camera,
+                                 {i: tuple(neighbours_used[i]) for i in chosen}, {i: structures[i] for i in chosen})
     return PosedViews(None, support, spent["structure_ms"], east_north, cov, anchor, pnp.reprojection_rms_px,
-                      float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m)
+                      float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m, inliers)
 
 
 def _geotag_sigma_m(geometry: DatabaseGeometry, i: int, params: RefinedParams) -> float:

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -27,10 +27,11 @@ from visloc.geometry.projective import CameraModel
 from visloc.tracking.localizer import Localizer, StepResult
 from visloc.pose.measurement import GEOMETRY
 from visloc.tracking.methods import REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer
-from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK, FilterParams, RetrievalParams,
-                           SiftParams, TrackParams)
+from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK, FilterParams, RefinedParams,
+                           RetrievalParams, SiftParams, TrackParams)
 from visloc.sources.queries import extract_queries
 from visloc.pose.structure import seeded_structure_cache
+from visloc.tracking.follower import FollowedStep, PointFollower
 from visloc.tracking.runs import steps_of
 from visloc.sources.drives import Sequence
 from visloc.pose.uncertainty import SIDES, calibration
@@ -106,6 +107,13 @@ class TrackFrame:
     absolute_sigma_m: float | None = None  # refined: the map's own error, m per axis
     maneuver: bool = False  # the filter applied the measurement with its maneuver prediction
     retracted_previous: bool = False  # the filter took the previous frame's measurement out
+    # following points (visloc.tracking.follower): "tracked" (posed against followed points), "relocalized"
+    # (localized in full on this frame), or "full" (a run that localizes every frame in full)
+    kind: str = "full"
+    flow_ms: float = 0.0  # following the points into this frame
+    followed_points: int = 0
+    relocalize_reason: str | None = None  # why this frame asked for a full localization
+    merged: str | None = None  # a background relocalization's points "joined" (or "replaced") the followed ones
 
 
 def _stats(values: list[float]) -> dict:
@@ -114,6 +122,12 @@ def _stats(values: list[float]) -> dict:
         return {"mean": None, "median": None, "p90": None, "max": None, "n": 0}
     return {"mean": float(v.mean()), "median": float(np.median(v)), "p90": float(np.percentile(v, 90)),
             "max": float(v.max()), "n": int(v.size)}
+
+
+def _latency(values: list[float]) -> dict | None:
+    v = np.asarray(values, float)
+    return {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95)), "max": float(v.max())} \
+        if v.size else None
 
 
 @dataclass
@@ -125,15 +139,20 @@ class TrackRun:
     frames: list[TrackFrame] = field(default_factory=list)
     wall_s: float = 0.0
     frame_origin_deg: tuple[float, float] | None = None  # (lat, lon) of the local frame of every *_m position
+    cpu_s: float = 0.0  # processor time of the whole process over the run (every thread), s
+    pace_hz: float = 0.0  # frames were read at this rate (0: as fast as possible)
 
     def summary(self) -> dict:
         f = self.frames
-        lat = np.array([x.latency_ms for x in f], float)
         n_geometry = sum(x.measurement_source == "geometry" for x in f)
         return {
             "queries": self.queries, "database": self.database, "path": self.path, "frames": len(f),
-            "latency_ms": {"p50": float(np.percentile(lat, 50)), "p95": float(np.percentile(lat, 95)),
-                           "max": float(lat.max())} if lat.size else None,
+            "latency_ms": _latency([x.latency_ms for x in f]),
+            "kinds": {kind: {"frames": n, "share": n / len(f), "latency_ms": _latency([x.latency_ms for x in f
+                                                                                      if x.kind == kind])}
+                      for kind in sorted({x.kind for x in f}) for n in [sum(x.kind == kind for x in f)]},
+            "cpu_s": self.cpu_s, "cpu_share_of_one_core": self.cpu_s / self.wall_s if self.wall_s > 0 else None,
+            "pace_hz": self.pace_hz,
             "stages_ms": {k: float(np.median([getattr(x, k) for x in f])) if f else None
                           for k in ("sift_ms", "retrieval_ms", "geometry_ms", "filter_ms")},
             "error_m": _stats([x.error_m for x in f]),
@@ -205,21 +224,33 @@ def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoD
 def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
               indices: list[int] | None = None, path_params: dict | None = None,
               progress: Callable[[int, int], None] | None = None,
-              cancelled: Callable[[], bool] | None = None) -> TrackRun:
-    """Localize the frames ``indices`` of ``seq`` (default: every ``params.stride``-th) in order, from a fresh track."""
+              cancelled: Callable[[], bool] | None = None, pose: RefinedParams | None = None) -> TrackRun:
+    """Localize the frames ``indices`` of ``seq`` (default: every ``params.stride``-th) in order, from a fresh track.
+
+    ``pose``: the refined method's settings; with ``params.follow_points`` the frames between full localizations
+    follow the map's points (``visloc.tracking.follower``), else every frame is localized in full."""
     indices = list(range(0, len(seq), params.stride)) if indices is None else list(indices)
     run = TrackRun(seq.name, f"{db.source}/{db.camera}", "fast" if params.fast else "exact",
                    {"track": params.as_dict(), "query_sift": sift.as_dict(), "filter": localizer.filter_params.as_dict(),
                     **(path_params or {})},
-                   frame_origin_deg=(db.frame.origin_lat_deg, db.frame.origin_lon_deg))
+                   frame_origin_deg=(db.frame.origin_lat_deg, db.frame.origin_lon_deg), pace_hz=params.pace_hz)
     localizer.reset()
     shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
-    start = time.perf_counter()
-    steps = steps_of(localizer, extract_queries(seq, indices, sift), cancelled=cancelled)
+    start, cpu_start = time.perf_counter(), time.process_time()
+    if params.follow_points and pose is not None:
+        follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose,
+                                 sift, params, seq.distortion, stored=getattr(localizer.measurer, "structures", None))
+        steps = follower.steps(seq, indices, cancelled=cancelled)
+    else:
+        steps = (FollowedStep(s.result, s.latency_ms, "full") for s in
+                 steps_of(localizer, extract_queries(seq, indices, sift, paced_hz=params.pace_hz),
+                          cancelled=cancelled))
     for n, (i, step) in enumerate(zip(indices, steps), 1):
-        run.frames.append(_frame_record(seq, i, step.result, step.latency_ms, db, shares))
+        record = _frame_record(seq, i, step.result, step.latency_ms, db, shares)
+        run.frames.append(replace(record, kind=step.kind, flow_ms=step.flow_ms, followed_points=step.followed_points,
+                                  relocalize_reason=step.relocalize_reason, merged=step.merged))
         run.wall_s = time.perf_counter() - start
+        run.cpu_s = time.process_time() - cpu_start
         if progress:
             progress(n, len(indices))
     return run
-

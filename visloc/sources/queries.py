@@ -16,13 +16,18 @@ from visloc.sources.drives import Sequence, load_gray
 
 
 def extract_queries(sequence: Sequence, indices: Iterable[int], sift: SiftParams, *,
-                    engine: "cv2.SIFT | None" = None) -> Iterator[Query]:
+                    engine: "cv2.SIFT | None" = None, paced_hz: float = 0.0) -> Iterator[Query]:
     """The frames ``indices`` of ``sequence`` as queries, lazily: each image is read (not timed) and
     described by SIFT (timed: ``Query.sift_ms``) when the query is reached. Queries have no key.
-    Keypoints are undistorted as ingest does when the sequence's calibration has distortion."""
+    Keypoints are undistorted as ingest does when the sequence's calibration has distortion.
+    ``paced_hz`` > 0: the n-th image is not read before n / paced_hz seconds from the first, as a live camera
+    delivers them."""
     engine = engine or make_sift(sift)
     K = None if sequence.distortion is None else sequence.P_rect[:, :3]
-    for i in indices:
+    started = time.perf_counter()
+    for n, i in enumerate(indices):
+        if paced_hz > 0:
+            time.sleep(max(0.0, started + n / paced_hz - time.perf_counter()))
         frame = sequence.frames[i]
         gray = load_gray(frame.image_path)
         t0 = time.perf_counter()

@@ -14,6 +14,7 @@ Each ``step`` returns everything about that query, its timings included.
 
 from __future__ import annotations
 
+import copy
 import time
 from dataclasses import dataclass
 from typing import Protocol
@@ -83,13 +84,38 @@ class Localizer:
         self._kalman = ConstantVelocityKalman(self.filter_params, gate_chi2=self.gate_chi2,
                                               reinit_after_gated=self.reinit_after_gated)
 
-    def step(self, query: Query) -> StepResult:
+    def prediction(self) -> Prediction:
+        """The filter's predicted position and covariance for the next step (None before the first)."""
+        return self._kalman.prediction()
+
+    @property
+    def started(self) -> bool:
+        """The filter holds a track (it has been given a measurement)."""
+        return self._kalman.x is not None
+
+    def measure(self, query: Query, prediction: Prediction = None) -> tuple[Retrieval, Measurement, float, float]:
+        """Retrieval and measurement of ``query`` without touching the filter (safe from another thread):
+        (retrieval, measurement, retrieval ms, measurement ms)."""
         t0 = time.perf_counter()
-        retrieval = self.retriever.retrieve(query, self._kalman.prediction())
+        retrieval = self.retriever.retrieve(query, prediction)
         t1 = time.perf_counter()
         measurement = self.measurer.measure(query, retrieval)
         t2 = time.perf_counter()
+        return retrieval, measurement, (t1 - t0) * 1000.0, (t2 - t1) * 1000.0
+
+    def fuse(self, query: Query, retrieval: Retrieval, measurement: Measurement, retrieval_ms: float = 0.0,
+             measurement_ms: float = 0.0) -> StepResult:
+        """The filter's step with ``measurement`` (one query's, made by ``measure`` or otherwise)."""
+        t0 = time.perf_counter()
+        self._before_fuse = copy.deepcopy(self._kalman)
         filtered = self._kalman.step(measurement.east_north_m, measurement.cov_m2)
-        t3 = time.perf_counter()
-        timings = StepTimings((t1 - t0) * 1000.0, (t2 - t1) * 1000.0, (t3 - t2) * 1000.0)
-        return StepResult(query, retrieval, measurement, filtered, timings)
+        filter_ms = (time.perf_counter() - t0) * 1000.0
+        return StepResult(query, retrieval, measurement, filtered, StepTimings(retrieval_ms, measurement_ms, filter_ms))
+
+    def undo_last(self) -> None:
+        """Take the last ``fuse`` back: the filter as it was before it (a frame measured again)."""
+        if getattr(self, "_before_fuse", None) is not None:
+            self._kalman, self._before_fuse = self._before_fuse, None
+
+    def step(self, query: Query) -> StepResult:
+        return self.fuse(query, *self.measure(query, self._kalman.prediction()))

@@ -1,0 +1,244 @@
+"""Following the map's points from frame to frame: a pose at camera rate without SIFT or retrieval.
+
+A frame posed by the refined measurement knows which of its pixels are the database's triangulated
+points (``visloc.pose.viewpose.MapCorrespondences``). The next frame, a tenth of a second later, sees
+mostly the same points a few pixels away. ``follow_points`` finds them again by pyramidal
+Lucas-Kanade optical flow, each started where the predicted pose projects its 3D point, and keeps only
+those the flow finds again when run backwards. ``pose_tracked`` then poses the frame exactly as the
+full measurement does (``visloc.pose.viewpose.pose_from_views``: PnP RANSAC, the per-view check, the
+same covariance model), against the same 3D points. The points are the map's, not the previous frame's
+estimate, so the pose stays tied to the map and does not drift as visual odometry does; the points
+only thin out, and ``needs_relocalization`` says when the full path must find new ones.
+
+Pure functions over numpy arrays (OpenCV for the flow).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from visloc.geometry.projective import CameraModel
+from visloc.params import RefinedParams
+from visloc.pose.measurement import GEOMETRY, Measurement
+from visloc.pose.viewpose import DatabaseGeometry, MapCorrespondences, pose_from_views
+
+FLOW_WINDOW_PX = 21  # Lucas-Kanade's window side
+FLOW_LEVELS = 3  # pyramid levels above the image: follows motions of up to about 2^3 windows
+FLOW_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 20, 0.03)
+GRID_CELLS = 4  # the image is cut into GRID_CELLS x GRID_CELLS cells to tell how points are spread
+
+
+@dataclass(frozen=True)
+class TrackedPoints:
+    """Map points seen in one frame, as the tracker follows them.
+
+    pixels_px: (M, 2) where they lie in the frame's image as read (before any undistortion);
+    view_of, view_rows: (M,) the database view and keypoint row of each; points_world: (M, 3) m;
+    points_cov: (M, 3, 3) m^2; neighbours: view -> the database images its structure was triangulated with;
+    T_world_camera: (4, 4) the frame's pose; east_north_m: (2,) the frame's posed position."""
+
+    pixels_px: np.ndarray
+    view_of: np.ndarray
+    view_rows: np.ndarray
+    points_world: np.ndarray
+    points_cov: np.ndarray
+    neighbours: dict
+    T_world_camera: np.ndarray
+    east_north_m: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.pixels_px)
+
+    def subset(self, keep: np.ndarray, pixels_px: np.ndarray | None = None) -> "TrackedPoints":
+        """The points ``keep`` (bool or index), optionally at new pixels (already subset)."""
+        px = self.pixels_px[keep] if pixels_px is None else pixels_px
+        return TrackedPoints(px, self.view_of[keep], self.view_rows[keep], self.points_world[keep],
+                             self.points_cov[keep], self.neighbours, self.T_world_camera, self.east_north_m)
+
+
+def points_of(inliers: MapCorrespondences, raw_pixels_px: np.ndarray, east_north_m: np.ndarray,
+              neighbours: dict) -> TrackedPoints:
+    """What a posed frame hands the tracker: its inliers at the pixels they have in the image as read
+    (``raw_pixels_px``: (N, 2) of every query keypoint, before undistortion)."""
+    return TrackedPoints(np.asarray(raw_pixels_px, np.float32)[inliers.query_rows].reshape(-1, 2),
+                         inliers.view_of, inliers.view_rows, inliers.points_world, inliers.points_cov,
+                         dict(neighbours), np.asarray(inliers.T_world_camera, float),
+                         np.asarray(east_north_m, float))
+
+
+def predicted_camera(T_world_camera: np.ndarray, from_east_north_m: np.ndarray,
+                     to_east_north_m: np.ndarray) -> np.ndarray:
+    """The camera pose moved by the vehicle's predicted displacement (same attitude)."""
+    T = np.array(T_world_camera, float)
+    T[:2, 3] += np.asarray(to_east_north_m, float) - np.asarray(from_east_north_m, float)
+    return T
+
+
+def project_px(points_world: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) pixels of world points seen by a camera, and (M,) bool: in front of it."""
+    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
+    p_cam = (np.asarray(points_world, float) - t) @ R  # R^T (X - t), row-wise
+    front = p_cam[:, 2] > 0.1
+    z = np.where(front, p_cam[:, 2], 1.0)
+    uv = (p_cam[:, :2] / z[:, None]) @ K[:2, :2].T + K[:2, 2]
+    return uv, front
+
+
+def follow_points(previous_gray: np.ndarray, gray: np.ndarray, previous_px: np.ndarray, guess_px: np.ndarray,
+                  *, max_backward_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels (M, 2) of ``previous_px`` found in ``gray`` by pyramidal Lucas-Kanade started at ``guess_px``,
+    and (M,) bool: found, inside the image and found again within ``max_backward_px`` of where it was when
+    the flow is run back."""
+    if len(previous_px) == 0:
+        return np.zeros((0, 2), np.float32), np.zeros(0, bool)
+    p0 = np.ascontiguousarray(previous_px, np.float32).reshape(-1, 1, 2)
+    guess = np.ascontiguousarray(guess_px, np.float32).reshape(-1, 1, 2)
+    lk = dict(winSize=(FLOW_WINDOW_PX, FLOW_WINDOW_PX), maxLevel=FLOW_LEVELS, criteria=FLOW_CRITERIA,
+              flags=cv2.OPTFLOW_USE_INITIAL_FLOW)
+    p1, found, _ = cv2.calcOpticalFlowPyrLK(previous_gray, gray, p0, guess.copy(), **lk)
+    back, found_back, _ = cv2.calcOpticalFlowPyrLK(gray, previous_gray, p1, p0.copy(), **lk)
+    p1, back = p1.reshape(-1, 2), back.reshape(-1, 2)
+    h, w = gray.shape[:2]
+    ok = (found.ravel() == 1) & (found_back.ravel() == 1)
+    ok &= np.linalg.norm(back - p0.reshape(-1, 2), axis=1) <= max_backward_px
+    ok &= (p1[:, 0] >= 0) & (p1[:, 1] >= 0) & (p1[:, 0] <= w - 1) & (p1[:, 1] <= h - 1)
+    return p1, ok
+
+
+def follow(points: TrackedPoints, previous_gray: np.ndarray, gray: np.ndarray, K: np.ndarray,
+           predicted_east_north_m: np.ndarray | None, *, max_backward_px: float = 1.0) -> TrackedPoints:
+    """``points`` found again in ``gray`` (those lost are dropped), each flow started where the
+    predicted pose projects its point (at its previous pixel without a prediction or behind the camera)."""
+    guess = np.asarray(points.pixels_px, float).copy()
+    if predicted_east_north_m is not None and len(points):
+        T = predicted_camera(points.T_world_camera, points.east_north_m, predicted_east_north_m)
+        uv, front = project_px(points.points_world, T, K)
+        # the projection carries the motion; the offset of each point's last pixel from its own projection
+        # under the last pose carries what the model misses (lens distortion, the point's own error)
+        last, last_front = project_px(points.points_world, points.T_world_camera, K)
+        use = front & last_front
+        guess[use] = uv[use] + (points.pixels_px[use] - last[use])
+    px, ok = follow_points(previous_gray, gray, points.pixels_px, guess, max_backward_px=max_backward_px)
+    return points.subset(ok, px[ok])
+
+
+def grid_cells_occupied(pixels_px: np.ndarray, image_shape: tuple[int, int], cells: int = GRID_CELLS) -> int:
+    """How many of the image's ``cells`` x ``cells`` cells hold at least one of the pixels."""
+    if len(pixels_px) == 0:
+        return 0
+    h, w = image_shape[:2]
+    cx = np.clip((np.asarray(pixels_px)[:, 0] * cells // w).astype(int), 0, cells - 1)
+    cy = np.clip((np.asarray(pixels_px)[:, 1] * cells // h).astype(int), 0, cells - 1)
+    return int(len(np.unique(cy * cells + cx)))
+
+
+def pose_tracked(points: TrackedPoints, undistorted_px: np.ndarray, db_east_north_m: np.ndarray,
+                 geometry: DatabaseGeometry, query_camera: CameraModel,
+                 params: RefinedParams) -> tuple[Measurement, MapCorrespondences | None]:
+    """The frame posed against the followed points, by the full measurement's own ``pose_from_views`` (views
+    ranked by how many of their points were followed), or a measurement with no position and the reason."""
+    views, counts = np.unique(points.view_of, return_counts=True)
+    usable = [int(v) for v in views[np.argsort(-counts, kind="stable")]]
+    rows = np.arange(len(points))
+    pairs_of = {i: np.stack([rows[points.view_of == i], points.view_rows[points.view_of == i]], axis=1)
+                for i in usable}
+    lookup = {i: {int(r): (p, c) for r, p, c in zip(points.view_rows[points.view_of == i],
+                                                      points.points_world[points.view_of == i],
+                                                      points.points_cov[points.view_of == i])} for i in usable}
+    neighbours = {i: tuple(points.neighbours.get(i, ())) for i in usable}
+    # every view the points come from, not only the best few: they are already the map's points this frame saw
+    posed = pose_from_views(np.asarray(undistorted_px, float), usable, pairs_of, lambda i: (lookup[i], 0.0),
+                            neighbours, db_east_north_m, geometry, query_camera,
+                            params.replace(n_views=max(params.n_views, len(usable))))
+    support = dict(posed.support)
+    if posed.reason is not None:
+        return Measurement(None, None, None, fallback_reason=f"tracked points: {posed.reason}", **support), None
+    m = Measurement(posed.east_north_m, posed.cov_m2, GEOMETRY, db_index=posed.anchor,
+                    reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
+                    absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m,
+                    cov_terms_m2=posed.cov_terms_m2, inliers=posed.inliers, **support)
+    return m, posed.inliers
+
+
+def needs_relocalization(n_points: int, cells_occupied: int, lever_m: float | None, estimate_sigma_m: float,
+                         frames_since_full: int, *, min_points: int, min_cells: int, max_lever_m: float,
+                         max_sigma_m: float, every_frames: int) -> str | None:
+    """Why the full path should find new points now (None: the tracked points still serve)."""
+    if n_points < min_points:
+        return f"{n_points} points followed (fewer than {min_points})"
+    if cells_occupied < min_cells:
+        return f"points in {cells_occupied} of {GRID_CELLS * GRID_CELLS} image cells (fewer than {min_cells})"
+    if lever_m is not None and lever_m > max_lever_m:
+        return f"{lever_m:.1f} m from the nearest view (more than {max_lever_m:g} m)"
+    if estimate_sigma_m > max_sigma_m:
+        return f"estimate sigma {estimate_sigma_m:.2f} m (more than {max_sigma_m:g} m)"
+    if every_frames > 0 and frames_since_full >= every_frames:
+        return f"{frames_since_full} frames since the last full localization"
+    return None
+
+
+def merged(current: TrackedPoints | None, fresh: TrackedPoints) -> TrackedPoints:
+    """``fresh`` points with the ``current`` ones it lacks (same view and keypoint row: the current one is kept),
+    at ``fresh``'s pose."""
+    if current is None or not len(current):
+        return fresh
+    have = set(zip(current.view_of.tolist(), current.view_rows.tolist()))
+    new = np.array([(v, r) not in have for v, r in zip(fresh.view_of.tolist(), fresh.view_rows.tolist())], bool)
+    cat = lambda a, b: np.concatenate([a, b[new]])  # noqa: E731
+    return TrackedPoints(cat(current.pixels_px, fresh.pixels_px), cat(current.view_of, fresh.view_of),
+                         cat(current.view_rows, fresh.view_rows), cat(current.points_world, fresh.points_world),
+                         cat(current.points_cov, fresh.points_cov), {**fresh.neighbours, **current.neighbours},
+                         current.T_world_camera, current.east_north_m)
+
+
+def guided_matches(view_structure: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,
+                   T_world_camera: np.ndarray, K: np.ndarray, image_shape: tuple[int, int], *,
+                   radius_px: float = 4.0, ratio: float = 0.8) -> MapCorrespondences:
+    """Every structure point of the posed views found among the query's keypoints by its projection: each
+    point projected by the pose takes the query keypoint within ``radius_px`` whose descriptor is nearest its
+    view keypoint's, if nearer than ``ratio`` times the next one within the radius (one point per query
+    keypoint, the nearest). Far more of the map than the descriptor matches alone: what a tracker follows.
+    ``query_xy_px``: (N, 2) undistorted keypoints; returns the matches (``T_world_camera`` as given)."""
+    h, w = image_shape[:2]
+    q_xy = np.asarray(query_xy_px, float)
+    q_desc = np.asarray(query_descriptors_u8, np.float32)
+    found: list[tuple] = []
+    for view, structure in view_structure.items():
+        if not structure:
+            continue
+        rows = np.fromiter(structure.keys(), np.int64, len(structure))
+        points = np.array([structure[r][0] for r in rows.tolist()], float).reshape(-1, 3)
+        uv, front = project_px(points, T_world_camera, K)
+        inside = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+        idx = np.flatnonzero(inside)
+        if not idx.size:
+            continue
+        d2 = ((uv[idx, None, :] - q_xy[None, :, :]) ** 2).sum(axis=2)
+        pi, qi = np.nonzero(d2 <= radius_px**2)
+        if not pi.size:
+            continue
+        v_desc = np.asarray(db_descriptors_u8[view], np.float32)[rows[idx[pi]]]
+        dist = np.linalg.norm(v_desc - q_desc[qi], axis=1)
+        order = np.lexsort((dist, pi))  # by point, nearest first
+        pi, qi, dist = pi[order], qi[order], dist[order]
+        first = np.r_[True, pi[1:] != pi[:-1]]
+        starts = np.flatnonzero(first)
+        second = np.full(len(starts), np.inf)
+        has_second = np.r_[starts[1:], len(pi)] - starts > 1
+        second[has_second] = dist[starts[has_second] + 1]
+        ok = dist[starts] < ratio * second
+        for k in np.flatnonzero(ok).tolist():
+            j = starts[k]
+            r = int(rows[idx[pi[j]]])
+            found.append((float(dist[j]), int(qi[j]), view, r, structure[r][0], structure[r][1]))
+    found.sort(key=lambda f: f[0])
+    seen: set[int] = set()
+    kept = [f for f in found if not (f[1] in seen or seen.add(f[1]))]
+    return MapCorrespondences(np.array([f[1] for f in kept], np.int64), np.array([f[2] for f in kept], np.int64),
+                              np.array([f[3] for f in kept], np.int64),
+                              np.array([f[4] for f in kept], float).reshape(-1, 3),
+                              np.array([f[5] for f in kept], float).reshape(-1, 3, 3),
+                              np.asarray(T_world_camera, float), None, view_structure)

@@ -1,0 +1,325 @@
+"""A track at camera rate: follow the map's points from frame to frame, localize in full only when needed.
+
+``PointFollower.steps`` runs a drive's frames in order through a ``Localizer`` (the refined method):
+
+* **Tracked frames.** The map points the last posed frame saw are followed into this frame by optical flow
+  and the frame is posed against them (``visloc.pose.flowtrack``), with the full measurement's own PnP,
+  checks and covariance. No SIFT, no retrieval. Points whose view (or the views it was triangulated
+  with) lies inside the exclusion window of this frame are dropped, as the full path would not use them.
+* **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
+  serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
+  thread beside the tracker on the frame that asked, and its points are followed from that frame into the
+  frame where it arrives and joined to the tracked ones (replacing them if its pose disagrees with the
+  tracked pose of the same frame). Without, the frame that asked waits for it (reproducible runs).
+  A frame with nothing to follow (the first, or a track whose points were lost) is localized in full at once.
+* **A first fix.** A track's first measurement is the start of everything after it, so a first frame that
+  only gets the geotag of its best candidate (no pose) takes the median geotag of its best candidates
+  instead when the best one lies far from the others (``first_fix``).
+
+Each step carries its kind ("tracked" or "relocalized") and its latency: what the frame spent once its image
+was read (flow and pose, or SIFT, retrieval and measurement, and the filter step); a background
+relocalization's cost is on another core and on no frame.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
+from visloc.geometry.projective import CameraModel
+from visloc.params import RefinedParams, SiftParams, TrackParams
+from visloc.pose.flowtrack import (TrackedPoints, follow, grid_cells_occupied, guided_matches, merged,
+                                   needs_relocalization, points_of, pose_tracked)
+from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement
+from visloc.pose.structure import ViewStructure, choose_variant
+from visloc.pose.viewpose import DatabaseGeometry
+from visloc.retrieval.matching import MatchCancelled
+from visloc.retrieval.retrievers import Retrieval
+from visloc.sources.drives import Sequence, load_gray
+from visloc.tracking.localizer import Localizer, StepResult
+
+TRACKED = "tracked"
+RELOCALIZED = "relocalized"
+DISAGREE_CHI2 = 13.8  # chi-square, 2 degrees of freedom, 99.9 %: a relocalization that disagrees with the track
+FIRST_FIX_CANDIDATES = 5
+FIRST_FIX_AGREEMENT_M = 10.0
+LOOKAHEAD_S = 0.5  # the followed points must still serve this much later, or a full localization is asked for
+EXTRA_VIEWS = 4  # a full localization also looks for the points of this many more views that keep serving
+EXTRA_VIEW_RADIUS_M = 40.0
+NO_RETRIEVAL = Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
+
+
+@dataclass(frozen=True)
+class FollowedStep:
+    """One frame of a followed track. latency_ms: see the module docstring; flow_ms: following the points;
+    followed_points: how many were posed against (tracked frames) or found (relocalized);
+    relocalize_reason: why this frame asked for a full localization (None: it did not); merged: a background
+    relocalization's points joined the followed ones at this frame ("joined" or "replaced")."""
+
+    result: StepResult
+    latency_ms: float
+    kind: str
+    flow_ms: float = 0.0
+    followed_points: int = 0
+    relocalize_reason: str | None = None
+    merged: str | None = None
+
+
+@dataclass(frozen=True)
+class _Full:
+    """A full localization of one frame."""
+
+    gray: np.ndarray
+    query: Query
+    raw_px: np.ndarray
+    retrieval: Retrieval
+    measurement: Measurement
+    retrieval_ms: float
+    measurement_ms: float
+
+    @property
+    def cost_ms(self) -> float:
+        return self.query.sift_ms + self.retrieval_ms + self.measurement.query_side_ms
+
+
+def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: np.ndarray,
+              k: int = FIRST_FIX_CANDIDATES, agreement_m: float = FIRST_FIX_AGREEMENT_M) -> Measurement:
+    """A track's first measurement: a geotag whose candidate lies more than ``agreement_m`` from the median
+    geotag of the ``k`` best candidates is replaced by that median (a lone far candidate is more often a
+    look-alike place than the vehicle's); anything else is kept."""
+    if measurement.source != GEOTAG or retrieval.counts.size < 3:
+        return measurement
+    best = np.argsort(-retrieval.counts, kind="stable")[:k]
+    best = best[retrieval.counts[best] > 0]
+    if best.size < 3:
+        return measurement
+    positions = np.asarray(db_east_north_m, float)[retrieval.candidates[best]]
+    centre = np.median(positions, axis=0)
+    if np.linalg.norm(np.asarray(measurement.east_north_m, float) - centre) <= agreement_m:
+        return measurement
+    reason = (f"{measurement.fallback_reason}; first fix: the best candidate's geotag lies far from the other "
+              f"candidates', their median geotag is used")
+    return replace(measurement, east_north_m=centre, fallback_reason=reason)
+
+
+def _disagree(a: Measurement, b: Measurement) -> bool:
+    if a.cov_m2 is None or b.cov_m2 is None or a.east_north_m is None or b.east_north_m is None:
+        return False
+    d = np.asarray(a.east_north_m, float) - np.asarray(b.east_north_m, float)
+    return float(d @ np.linalg.solve(np.asarray(a.cov_m2) + np.asarray(b.cov_m2), d)) > DISAGREE_CHI2
+
+
+def _at_pose(points: TrackedPoints, T_world_camera: np.ndarray, east_north_m: np.ndarray) -> TrackedPoints:
+    return replace(points, T_world_camera=np.asarray(T_world_camera, float),
+                   east_north_m=np.asarray(east_north_m, float))
+
+
+class PointFollower:
+    """Steps a localizer through a drive's frames, following map points between full localizations."""
+
+    def __init__(self, localizer: Localizer, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray,
+                 geometry: DatabaseGeometry, query_camera: CameraModel, pose: RefinedParams, sift: SiftParams,
+                 params: TrackParams, distortion: np.ndarray | None = None, stored: dict | None = None):
+        self.localizer = localizer
+        self.db_east_north_m = np.asarray(db_east_north_m, float)
+        self.db_timestamps_s = np.asarray(db_timestamps_s, float)
+        self.geometry = geometry
+        self.camera = query_camera
+        self.pose = pose
+        self.sift = sift
+        self.params = params
+        self.distortion = distortion
+        self.stored = stored or {}
+        self._lookups: dict = {}
+        self._sign = 1.0
+
+    def _undistort(self, px: np.ndarray) -> np.ndarray:
+        return undistort_keypoints(np.asarray(px, np.float32), self.camera.K, self.distortion)
+
+    def _full(self, gray: np.ndarray, timestamp_s: float, prediction, engine, name: str) -> _Full:
+        t0 = time.perf_counter()
+        features = extract_sift(gray, self.sift, sift=engine, name=name)
+        keypoints = self._undistort(features.keypoints_f32)
+        query = Query(features.descriptors_u8, timestamp_s, keypoints_f32=keypoints,
+                      sift_ms=(time.perf_counter() - t0) * 1000.0)
+        retrieval, m, r_ms, m_ms = self.localizer.measure(query, prediction)
+        return _Full(gray, query, features.keypoints_f32[:, :2], retrieval, m, r_ms, m_ms)
+
+    def _points(self, full: _Full) -> TrackedPoints | None:
+        m = full.measurement
+        if m.source != GEOMETRY or m.inliers is None:
+            return None
+        inliers = m.inliers
+        base = points_of(inliers, full.raw_px, m.east_north_m, inliers.neighbours or {})
+        if not inliers.view_structure:
+            return base
+        view_structure, neighbours = dict(inliers.view_structure), dict(inliers.neighbours or {})
+        for view, s in self._lasting_views(m.east_north_m, full.query.timestamp_s).items():
+            if view not in view_structure:
+                view_structure[view], neighbours[view] = self._lookup(s), tuple(s.neighbours)
+        guided = guided_matches(view_structure, self.geometry.descriptors_u8, full.query.keypoints_f32[:, :2],
+                                full.query.descriptors_u8, inliers.T_world_camera, self.camera.K, full.gray.shape)
+        wide = points_of(guided, full.raw_px, m.east_north_m, neighbours)
+        if len(wide) <= len(base):
+            return base
+        posed, kept = pose_tracked(wide, full.query.keypoints_f32[guided.query_rows, :2], self.db_east_north_m,
+                                   self.geometry, self.camera, self.pose)
+        if kept is None or len(kept.query_rows) <= len(base):
+            return base
+        return _at_pose(wide.subset(kept.query_rows), kept.T_world_camera, posed.east_north_m)
+
+    def _lookup(self, s: ViewStructure) -> dict:
+        key = (s.view, s.variant)
+        if key not in self._lookups:
+            self._lookups[key] = s.lookup()
+        return self._lookups[key]
+
+    def _lasting_views(self, east_north_m: np.ndarray, timestamp_s: float) -> dict[int, ViewStructure]:
+        """The stored structure of up to ``EXTRA_VIEWS`` database views nearest the pose (within
+        ``EXTRA_VIEW_RADIUS_M``) that this frame may use and the frames of the next ``LOOKAHEAD_S`` too (with the
+        exclusion window on, the views behind the vehicle, with their neighbours on the side away from it):
+        points that keep serving as the vehicle moves on."""
+        if not self.stored:
+            return {}
+        allowed = None
+        if self.params.exclusion_s > 0:
+            later = timestamp_s + LOOKAHEAD_S * self._sign
+            allowed = ((np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s)
+                       & (np.abs(self.db_timestamps_s - later) >= self.params.exclusion_s))
+        distance = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)
+        out: dict[int, ViewStructure] = {}
+        for v in np.argsort(distance, kind="stable").tolist():
+            if distance[v] > EXTRA_VIEW_RADIUS_M or len(out) >= EXTRA_VIEWS:
+                break
+            if allowed is not None and not allowed[v]:
+                continue
+            s = choose_variant(self.stored.get(v, {}), allowed, timestamp_s > self.db_timestamps_s[v])
+            if s is not None:
+                out[v] = s
+        return out
+
+    def _allowed(self, points: TrackedPoints, timestamp_s: float) -> TrackedPoints:
+        """The points the exclusion window lets a frame at ``timestamp_s`` use."""
+        if self.params.exclusion_s <= 0 or not len(points):
+            return points
+        far = np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s
+        ok_view = {v: bool(far[v]) and all(far[j] for j in points.neighbours.get(v, ()))
+                   for v in np.unique(points.view_of).tolist()}
+        return points.subset(np.array([ok_view[v] for v in points.view_of.tolist()], bool))
+
+    @staticmethod
+    def _direction(seq: Sequence) -> float:
+        t = seq.timestamps_s
+        return 1.0 if len(t) < 2 or t[-1] >= t[0] else -1.0
+
+    def steps(self, seq: Sequence, indices: Iterable[int],
+              cancelled: Callable[[], bool] | None = None) -> Iterator[FollowedStep]:
+        """The frames ``indices`` of ``seq`` in order, from the localizer's current state (see the module
+        docstring); ``cancelled()`` is asked after each frame and raises ``MatchCancelled`` when true."""
+        p, K = self.params, self.camera.K
+        self._sign = self._direction(seq)
+        engine = make_sift(self.sift)
+        pool = ThreadPoolExecutor(1, thread_name_prefix="relocalize") if p.background_relocalization else None
+        background_engine = make_sift(self.sift) if pool else None
+        points: TrackedPoints | None = None
+        previous_gray = None
+        pending: tuple[Future, Measurement] | None = None
+        since_full = 0
+        started = time.perf_counter()
+        try:
+            for n, i in enumerate(indices):
+                if p.pace_hz > 0:
+                    time.sleep(max(0.0, started + n / p.pace_hz - time.perf_counter()))
+                frame = seq.frames[i]
+                gray = load_gray(frame.image_path)
+                t_s = frame.timestamp_s
+                t0 = time.perf_counter()
+                prediction = self.localizer.prediction()
+                predicted_m = None if prediction is None else prediction[0]
+                tracked, reason, joined, n_followed, flow_ms = None, None, None, 0, 0.0
+                if points is not None and previous_gray is not None:
+                    followed = follow(points, previous_gray, gray, K, predicted_m)
+                    if pending is not None and pending[0].done():
+                        full, tracked_then = pending[0].result(), pending[1]
+                        pending = None
+                        fresh = self._points(full)
+                        if fresh is not None:
+                            fresh = follow(fresh, full.gray, gray, K, predicted_m)
+                            replaced = _disagree(full.measurement, tracked_then)
+                            followed = fresh if replaced else merged(followed, fresh)
+                            joined = "replaced" if replaced else "joined"
+                    followed = self._allowed(followed, t_s)
+                    n_followed = len(followed)
+                    flow_ms = (time.perf_counter() - t0) * 1000.0
+                    if n_followed >= max(6, self.pose.min_pnp_inliers):
+                        t1 = time.perf_counter()
+                        m, inliers = pose_tracked(followed, self._undistort(followed.pixels_px)[:, :2],
+                                                  self.db_east_north_m, self.geometry, self.camera, self.pose)
+                        m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)
+                        if inliers is not None:
+                            tracked = m
+                            points = _at_pose(followed.subset(inliers.query_rows), inliers.T_world_camera,
+                                              m.east_north_m)
+                        else:
+                            reason = m.fallback_reason
+                    else:
+                        reason = f"{n_followed} points followed"
+                if tracked is not None:
+                    result = self.localizer.fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, tracked,
+                                                 0.0, tracked.compute_ms)
+                    latency = flow_ms + tracked.compute_ms + result.timings.filter_ms
+                    since_full += 1
+                    sigma_m = float(np.sqrt(max(np.linalg.eigvalsh(result.filter.P[:2, :2]).max(), 0.0)))
+                    # the points that will still serve a little later: a full localization takes a few frames
+                    lasting = self._allowed(points, t_s + LOOKAHEAD_S * self._sign)
+                    reason = needs_relocalization(
+                        len(lasting), grid_cells_occupied(points.pixels_px, gray.shape), tracked.lever_m, sigma_m,
+                        since_full, min_points=p.min_followed_points, min_cells=p.min_followed_cells,
+                        max_lever_m=p.max_followed_lever_m, max_sigma_m=p.max_followed_sigma_m,
+                        every_frames=p.relocalize_every)
+                    kind = TRACKED
+                    if reason is not None and pending is None:
+                        since_full = 0
+                        if pool is not None:
+                            pending = (pool.submit(self._full, gray, t_s, self.localizer.prediction(),
+                                                   background_engine, str(frame.image_path)), tracked)
+                        else:  # the frame waits, and is measured by the full path: its own image, nothing to follow
+                            full = self._full(gray, t_s, prediction, engine, str(frame.image_path))
+                            fresh = self._points(full)
+                            if fresh is not None:
+                                replaced = _disagree(full.measurement, tracked)
+                                points = fresh if replaced else merged(points, fresh)
+                                joined = "replaced" if replaced else "joined"
+                                self.localizer.undo_last()
+                                result = self.localizer.fuse(full.query, full.retrieval, full.measurement,
+                                                             full.retrieval_ms, full.measurement_ms)
+                            latency += full.cost_ms
+                            kind = RELOCALIZED
+                    step = FollowedStep(result, latency, kind, flow_ms, n_followed, reason, joined)
+                else:  # nothing to follow, or it no longer poses: localize in full now
+                    if pending is not None:
+                        pending[0].cancel()
+                        pending = None
+                    full = self._full(gray, t_s, prediction, engine, str(frame.image_path))
+                    m = full.measurement
+                    if not self.localizer.started:
+                        m = first_fix(m, full.retrieval, self.db_east_north_m)
+                    result = self.localizer.fuse(full.query, full.retrieval, m, full.retrieval_ms,
+                                                 full.measurement_ms)
+                    points = self._points(full)
+                    since_full = 0
+                    latency = flow_ms + full.cost_ms + result.timings.filter_ms
+                    step = FollowedStep(result, latency, RELOCALIZED, flow_ms, 0 if points is None else len(points),
+                                        reason or ("first frame" if n == 0 else "no points to follow"), joined)
+                previous_gray = gray
+                if cancelled is not None and cancelled():
+                    raise MatchCancelled()
+                yield step
+        finally:
+            if pool is not None:
+                pool.shutdown(wait=True, cancel_futures=True)
