@@ -68,3 +68,19 @@ def test_the_dashboard_feedback_timings_are_what_their_json_renders():
     assert {r["mode"] for r in result["pairs"]} == {"paper", "refined"}
     assert len({r["queries"] for r in result["pairs"]}) == 3
     assert all(0 < r["first_rematched_step_s"] < r["rematched_run_s"] for r in result["pairs"])
+
+
+def test_the_point_following_figures_are_what_their_json_renders():
+    """docs/performance.md's table of ``visloc track --follow-points`` against the full path is rendered from
+    docs/results/track_following.json (written by scripts/track_following.py), every drive with its three runs."""
+    import json
+
+    import track_following
+
+    result = json.loads(track_following.OUT.read_text())
+    assert track_following.render(result) in (REPO / "docs" / "performance.md").read_text()
+    assert len(result["drives"]) == 3
+    for runs in result["drives"].values():
+        assert set(runs) == {"full", "follow", "follow_paced"}
+        assert set(runs["full"]["kinds"]) == {"full"} and set(runs["follow"]["kinds"]) == {"tracked", "relocalized"}
+        assert runs["follow_paced"]["sustained_hz"] <= 10.5  # paced at the camera's rate

@@ -109,12 +109,14 @@ def follow_points(previous_gray: np.ndarray, gray: np.ndarray, previous_px: np.n
 
 
 def follow(points: TrackedPoints, previous_gray: np.ndarray, gray: np.ndarray, K: np.ndarray,
-           predicted_east_north_m: np.ndarray | None, *, max_backward_px: float = 1.0) -> TrackedPoints:
-    """``points`` found again in ``gray`` (those lost are dropped), each flow started where the
-    predicted pose projects its point (at its previous pixel without a prediction or behind the camera)."""
+           displacement_m: np.ndarray | None, *, max_backward_px: float = 1.0) -> TrackedPoints:
+    """``points`` found again in ``gray`` (those lost are dropped), each flow started where its point
+    projects once the camera has moved by ``displacement_m`` (east, north) from the points' pose (at its
+    previous pixel without a displacement, or behind the camera)."""
     guess = np.asarray(points.pixels_px, float).copy()
-    if predicted_east_north_m is not None and len(points):
-        T = predicted_camera(points.T_world_camera, points.east_north_m, predicted_east_north_m)
+    if displacement_m is not None and len(points):
+        T = predicted_camera(points.T_world_camera, points.east_north_m,
+                             points.east_north_m + np.asarray(displacement_m, float))
         uv, front = project_px(points.points_world, T, K)
         # the projection carries the motion; the offset of each point's last pixel from its own projection
         # under the last pose carries what the model misses (lens distortion, the point's own error)
@@ -194,51 +196,56 @@ def merged(current: TrackedPoints | None, fresh: TrackedPoints) -> TrackedPoints
                          current.T_world_camera, current.east_north_m)
 
 
-def guided_matches(view_structure: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,
+def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,
                    T_world_camera: np.ndarray, K: np.ndarray, image_shape: tuple[int, int], *,
                    radius_px: float = 4.0, ratio: float = 0.8) -> MapCorrespondences:
-    """Every structure point of the posed views found among the query's keypoints by its projection: each
-    point projected by the pose takes the query keypoint within ``radius_px`` whose descriptor is nearest its
-    view keypoint's, if nearer than ``ratio`` times the next one within the radius (one point per query
-    keypoint, the nearest). Far more of the map than the descriptor matches alone: what a tracker follows.
-    ``query_xy_px``: (N, 2) undistorted keypoints; returns the matches (``T_world_camera`` as given)."""
+    """Every structure point of some views found among the query's keypoints by its projection: each point
+    projected by the pose takes the query keypoint within ``radius_px`` whose descriptor is nearest its view
+    keypoint's, if nearer than ``ratio`` times the next one within the radius (one point per query keypoint,
+    the nearest). Far more of the map than descriptor matching alone finds: what a tracker follows.
+
+    view_points: view -> (rows (M,), points_world (M, 3), points_cov (M, 3, 3)) of its structure;
+    ``query_xy_px``: (N, 2) undistorted keypoints. Returns the matches (``T_world_camera`` as given)."""
     h, w = image_shape[:2]
     q_xy = np.asarray(query_xy_px, float)
     q_desc = np.asarray(query_descriptors_u8, np.float32)
-    found: list[tuple] = []
-    for view, structure in view_structure.items():
-        if not structure:
+    by_x = np.argsort(q_xy[:, 0], kind="stable")
+    xs = q_xy[by_x, 0]
+    parts = []
+    for view, (rows, points, covs) in view_points.items():
+        if not len(rows):
             continue
-        rows = np.fromiter(structure.keys(), np.int64, len(structure))
-        points = np.array([structure[r][0] for r in rows.tolist()], float).reshape(-1, 3)
         uv, front = project_px(points, T_world_camera, K)
         inside = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
         idx = np.flatnonzero(inside)
         if not idx.size:
             continue
-        d2 = ((uv[idx, None, :] - q_xy[None, :, :]) ** 2).sum(axis=2)
-        pi, qi = np.nonzero(d2 <= radius_px**2)
+        # the query keypoints within radius_px in x of each projection (sorted by x), then within the radius
+        lo = np.searchsorted(xs, uv[idx, 0] - radius_px, "left")
+        n = np.searchsorted(xs, uv[idx, 0] + radius_px, "right") - lo
+        pi = np.repeat(np.arange(idx.size), n)
+        qi = by_x[np.repeat(lo, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
+        near = ((uv[idx[pi]] - q_xy[qi]) ** 2).sum(axis=1) <= radius_px**2
+        pi, qi = pi[near], qi[near]
         if not pi.size:
             continue
         v_desc = np.asarray(db_descriptors_u8[view], np.float32)[rows[idx[pi]]]
         dist = np.linalg.norm(v_desc - q_desc[qi], axis=1)
         order = np.lexsort((dist, pi))  # by point, nearest first
         pi, qi, dist = pi[order], qi[order], dist[order]
-        first = np.r_[True, pi[1:] != pi[:-1]]
-        starts = np.flatnonzero(first)
+        starts = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
         second = np.full(len(starts), np.inf)
         has_second = np.r_[starts[1:], len(pi)] - starts > 1
         second[has_second] = dist[starts[has_second] + 1]
-        ok = dist[starts] < ratio * second
-        for k in np.flatnonzero(ok).tolist():
-            j = starts[k]
-            r = int(rows[idx[pi[j]]])
-            found.append((float(dist[j]), int(qi[j]), view, r, structure[r][0], structure[r][1]))
-    found.sort(key=lambda f: f[0])
-    seen: set[int] = set()
-    kept = [f for f in found if not (f[1] in seen or seen.add(f[1]))]
-    return MapCorrespondences(np.array([f[1] for f in kept], np.int64), np.array([f[2] for f in kept], np.int64),
-                              np.array([f[3] for f in kept], np.int64),
-                              np.array([f[4] for f in kept], float).reshape(-1, 3),
-                              np.array([f[5] for f in kept], float).reshape(-1, 3, 3),
-                              np.asarray(T_world_camera, float), None, view_structure)
+        ok = starts[dist[starts] < ratio * second]
+        k = idx[pi[ok]]
+        parts.append((dist[ok], qi[ok], np.full(ok.size, view, np.int64), rows[k], points[k], covs[k]))
+    if not parts:
+        return MapCorrespondences(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                  np.zeros((0, 3)), np.zeros((0, 3, 3)), np.asarray(T_world_camera, float))
+    dist, qi, view_of, rows, points, covs = (np.concatenate(x) for x in zip(*parts))
+    order = np.argsort(dist, kind="stable")
+    _, first = np.unique(qi[order], return_index=True)  # one point per query keypoint: the nearest
+    keep = order[np.sort(first)]
+    return MapCorrespondences(qi[keep], view_of[keep], rows[keep], points[keep], covs[keep],
+                              np.asarray(T_world_camera, float))

@@ -323,6 +323,8 @@ def run_figures(run: SavedRun) -> dict[str, float | int | None]:
         "estimate 1σ median (m)": _stat([s.estimate_sigma_m for s in steps], np.median),
         "estimate NEES mean (2 if honest)": _stat([s.estimate_nees for s in steps], np.mean),
         "geometry share": (sum(x == "geometry" for x in sources) / len(steps)) if steps else None,
+        "tracked share (following points)": (sum(s.fields.get("kind") == "tracked" for s in steps) / len(steps))
+        if any("kind" in s.fields and s.fields["kind"] != "full" for s in steps) else None,
         "fallbacks": sum(bool(s.fallback_reason) for s in steps),
         "gated": sum(s.gated for s in steps),
         "latency p50 (ms)": _stat([s.latency_ms for s in steps], np.median),

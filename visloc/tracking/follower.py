@@ -16,9 +16,9 @@
   only gets the geotag of its best candidate (no pose) takes the median geotag of its best candidates
   instead when the best one lies far from the others (``first_fix``).
 
-Each step carries its kind ("tracked" or "relocalized") and its latency: what the frame spent once its image
-was read (flow and pose, or SIFT, retrieval and measurement, and the filter step); a background
-relocalization's cost is on another core and on no frame.
+Each step carries its kind ("tracked" or "relocalized") and its latency: the wall time from its image read to
+its filter step done (flow and pose, or SIFT, retrieval and measurement; a frame that lost its points while a
+relocalization was under way waits for it). A background relocalization's own cost is on another core.
 """
 
 from __future__ import annotations
@@ -68,6 +68,12 @@ class FollowedStep:
     followed_points: int = 0
     relocalize_reason: str | None = None
     merged: str | None = None
+
+
+@dataclass(frozen=True)
+class _Relocalized:
+    full: "_Full"
+    points: TrackedPoints | None
 
 
 @dataclass(frozen=True)
@@ -135,7 +141,6 @@ class PointFollower:
         self.params = params
         self.distortion = distortion
         self.stored = stored or {}
-        self._lookups: dict = {}
         self._sign = 1.0
 
     def _undistort(self, px: np.ndarray) -> np.ndarray:
@@ -150,19 +155,33 @@ class PointFollower:
         retrieval, m, r_ms, m_ms = self.localizer.measure(query, prediction)
         return _Full(gray, query, features.keypoints_f32[:, :2], retrieval, m, r_ms, m_ms)
 
+    def _view_points(self, view: int, neighbours: tuple, structure: dict) -> tuple:
+        """(rows, points_world, points_cov) of a view's structure: the stored arrays when the store has this
+        variant, else made from the measurement's own (row -> (point, covariance))."""
+        for s in self.stored.get(view, {}).values():
+            if tuple(s.neighbours) == tuple(neighbours):
+                return s.rows, s.points_world, s.cov_world
+        rows = np.fromiter(structure, np.int64, len(structure))
+        return (rows, np.array([structure[r][0] for r in rows.tolist()], float).reshape(-1, 3),
+                np.array([structure[r][1] for r in rows.tolist()], float).reshape(-1, 3, 3))
+
     def _points(self, full: _Full) -> TrackedPoints | None:
+        """The map points a fully localized frame hands the tracker: its pose's inliers, widened by the structure
+        of its views and of views that keep serving (``guided_matches``), posed again to keep the consistent ones."""
         m = full.measurement
         if m.source != GEOMETRY or m.inliers is None:
             return None
         inliers = m.inliers
-        base = points_of(inliers, full.raw_px, m.east_north_m, inliers.neighbours or {})
+        neighbours = dict(inliers.neighbours or {})
+        base = points_of(inliers, full.raw_px, m.east_north_m, neighbours)
         if not inliers.view_structure:
             return base
-        view_structure, neighbours = dict(inliers.view_structure), dict(inliers.neighbours or {})
+        view_points = {v: self._view_points(v, neighbours.get(v, ()), structure)
+                       for v, structure in inliers.view_structure.items()}
         for view, s in self._lasting_views(m.east_north_m, full.query.timestamp_s).items():
-            if view not in view_structure:
-                view_structure[view], neighbours[view] = self._lookup(s), tuple(s.neighbours)
-        guided = guided_matches(view_structure, self.geometry.descriptors_u8, full.query.keypoints_f32[:, :2],
+            if view not in view_points:
+                view_points[view], neighbours[view] = (s.rows, s.points_world, s.cov_world), tuple(s.neighbours)
+        guided = guided_matches(view_points, self.geometry.descriptors_u8, full.query.keypoints_f32[:, :2],
                                 full.query.descriptors_u8, inliers.T_world_camera, self.camera.K, full.gray.shape)
         wide = points_of(guided, full.raw_px, m.east_north_m, neighbours)
         if len(wide) <= len(base):
@@ -173,11 +192,9 @@ class PointFollower:
             return base
         return _at_pose(wide.subset(kept.query_rows), kept.T_world_camera, posed.east_north_m)
 
-    def _lookup(self, s: ViewStructure) -> dict:
-        key = (s.view, s.variant)
-        if key not in self._lookups:
-            self._lookups[key] = s.lookup()
-        return self._lookups[key]
+    def _relocalize(self, gray: np.ndarray, timestamp_s: float, prediction, engine, name: str) -> _Relocalized:
+        full = self._full(gray, timestamp_s, prediction, engine, name)
+        return _Relocalized(full, self._points(full))
 
     def _lasting_views(self, east_north_m: np.ndarray, timestamp_s: float) -> dict[int, ViewStructure]:
         """The stored structure of up to ``EXTRA_VIEWS`` database views nearest the pose (within
@@ -217,6 +234,16 @@ class PointFollower:
         t = seq.timestamps_s
         return 1.0 if len(t) < 2 or t[-1] >= t[0] else -1.0
 
+    def _pose(self, points: TrackedPoints) -> tuple[Measurement, TrackedPoints | None]:
+        """A frame posed on followed points, and the points it keeps (its inliers at its pose; None: no pose)."""
+        t1 = time.perf_counter()
+        m, inliers = pose_tracked(points, self._undistort(points.pixels_px)[:, :2], self.db_east_north_m,
+                                  self.geometry, self.camera, self.pose)
+        m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)
+        if inliers is None:
+            return m, None
+        return m, _at_pose(points.subset(inliers.query_rows), inliers.T_world_camera, m.east_north_m)
+
     def steps(self, seq: Sequence, indices: Iterable[int],
               cancelled: Callable[[], bool] | None = None) -> Iterator[FollowedStep]:
         """The frames ``indices`` of ``seq`` in order, from the localizer's current state (see the module
@@ -227,10 +254,27 @@ class PointFollower:
         pool = ThreadPoolExecutor(1, thread_name_prefix="relocalize") if p.background_relocalization else None
         background_engine = make_sift(self.sift) if pool else None
         points: TrackedPoints | None = None
+        points_t_s = 0.0  # the time of the frame the points were last seen in
         previous_gray = None
-        pending: tuple[Future, Measurement] | None = None
+        pending: tuple[Future, Measurement] | None = None  # a background relocalization, the tracked measurement then
         since_full = 0
+        min_points = max(6, self.pose.min_pnp_inliers)
         started = time.perf_counter()
+
+        def moved_m(since_s: float) -> np.ndarray | None:
+            v = self.localizer.velocity_m_s
+            return None if v is None else v * (t_s - since_s)
+
+        def take(done: _Relocalized, tracked_then: Measurement | None, current: TrackedPoints | None):
+            """The points a relocalization brings, followed into this frame and joined to ``current``."""
+            if done.points is None:
+                return current, None
+            fresh = follow(done.points, done.full.gray, gray, K, moved_m(done.full.query.timestamp_s))
+            if current is None or not len(current):
+                return fresh, "joined"
+            replaced = tracked_then is not None and _disagree(done.full.measurement, tracked_then)
+            return (fresh, "replaced") if replaced else (merged(current, fresh), "joined")
+
         try:
             for n, i in enumerate(indices):
                 if p.pace_hz > 0:
@@ -239,40 +283,28 @@ class PointFollower:
                 gray = load_gray(frame.image_path)
                 t_s = frame.timestamp_s
                 t0 = time.perf_counter()
-                prediction = self.localizer.prediction()
-                predicted_m = None if prediction is None else prediction[0]
-                tracked, reason, joined, n_followed, flow_ms = None, None, None, 0, 0.0
+                tracked, kept, reason, joined, n_followed, flow_ms = None, None, None, None, 0, 0.0
                 if points is not None and previous_gray is not None:
-                    followed = follow(points, previous_gray, gray, K, predicted_m)
+                    followed = follow(points, previous_gray, gray, K, moved_m(points_t_s))
                     if pending is not None and pending[0].done():
-                        full, tracked_then = pending[0].result(), pending[1]
+                        followed, joined = take(pending[0].result(), pending[1], followed)
                         pending = None
-                        fresh = self._points(full)
-                        if fresh is not None:
-                            fresh = follow(fresh, full.gray, gray, K, predicted_m)
-                            replaced = _disagree(full.measurement, tracked_then)
-                            followed = fresh if replaced else merged(followed, fresh)
-                            joined = "replaced" if replaced else "joined"
                     followed = self._allowed(followed, t_s)
+                    if len(followed) < min_points and pending is not None:  # lost: the relocalization under way
+                        followed, joined = take(pending[0].result(), None, followed)  # is nearer than a new one
+                        pending = None
+                        followed = self._allowed(followed, t_s)
                     n_followed = len(followed)
                     flow_ms = (time.perf_counter() - t0) * 1000.0
-                    if n_followed >= max(6, self.pose.min_pnp_inliers):
-                        t1 = time.perf_counter()
-                        m, inliers = pose_tracked(followed, self._undistort(followed.pixels_px)[:, :2],
-                                                  self.db_east_north_m, self.geometry, self.camera, self.pose)
-                        m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)
-                        if inliers is not None:
-                            tracked = m
-                            points = _at_pose(followed.subset(inliers.query_rows), inliers.T_world_camera,
-                                              m.east_north_m)
-                        else:
-                            reason = m.fallback_reason
+                    if n_followed >= min_points:
+                        tracked, kept = self._pose(followed)
+                        reason = None if kept is not None else tracked.fallback_reason
                     else:
                         reason = f"{n_followed} points followed"
-                if tracked is not None:
+                if kept is not None:
                     result = self.localizer.fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, tracked,
                                                  0.0, tracked.compute_ms)
-                    latency = flow_ms + tracked.compute_ms + result.timings.filter_ms
+                    points, points_t_s, kind = kept, t_s, TRACKED
                     since_full += 1
                     sigma_m = float(np.sqrt(max(np.linalg.eigvalsh(result.filter.P[:2, :2]).max(), 0.0)))
                     # the points that will still serve a little later: a full localization takes a few frames
@@ -282,40 +314,39 @@ class PointFollower:
                         since_full, min_points=p.min_followed_points, min_cells=p.min_followed_cells,
                         max_lever_m=p.max_followed_lever_m, max_sigma_m=p.max_followed_sigma_m,
                         every_frames=p.relocalize_every)
-                    kind = TRACKED
                     if reason is not None and pending is None:
                         since_full = 0
                         if pool is not None:
-                            pending = (pool.submit(self._full, gray, t_s, self.localizer.prediction(),
+                            pending = (pool.submit(self._relocalize, gray, t_s, self.localizer.prediction(),
                                                    background_engine, str(frame.image_path)), tracked)
                         else:  # the frame waits, and is measured by the full path: its own image, nothing to follow
-                            full = self._full(gray, t_s, prediction, engine, str(frame.image_path))
-                            fresh = self._points(full)
-                            if fresh is not None:
-                                replaced = _disagree(full.measurement, tracked)
-                                points = fresh if replaced else merged(points, fresh)
+                            done = self._relocalize(gray, t_s, self.localizer.prediction(), engine,
+                                                    str(frame.image_path))
+                            if done.points is not None:
+                                replaced = _disagree(done.full.measurement, tracked)
+                                points = done.points if replaced else merged(points, done.points)
                                 joined = "replaced" if replaced else "joined"
                                 self.localizer.undo_last()
-                                result = self.localizer.fuse(full.query, full.retrieval, full.measurement,
-                                                             full.retrieval_ms, full.measurement_ms)
-                            latency += full.cost_ms
+                                result = self.localizer.fuse(done.full.query, done.full.retrieval,
+                                                             done.full.measurement, done.full.retrieval_ms,
+                                                             done.full.measurement_ms)
                             kind = RELOCALIZED
-                    step = FollowedStep(result, latency, kind, flow_ms, n_followed, reason, joined)
                 else:  # nothing to follow, or it no longer poses: localize in full now
                     if pending is not None:
                         pending[0].cancel()
                         pending = None
-                    full = self._full(gray, t_s, prediction, engine, str(frame.image_path))
-                    m = full.measurement
+                    done = self._relocalize(gray, t_s, self.localizer.prediction(), engine, str(frame.image_path))
+                    m = done.full.measurement
                     if not self.localizer.started:
-                        m = first_fix(m, full.retrieval, self.db_east_north_m)
-                    result = self.localizer.fuse(full.query, full.retrieval, m, full.retrieval_ms,
-                                                 full.measurement_ms)
-                    points = self._points(full)
+                        m = first_fix(m, done.full.retrieval, self.db_east_north_m)
+                    result = self.localizer.fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,
+                                                 done.full.measurement_ms)
+                    points, points_t_s, kind = done.points, t_s, RELOCALIZED
                     since_full = 0
-                    latency = flow_ms + full.cost_ms + result.timings.filter_ms
-                    step = FollowedStep(result, latency, RELOCALIZED, flow_ms, 0 if points is None else len(points),
-                                        reason or ("first frame" if n == 0 else "no points to follow"), joined)
+                    n_followed = 0 if points is None else len(points)
+                    reason = reason or ("first frame" if n == 0 else "no points to follow")
+                latency = (time.perf_counter() - t0) * 1000.0
+                step = FollowedStep(result, latency, kind, flow_ms, n_followed, reason, joined)
                 previous_gray = gray
                 if cancelled is not None and cancelled():
                     raise MatchCancelled()

@@ -89,6 +89,12 @@ class Localizer:
         return self._kalman.prediction()
 
     @property
+    def velocity_m_s(self) -> np.ndarray | None:
+        """The filter's velocity estimate (east, north), m/s; None before the first measurement."""
+        x = self._kalman.x
+        return None if x is None else np.asarray(x[2:4], float).copy()
+
+    @property
     def started(self) -> bool:
         """The filter holds a track (it has been given a measurement)."""
         return self._kalman.x is not None

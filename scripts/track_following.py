@@ -1,0 +1,119 @@
+"""Following map points between full localizations (``visloc track --follow-points``), measured against the full path.
+
+    python scripts/track_following.py [--root ../shared/data/kitti] [--db out/results/visloc.sqlite]
+    python scripts/track_following.py --page   # its section of docs/performance.md from the JSON
+
+For every drive of the data root, queries and database from its image_00 with the 1 s exclusion window (the
+evaluation protocol), three ``visloc track`` commands on every frame, one after the other on this machine:
+
+* ``full``: every frame localized in full (SIFT, retrieval, structure, PnP): the default;
+* ``follow``: ``--follow-points``, frames read as fast as possible: latency per frame (all, tracked,
+  relocalized), the share of each kind and the sustained frames per second;
+* ``follow_paced``: ``--follow-points --pace-hz 10``, frames delivered at the camera's 10 Hz: latency and the
+  processor time the process used per second of wall time (every thread; what is left of the machine is
+  the vehicle's).
+
+Accuracy: the mean estimate error against the frames' geotags of each run, over the same frames, against the
+full path's, with the issue's bound: within 10 % or 0.02 m of it, whichever is larger. Writes
+docs/results/track_following.json; ``--page`` renders its section of docs/performance.md from it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "scripts"))
+
+from page_sections import replace_section  # noqa: E402
+
+OUT = REPO / "docs" / "results" / "track_following.json"
+PAGE = REPO / "docs" / "performance.md"
+BEGIN = "<!-- track-following: begin (python scripts/track_following.py --page) -->"
+END = "<!-- track-following: end -->"
+RUNS = {"full": [], "follow": ["--follow-points"], "follow_paced": ["--follow-points", "--pace-hz", "10"]}
+VISLOC = [sys.executable, "-m", "visloc"]
+
+
+def _track(root: Path, drive: str, db: Path, flags: list[str], out: Path) -> dict:
+    cmd = [*VISLOC, "track", str(root), "--drive", drive, "--camera", "image_00", "--db-camera", "image_00",
+           "--db", str(db), "--exclusion-s", "1", *flags, "--json", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return json.loads(out.read_text())
+
+
+def _digest(run: dict) -> dict:
+    return {"latency_ms": run["latency_ms"], "kinds": run["kinds"], "sustained_hz": run["sustained_hz"],
+            "cpu_share_of_one_core": run["cpu_share_of_one_core"], "error_mean_m": run["error_m"]["mean"],
+            "error_max_m": run["error_m"]["max"], "frames": run["frames"]}
+
+
+def measure(root: Path, db: Path) -> dict:
+    drives = sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync") if (p / "image_00").is_dir())
+    out = {"root": str(root), "store": str(db), "load_1min_before": os.getloadavg()[0], "drives": {}}
+    with tempfile.TemporaryDirectory() as tmp:
+        for drive in drives:
+            runs = {name: _digest(_track(root, drive, db, flags, Path(tmp) / f"{drive}_{name}.json"))
+                    for name, flags in RUNS.items()}
+            print(f"{drive}: " + "; ".join(f"{n} p95 {r['latency_ms']['p95']:.0f} ms, error {r['error_mean_m']:.3f} m"
+                                          for n, r in runs.items()), flush=True)
+            out["drives"][drive] = runs
+    out["load_1min_after"] = os.getloadavg()[0]
+    return out
+
+
+def _ms(x: dict | None, key: str) -> str:
+    return "–" if not x else f"{x[key]:.0f}"
+
+
+def render(result: dict) -> str:
+    lines = [BEGIN, "`visloc track --follow-points` against localizing every frame in full, measured by "
+             "`python scripts/track_following.py` (every frame of each drive, queries and database from image_00, "
+             "1 s exclusion window; targets: p95 ≤ 50 ms, ≥ 20 frames/s as fast as possible, ≤ 50 % of one core "
+             "at 10 Hz, mean error within 10 % or 0.02 m of the full path's):", "",
+             "| drive | run | latency p50 / p95 / max (ms) | tracked frames: share, p95 (ms) | relocalized: p95 (ms) "
+             "| frames/s | processor (share of one core) | estimate error mean / max (m) | within bound |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for drive, runs in result["drives"].items():
+        full_m = runs["full"]["error_mean_m"]
+        bound = full_m + max(0.1 * full_m, 0.02)
+        for name, r in runs.items():
+            lat, kinds = r["latency_ms"], r["kinds"]
+            tracked, reloc = kinds.get("tracked"), kinds.get("relocalized")
+            share = f"{tracked['share']:.0%}, {_ms(tracked['latency_ms'], 'p95')}" if tracked else "–"
+            within = "(reference)" if name == "full" else ("yes" if r["error_mean_m"] <= bound else
+                                                          f"no (bound {bound:.3f})")
+            lines.append(f"| {drive} | {name.replace('_', ' ')} | {lat['p50']:.0f} / {lat['p95']:.0f} / "
+                         f"{lat['max']:.0f} | {share} | {_ms(reloc['latency_ms'], 'p95') if reloc else '–'} | "
+                         f"{r['sustained_hz']:.1f} | {r['cpu_share_of_one_core']:.2f} | "
+                         f"{r['error_mean_m']:.3f} / {r['error_max_m']:.2f} | {within} |")
+    lines += ["", f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} "
+              "after; 2 cores.", END]
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
+    ap.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
+    ap.add_argument("--page", action="store_true", help="only render docs/performance.md's section from the JSON")
+    a = ap.parse_args()
+    if not a.page:
+        a.db.parent.mkdir(parents=True, exist_ok=True)
+        OUT.write_text(json.dumps(measure(a.root, a.db), indent=1) + "\n")
+        print(f"wrote {OUT.relative_to(REPO)}")
+    PAGE.write_text(replace_section(PAGE, BEGIN, END, render(json.loads(OUT.read_text()))))
+    print(f"rendered {PAGE.relative_to(REPO)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
