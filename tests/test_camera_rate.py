@@ -326,7 +326,8 @@ def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_
     for f in run["per_frame"]:
         if f["kind"] == "tracked":
             assert f["sift_ms"] == 0 and f["followed_points"] >= 15
-            assert f["latency_ms"] == pytest.approx(f["flow_ms"] + f["geometry_ms"] + f["filter_ms"])
+            # the wall time from the image read to the filter step: the flow, the pose and the filter in it
+            assert f["latency_ms"] >= f["flow_ms"] + f["geometry_ms"] + f["filter_ms"] - 1e-6
         if f["measurement_source"] == "geometry":  # no view inside the exclusion window, tracked or not
             assert all(abs(v - f["frame"]) >= 10 for v in f["view_frames"])
     assert [f["estimate_m"] for f in run["per_frame"]] == [f["estimate_m"] for f in runs[1]["per_frame"]]

@@ -281,3 +281,47 @@ def test_the_smoother_runs_on_each_segment_between_restarts_on_its_own():
         np.testing.assert_allclose(ours.P, alone.P, atol=1e-12)
     # the last step of the first segment is its own filtered step, not pulled towards the new track
     np.testing.assert_allclose(smoothed[restart - 1].x, steps[restart - 1].x)
+
+
+def test_a_late_measurement_fused_in_its_place_equals_having_had_it_in_time():
+    """The point follower's replay: restore the filter from before a step, fuse the late measurement there and
+    the later ones again; the filter ends as one that had the late measurement in time."""
+    from visloc.features.sift import Query
+    from visloc.pose.measurement import Measurement
+    from visloc.retrieval.retrievers import Retrieval
+    from visloc.tracking.localizer import Localizer
+
+    params = FilterParams(dt_s=0.1)
+    q, r = Query(np.zeros((0, 128), np.uint8), 0.0), Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
+    meas = [Measurement(np.array([k * 1.0, 0.5 * k]), np.eye(2) * 0.04, "geometry") for k in range(6)]
+    late = Measurement(np.array([2.3, 0.9]), np.eye(2) * 0.01, "geometry")
+
+    def localizer() -> Localizer:
+        from types import SimpleNamespace
+        return Localizer(SimpleNamespace(reset=lambda: None), None, params)  # type: ignore[arg-type]  # filter only
+
+    in_time = localizer()
+    for k, m in enumerate(meas):
+        in_time.fuse(q, r, late if k == 2 else m)
+    replayed = localizer()
+    before = []
+    for m in meas:
+        before.append(replayed.snapshot())
+        replayed.fuse(q, r, m)
+    replayed.restore(before[2])
+    for k in range(2, 6):
+        replayed.fuse(q, r, late if k == 2 else meas[k])
+    np.testing.assert_allclose(replayed._kalman.x, in_time._kalman.x)
+    np.testing.assert_allclose(replayed._kalman.P, in_time._kalman.P)
+
+
+def test_frames_posed_on_the_same_points_count_the_map_error_once():
+    from visloc.pose.measurement import Measurement
+    from visloc.tracking.follower import shared_map_error
+
+    terms = {"pnp": np.eye(2) * 0.01, "views": np.eye(2) * 0.02, "lever": np.eye(2) * 0.03}
+    m = Measurement(np.zeros(2), np.eye(2) * 0.06, "geometry", cov_terms_m2=terms)
+    assert shared_map_error(m, 1) is m
+    third = shared_map_error(m, 3)
+    np.testing.assert_allclose(third.cov_m2, np.eye(2) * (0.01 + 3 * 0.05))  # PnP's pixel noise stays once
+    np.testing.assert_allclose(third.cov_terms_m2["lever"], np.eye(2) * 0.09)

@@ -51,6 +51,7 @@ FIRST_FIX_AGREEMENT_M = 10.0
 LOOKAHEAD_S = 0.5  # the followed points must still serve this much later, or a full localization is asked for
 EXTRA_VIEWS = 4  # a full localization also looks for the points of this many more views that keep serving
 EXTRA_VIEW_RADIUS_M = 40.0
+HISTORY_FRAMES = 50  # a relocalization that arrives later than this many frames is not fused in its frame's place
 NO_RETRIEVAL = Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
 
 
@@ -111,6 +112,20 @@ def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: n
     reason = (f"{measurement.fallback_reason}; first fix: the best candidate's geotag lies far from the other "
               f"candidates', their median geotag is used")
     return replace(measurement, east_north_m=centre, fallback_reason=reason)
+
+
+def shared_map_error(m: Measurement, frames: int) -> Measurement:
+    """A tracked measurement whose map part of the covariance (the views' spread and the lever: errors of the map
+    points, which every frame posed on the same points repeats) counts ``frames`` times: the filter, which takes
+    measurements as independent, then learns from ``frames`` frames on the same points what it would learn from
+    one about the map's error, and keeps the pixel noise (PnP's term), which is new in each frame."""
+    terms = m.cov_terms_m2
+    if m.cov_m2 is None or frames <= 1 or not {"pnp", "views", "lever"} <= set(terms):
+        return m
+    shared = np.asarray(terms["views"], float) + np.asarray(terms["lever"], float)
+    cov = np.asarray(terms["pnp"], float) + frames * shared
+    return replace(m, cov_m2=cov, cov_terms_m2={**terms, "views": frames * np.asarray(terms["views"], float),
+                                                 "lever": frames * np.asarray(terms["lever"], float)})
 
 
 def _disagree(a: Measurement, b: Measurement) -> bool:
@@ -210,14 +225,17 @@ class PointFollower:
                        & (np.abs(self.db_timestamps_s - later) >= self.params.exclusion_s))
         distance = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)
         out: dict[int, ViewStructure] = {}
+        per_side = {True: 0, False: 0}  # as many views before the frame as after it, nearest first
         for v in np.argsort(distance, kind="stable").tolist():
             if distance[v] > EXTRA_VIEW_RADIUS_M or len(out) >= EXTRA_VIEWS:
                 break
-            if allowed is not None and not allowed[v]:
+            before = bool(self.db_timestamps_s[v] < timestamp_s)
+            if (allowed is not None and not allowed[v]) or per_side[before] >= EXTRA_VIEWS // 2:
                 continue
-            s = choose_variant(self.stored.get(v, {}), allowed, timestamp_s > self.db_timestamps_s[v])
+            s = choose_variant(self.stored.get(v, {}), allowed, not before)
             if s is not None:
                 out[v] = s
+                per_side[before] += 1
         return out
 
     def _allowed(self, points: TrackedPoints, timestamp_s: float) -> TrackedPoints:
@@ -256,8 +274,10 @@ class PointFollower:
         points: TrackedPoints | None = None
         points_t_s = 0.0  # the time of the frame the points were last seen in
         previous_gray = None
-        pending: tuple[Future, Measurement] | None = None  # a background relocalization, the tracked measurement then
+        # a background relocalization: its future, the tracked measurement of its frame, the frame's number
+        pending: tuple[Future, Measurement, int] | None = None
         since_full = 0
+        on_points = 0  # frames posed on the points since fresh ones last came
         min_points = max(6, self.pose.min_pnp_inliers)
         started = time.perf_counter()
 
@@ -265,8 +285,31 @@ class PointFollower:
             v = self.localizer.velocity_m_s
             return None if v is None else v * (t_s - since_s)
 
-        def take(done: _Relocalized, tracked_then: Measurement | None, current: TrackedPoints | None):
-            """The points a relocalization brings, followed into this frame and joined to ``current``."""
+        history: list[list] = []  # [frame number, filter before its measurement, the measurement], the last ones
+
+        def fuse(query: Query, retrieval: Retrieval, m: Measurement, retrieval_ms: float = 0.0,
+                 measurement_ms: float = 0.0) -> StepResult:
+            history.append([n, self.localizer.snapshot(), m])
+            del history[:-HISTORY_FRAMES]
+            return self.localizer.fuse(query, retrieval, m, retrieval_ms, measurement_ms)
+
+        def refuse_from(n_then: int, m: Measurement) -> None:
+            """Frame ``n_then``'s measurement replaced by ``m`` (a relocalization of it that arrived late) and every
+            later one fused again: the filter goes on as if it had had ``m`` in time."""
+            at = [k for k, h in enumerate(history) if h[0] == n_then]
+            if not at or m.source != GEOMETRY:
+                return
+            self.localizer.restore(history[at[0]][1])
+            history[at[0]][2] = m
+            for h in history[at[0]:]:
+                h[1] = self.localizer.snapshot()
+                self.localizer.fuse(Query(np.zeros((0, 128), np.uint8), 0.0), NO_RETRIEVAL, h[2])
+
+        def take(done: _Relocalized, tracked_then: Measurement | None, current: TrackedPoints | None,
+                 n_then: int):
+            """The points a relocalization brings, followed into this frame and joined to ``current``; its
+            measurement takes the place of the tracked one of its frame in the filter."""
+            refuse_from(n_then, done.full.measurement)
             if done.points is None:
                 return current, None
             fresh = follow(done.points, done.full.gray, gray, K, moved_m(done.full.query.timestamp_s))
@@ -287,11 +330,11 @@ class PointFollower:
                 if points is not None and previous_gray is not None:
                     followed = follow(points, previous_gray, gray, K, moved_m(points_t_s))
                     if pending is not None and pending[0].done():
-                        followed, joined = take(pending[0].result(), pending[1], followed)
+                        followed, joined = take(pending[0].result(), pending[1], followed, pending[2])
                         pending = None
                     followed = self._allowed(followed, t_s)
                     if len(followed) < min_points and pending is not None:  # lost: the relocalization under way
-                        followed, joined = take(pending[0].result(), None, followed)  # is nearer than a new one
+                        followed, joined = take(pending[0].result(), None, followed, pending[2])  # nearer than anew
                         pending = None
                         followed = self._allowed(followed, t_s)
                     n_followed = len(followed)
@@ -302,8 +345,10 @@ class PointFollower:
                     else:
                         reason = f"{n_followed} points followed"
                 if kept is not None:
-                    result = self.localizer.fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, tracked,
-                                                 0.0, tracked.compute_ms)
+                    on_points = 1 if joined else on_points + 1
+                    tracked = shared_map_error(tracked, on_points)
+                    result = fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, tracked, 0.0,
+                                  tracked.compute_ms)
                     points, points_t_s, kind = kept, t_s, TRACKED
                     since_full += 1
                     sigma_m = float(np.sqrt(max(np.linalg.eigvalsh(result.filter.P[:2, :2]).max(), 0.0)))
@@ -318,7 +363,7 @@ class PointFollower:
                         since_full = 0
                         if pool is not None:
                             pending = (pool.submit(self._relocalize, gray, t_s, self.localizer.prediction(),
-                                                   background_engine, str(frame.image_path)), tracked)
+                                                   background_engine, str(frame.image_path)), tracked, n)
                         else:  # the frame waits, and is measured by the full path: its own image, nothing to follow
                             done = self._relocalize(gray, t_s, self.localizer.prediction(), engine,
                                                     str(frame.image_path))
@@ -326,10 +371,9 @@ class PointFollower:
                                 replaced = _disagree(done.full.measurement, tracked)
                                 points = done.points if replaced else merged(points, done.points)
                                 joined = "replaced" if replaced else "joined"
-                                self.localizer.undo_last()
-                                result = self.localizer.fuse(done.full.query, done.full.retrieval,
-                                                             done.full.measurement, done.full.retrieval_ms,
-                                                             done.full.measurement_ms)
+                                self.localizer.restore(history.pop()[1])
+                                result = fuse(done.full.query, done.full.retrieval, done.full.measurement,
+                                              done.full.retrieval_ms, done.full.measurement_ms)
                             kind = RELOCALIZED
                 else:  # nothing to follow, or it no longer poses: localize in full now
                     if pending is not None:
@@ -339,9 +383,10 @@ class PointFollower:
                     m = done.full.measurement
                     if not self.localizer.started:
                         m = first_fix(m, done.full.retrieval, self.db_east_north_m)
-                    result = self.localizer.fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,
-                                                 done.full.measurement_ms)
+                    result = fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,
+                                  done.full.measurement_ms)
                     points, points_t_s, kind = done.points, t_s, RELOCALIZED
+                    on_points = 0
                     since_full = 0
                     n_followed = 0 if points is None else len(points)
                     reason = reason or ("first frame" if n == 0 else "no points to follow")

@@ -113,15 +113,18 @@ class Localizer:
              measurement_ms: float = 0.0) -> StepResult:
         """The filter's step with ``measurement`` (one query's, made by ``measure`` or otherwise)."""
         t0 = time.perf_counter()
-        self._before_fuse = copy.deepcopy(self._kalman)
         filtered = self._kalman.step(measurement.east_north_m, measurement.cov_m2)
         filter_ms = (time.perf_counter() - t0) * 1000.0
         return StepResult(query, retrieval, measurement, filtered, StepTimings(retrieval_ms, measurement_ms, filter_ms))
 
-    def undo_last(self) -> None:
-        """Take the last ``fuse`` back: the filter as it was before it (a frame measured again)."""
-        if getattr(self, "_before_fuse", None) is not None:
-            self._kalman, self._before_fuse = self._before_fuse, None
+    def snapshot(self) -> object:
+        """The filter's state as it is now, for ``restore`` (a measurement that arrives late is fused in its
+        place and the later ones again)."""
+        return copy.deepcopy(self._kalman)
+
+    def restore(self, snapshot: object) -> None:
+        """The filter as ``snapshot`` holds it."""
+        self._kalman = copy.deepcopy(snapshot)
 
     def step(self, query: Query) -> StepResult:
         return self.fuse(query, *self.measure(query, self._kalman.prediction()))
