@@ -317,6 +317,7 @@ def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_
                          "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "25", "--follow-points",
                          "--no-background-relocalization", "--json", out)
         assert result.returncode == 0, result.stderr
+        assert "following points: frames tracked" in result.stdout and "of one core" in result.stdout
         runs.append(json.loads(out.read_text()))
     run = runs[0]
     kinds = [f["kind"] for f in run["per_frame"]]

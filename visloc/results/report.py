@@ -216,12 +216,21 @@ def track_text(s: dict) -> str:
         f"latency per frame (ms): p50 {lat['p50']:.0f}, p95 {lat['p95']:.0f}, max {lat['max']:.0f}   (median SIFT "
         f"{st['sift_ms']:.0f}, retrieval {st['retrieval_ms']:.0f}, geometry {st['geometry_ms']:.0f}, filter "
         f"{st['filter_ms']:.1f})",
-        f"sustained {s['sustained_hz']:.1f} frames/s over {s['wall_s']:.1f} s of wall time",
+        f"sustained {s['sustained_hz']:.1f} frames/s over {s['wall_s']:.1f} s of wall time"
+        + (f", processor {s['cpu_share_of_one_core']:.2f} of one core" if s.get("cpu_share_of_one_core") else ""),
+        *([following_line(s["kinds"])] if "tracked" in (s.get("kinds") or {}) else []),
         f"estimate error (m): mean {e['mean']:.3f}, median {e['median']:.3f}, p90 {e['p90']:.3f}, max {e['max']:.3f}",
         f"measurement error (m): mean {m['mean']:.3f}, median {m['median']:.3f}, p90 {m['p90']:.3f}, "
         f"max {m['max']:.3f}; {geometry}" + (f" (their mean {g['mean']:.3f})" if g["n"] else ""),
         *([calibration_line(s["calibration"]["all"], s["estimate_calibration"])] if s.get("calibration") else []),
     ])
+
+
+def following_line(kinds: dict) -> str:
+    """How a run that follows map points spent its frames: tracked and relocalized, their share and latency."""
+    parts = [f"{kind} {100 * k['share']:.0f}% (p50 {k['latency_ms']['p50']:.0f} ms, p95 {k['latency_ms']['p95']:.0f} ms)"
+             for kind, k in sorted(kinds.items(), reverse=True)]
+    return "following points: frames " + ", ".join(parts)
 
 
 def calibration_line(measurements: dict, estimates: dict) -> str:
