@@ -53,7 +53,8 @@ def _track(root: Path, drive: str, db: Path, flags: list[str], out: Path) -> dic
 def _digest(run: dict) -> dict:
     return {"latency_ms": run["latency_ms"], "kinds": run["kinds"], "sustained_hz": run["sustained_hz"],
             "cpu_share_of_one_core": run["cpu_share_of_one_core"], "error_mean_m": run["error_m"]["mean"],
-            "error_max_m": run["error_m"]["max"], "frames": run["frames"]}
+            "error_max_m": run["error_m"]["max"], "frames": run["frames"],
+            "relocalizations": run.get("relocalizations"), "tracked_stages_ms": run.get("tracked_stages_ms")}
 
 
 def measure(root: Path, db: Path) -> dict:
@@ -95,6 +96,20 @@ def render(result: dict) -> str:
                          f"{lat['max']:.0f} | {share} | {_ms(reloc['latency_ms'], 'p95') if reloc else '–'} | "
                          f"{r['sustained_hz']:.1f} | {r['cpu_share_of_one_core']:.2f} | "
                          f"{r['error_mean_m']:.3f} / {r['error_max_m']:.2f} | {within} |")
+    profiled = [(d, r["follow_paced"]) for d, r in result["drives"].items()
+                if r["follow_paced"].get("relocalizations") and r["follow_paced"].get("tracked_stages_ms")]
+    if profiled:
+        lines += ["", "Where the time goes, paced at 10 Hz (medians, ms): a tracked frame's stages, and the full "
+                  "localizations the run made (in the thread beside the tracker or on a frame that had lost its "
+                  "points), how many per second and their stages:", "",
+                  "| drive | tracked: flow / pose / filter | relocalizations per s | relocalization: SIFT / "
+                  "retrieval / measurement / widening its points / total |", "|---|---|---|---|"]
+        for drive, r in profiled:
+            t, rel = r["tracked_stages_ms"], r["relocalizations"]
+            st = rel["stages_ms"]
+            lines.append(f"| {drive} | {t['flow_ms']:.1f} / {t['geometry_ms']:.1f} / {t['filter_ms']:.1f} | "
+                         f"{rel['per_s']:.1f} | {st['sift_ms']:.0f} / {st['retrieval_ms']:.0f} / "
+                         f"{st['measurement_ms']:.0f} / {st['points_ms']:.0f} / {rel['total_ms']:.0f} |")
     lines += ["", f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} "
               "after; 2 cores.", END]
     return "\n".join(lines)

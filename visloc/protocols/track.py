@@ -114,6 +114,7 @@ class TrackFrame:
     followed_points: int = 0
     relocalize_reason: str | None = None  # why this frame asked for a full localization
     merged: str | None = None  # a background relocalization's points "joined" (or "replaced") the followed ones
+    relocalization_ms: dict | None = None  # the relocalization this frame used, its cost by stage (any thread), ms
 
 
 def _stats(values: list[float]) -> dict:
@@ -128,6 +129,15 @@ def _latency(values: list[float]) -> dict | None:
     v = np.asarray(values, float)
     return {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95)), "max": float(v.max())} \
         if v.size else None
+
+
+def _relocalizations(costs: list[dict], wall_s: float) -> dict | None:
+    """Full localizations a run that follows points made: how many, per second of wall time, median cost by stage."""
+    if not costs:
+        return None
+    return {"n": len(costs), "per_s": len(costs) / wall_s if wall_s > 0 else None,
+            "stages_ms": {k: float(np.median([c[k] for c in costs])) for k in costs[0]},
+            "total_ms": float(np.median([sum(c.values()) for c in costs]))}
 
 
 @dataclass
@@ -151,6 +161,10 @@ class TrackRun:
             "kinds": {kind: {"frames": n, "share": n / len(f), "latency_ms": _latency([x.latency_ms for x in f
                                                                                       if x.kind == kind])}
                       for kind in sorted({x.kind for x in f}) for n in [sum(x.kind == kind for x in f)]},
+            "relocalizations": _relocalizations([x.relocalization_ms for x in f if x.relocalization_ms], self.wall_s),
+            "tracked_stages_ms": {k: float(np.median([getattr(x, k) for x in f if x.kind == "tracked"]))
+                                  for k in ("flow_ms", "geometry_ms", "filter_ms")}
+            if any(x.kind == "tracked" for x in f) else None,
             "cpu_s": self.cpu_s, "cpu_share_of_one_core": self.cpu_s / self.wall_s if self.wall_s > 0 else None,
             "pace_hz": self.pace_hz,
             "stages_ms": {k: float(np.median([getattr(x, k) for x in f])) if f else None
@@ -248,7 +262,8 @@ def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoData
     for n, (i, step) in enumerate(zip(indices, steps), 1):
         record = _frame_record(seq, i, step.result, step.latency_ms, db, shares)
         run.frames.append(replace(record, kind=step.kind, flow_ms=step.flow_ms, followed_points=step.followed_points,
-                                  relocalize_reason=step.relocalize_reason, merged=step.merged))
+                                  relocalize_reason=step.relocalize_reason, merged=step.merged,
+                                  relocalization_ms=step.relocalization_ms))
         run.wall_s = time.perf_counter() - start
         run.cpu_s = time.process_time() - cpu_start
         if progress:

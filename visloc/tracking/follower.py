@@ -69,12 +69,21 @@ class FollowedStep:
     followed_points: int = 0
     relocalize_reason: str | None = None
     merged: str | None = None
+    relocalization_ms: dict | None = None  # the relocalization this frame used (its own or one from beside), by stage
 
 
 @dataclass(frozen=True)
 class _Relocalized:
     full: "_Full"
     points: TrackedPoints | None
+    points_ms: float = 0.0  # widening and posing its points
+
+    @property
+    def stages_ms(self) -> dict[str, float]:
+        """What it cost, by stage, ms."""
+        f = self.full
+        return {"sift_ms": f.query.sift_ms, "retrieval_ms": f.retrieval_ms, "measurement_ms": f.measurement.query_side_ms,
+                "points_ms": self.points_ms}
 
 
 @dataclass(frozen=True)
@@ -209,7 +218,9 @@ class PointFollower:
 
     def _relocalize(self, gray: np.ndarray, timestamp_s: float, prediction, engine, name: str) -> _Relocalized:
         full = self._full(gray, timestamp_s, prediction, engine, name)
-        return _Relocalized(full, self._points(full))
+        t0 = time.perf_counter()
+        points = self._points(full)
+        return _Relocalized(full, points, (time.perf_counter() - t0) * 1000.0)
 
     def _lasting_views(self, east_north_m: np.ndarray, timestamp_s: float) -> dict[int, ViewStructure]:
         """The stored structure of up to ``EXTRA_VIEWS`` database views nearest the pose (within
@@ -310,6 +321,7 @@ class PointFollower:
             """The points a relocalization brings, followed into this frame and joined to ``current``; its
             measurement takes the place of the tracked one of its frame in the filter."""
             refuse_from(n_then, done.full.measurement)
+            used[0] = done
             if done.points is None:
                 return current, None
             fresh = follow(done.points, done.full.gray, gray, K, moved_m(done.full.query.timestamp_s))
@@ -326,6 +338,7 @@ class PointFollower:
                 gray = load_gray(frame.image_path)
                 t_s = frame.timestamp_s
                 t0 = time.perf_counter()
+                used: list[_Relocalized | None] = [None]  # the relocalization whose result this frame used
                 tracked, kept, reason, joined, n_followed, flow_ms = None, None, None, None, 0, 0.0
                 if points is not None and previous_gray is not None:
                     followed = follow(points, previous_gray, gray, K, moved_m(points_t_s))
@@ -367,6 +380,7 @@ class PointFollower:
                         else:  # the frame waits, and is measured by the full path: its own image, nothing to follow
                             done = self._relocalize(gray, t_s, self.localizer.prediction(), engine,
                                                     str(frame.image_path))
+                            used[0] = done
                             if done.points is not None:
                                 replaced = _disagree(done.full.measurement, tracked)
                                 points = done.points if replaced else merged(points, done.points)
@@ -380,6 +394,7 @@ class PointFollower:
                         pending[0].cancel()
                         pending = None
                     done = self._relocalize(gray, t_s, self.localizer.prediction(), engine, str(frame.image_path))
+                    used[0] = done
                     m = done.full.measurement
                     if not self.localizer.started:
                         m = first_fix(m, done.full.retrieval, self.db_east_north_m)
@@ -391,7 +406,8 @@ class PointFollower:
                     n_followed = 0 if points is None else len(points)
                     reason = reason or ("first frame" if n == 0 else "no points to follow")
                 latency = (time.perf_counter() - t0) * 1000.0
-                step = FollowedStep(result, latency, kind, flow_ms, n_followed, reason, joined)
+                step = FollowedStep(result, latency, kind, flow_ms, n_followed, reason, joined,
+                                    None if used[0] is None else used[0].stages_ms)
                 previous_gray = gray
                 if cancelled is not None and cancelled():
                     raise MatchCancelled()
