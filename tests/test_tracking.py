@@ -325,3 +325,29 @@ def test_frames_posed_on_the_same_points_count_the_map_error_once():
     third = shared_map_error(m, 3)
     np.testing.assert_allclose(third.cov_m2, np.eye(2) * (0.01 + 3 * 0.05))  # PnP's pixel noise stays once
     np.testing.assert_allclose(third.cov_terms_m2["lever"], np.eye(2) * 0.09)
+
+
+def test_a_track_chooses_only_its_first_measurement_with_its_first_rule():
+    from types import SimpleNamespace
+
+    from visloc.features.sift import Query
+    from visloc.pose.measurement import Measurement
+    from visloc.retrieval.retrievers import Retrieval
+    from visloc.tracking.localizer import Localizer
+
+    retrieval = Retrieval(np.arange(3), np.array([5, 4, 3]), 0)
+    retriever = SimpleNamespace(reset=lambda: None, retrieve=lambda query, prediction=None: retrieval)
+    measurer = SimpleNamespace(measure=lambda query, r: Measurement(np.array([9.0, 9.0]), None, "geotag",
+                                                                    fallback_reason="no pose"))
+    seen = []
+
+    def first(m, r):
+        seen.append(r)
+        return Measurement(np.zeros(2), None, "geotag", fallback_reason="first fix")
+
+    loc = Localizer(retriever, measurer, FilterParams(dt_s=0.1))
+    q = Query(np.zeros((0, 128), np.uint8), 0.0)
+    a = loc.step(q, first=first)
+    b = loc.step(q, first=first)
+    assert seen == [retrieval]  # asked once, while the filter held no track
+    assert a.measurement.fallback_reason == "first fix" and b.measurement.fallback_reason == "no pose"

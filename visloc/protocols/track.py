@@ -31,7 +31,7 @@ from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK,
                            RetrievalParams, SiftParams, TrackParams)
 from visloc.sources.queries import extract_queries
 from visloc.pose.structure import seeded_structure_cache
-from visloc.tracking.follower import FollowedStep, PointFollower
+from visloc.tracking.follower import FollowedStep, PointFollower, first_fix
 from visloc.tracking.runs import steps_of
 from visloc.sources.drives import Sequence
 from visloc.pose.uncertainty import SIDES, calibration
@@ -257,8 +257,8 @@ def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoData
         steps = follower.steps(seq, indices, cancelled=cancelled)
     else:
         steps = (FollowedStep(s.result, s.latency_ms, "full") for s in
-                 steps_of(localizer, extract_queries(seq, indices, sift, paced_hz=params.pace_hz),
-                          cancelled=cancelled))
+                 steps_of(localizer, extract_queries(seq, indices, sift, paced_hz=params.pace_hz), cancelled=cancelled,
+                          first=lambda m, retrieval: first_fix(m, retrieval, db.east_north_m)))
     for n, (i, step) in enumerate(zip(indices, steps), 1):
         record = _frame_record(seq, i, step.result, step.latency_ms, db, shares)
         run.frames.append(replace(record, kind=step.kind, flow_ms=step.flow_ms, followed_points=step.followed_points,

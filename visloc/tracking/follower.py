@@ -105,11 +105,11 @@ class _Full:
 
 def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: np.ndarray,
               k: int = FIRST_FIX_CANDIDATES, agreement_m: float = FIRST_FIX_AGREEMENT_M) -> Measurement:
-    """A track's first measurement: a geotag whose candidate lies more than ``agreement_m`` from the median
+    """A track's first measurement: a refined measurement's geotag fallback whose candidate lies more than ``agreement_m`` from the median
     geotag of the ``k`` best candidates is replaced by that median (a lone far candidate is more often a
     look-alike place than the vehicle's); anything else is kept."""
-    if measurement.source != GEOTAG or retrieval.counts.size < 3:
-        return measurement
+    if measurement.source != GEOTAG or measurement.fallback_reason is None or retrieval.counts.size < 3:
+        return measurement  # a pose, or the paper's own measurement (the geotag by design, not a fallback)
     best = np.argsort(-retrieval.counts, kind="stable")[:k]
     best = best[retrieval.counts[best] > 0]
     if best.size < 3:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -26,6 +27,9 @@ from visloc.pose.measurement import Measurement, Measurer
 from visloc.params import FilterParams
 from visloc.retrieval.retrievers import Prediction, Retrieval
 from visloc.tracking.kalman import ConstantVelocityKalman, FilterStep
+
+
+FirstMeasurement = Callable[[Measurement, Retrieval], Measurement]
 
 
 class Retriever(Protocol):
@@ -126,5 +130,10 @@ class Localizer:
         """The filter as ``snapshot`` holds it."""
         self._kalman = copy.deepcopy(snapshot)
 
-    def step(self, query: Query) -> StepResult:
-        return self.fuse(query, *self.measure(query, self._kalman.prediction()))
+    def step(self, query: Query, first: FirstMeasurement | None = None) -> StepResult:
+        """Retrieval, measurement and the filter's step for ``query``; ``first(measurement, retrieval)``, if given,
+        chooses the measurement that starts the track while the filter holds none."""
+        retrieval, measurement, retrieval_ms, measurement_ms = self.measure(query, self._kalman.prediction())
+        if first is not None and not self.started:
+            measurement = first(measurement, retrieval)
+        return self.fuse(query, retrieval, measurement, retrieval_ms, measurement_ms)

@@ -10,7 +10,7 @@ from __future__ import annotations
 from collections.abc import Callable, Iterable, Iterator
 from typing import NamedTuple
 
-from visloc.tracking.localizer import Localizer, StepResult
+from visloc.tracking.localizer import FirstMeasurement, Localizer, StepResult
 from visloc.retrieval.matching import MatchCancelled, PairCountCache
 
 
@@ -36,16 +36,17 @@ def latency_ms(result: StepResult, cache: PairCountCache | None = None) -> float
 
 
 def steps_of(localizer: Localizer, queries: Iterable, *, cache: PairCountCache | None = None,
-             cancelled: Callable[[], bool] | None = None) -> Iterator[TimedStep]:
+             cancelled: Callable[[], bool] | None = None, first: FirstMeasurement | None = None) -> Iterator[TimedStep]:
     """The one query loop: step ``localizer`` through ``queries`` (``visloc.Query``) in order, from its
     current state, yielding each step with its latency as soon as it is done (nothing is kept).
 
     ``cache``: the ``PairCountCache`` the localizer's retrieval counts with, if any (for latency).
     ``cancelled()`` is asked after each query and raises ``MatchCancelled`` when true (wrap the
     counter with ``visloc.retrieval.matching.cancellable`` to stop inside a query too).
+    ``first(measurement, retrieval)``: what starts the track, while the filter holds none (``Localizer.step``).
     """
     for query in queries:
-        result = localizer.step(query)
+        result = localizer.step(query, first=first)
         if cancelled is not None and cancelled():
             raise MatchCancelled()
         yield TimedStep(result, latency_ms(result, cache))
