@@ -84,3 +84,5 @@ def test_the_point_following_figures_are_what_their_json_renders():
         assert set(runs) == {"full", "follow", "follow_paced"}
         assert set(runs["full"]["kinds"]) == {"full"} and set(runs["follow"]["kinds"]) == {"tracked", "relocalized"}
         assert runs["follow_paced"]["sustained_hz"] <= 10.5  # paced at the camera's rate
+        profile = runs["follow_paced"]["relocalizations"]
+        assert profile["n"] > 0 and profile["total_ms"] >= profile["stages_ms"]["sift_ms"] > 0
