@@ -235,6 +235,13 @@ def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoD
         maneuver=bool(r.filter.maneuver), retracted_previous=bool(r.filter.retracted_previous))
 
 
+def _stored_structure(localizer: Localizer) -> dict | None:
+    """The store's structure the camera-rate measurer reads (view -> variant -> structure); None for the exact
+    path, whose measurer keeps a cache of structure triangulated as needed instead."""
+    stored = getattr(localizer.measurer, "structures", None)
+    return stored if isinstance(stored, dict) else None
+
+
 def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
               indices: list[int] | None = None, path_params: dict | None = None,
               progress: Callable[[int, int], None] | None = None,
@@ -253,7 +260,7 @@ def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoData
     start, cpu_start = time.perf_counter(), time.process_time()
     if params.follow_points and pose is not None:
         follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose,
-                                 sift, params, seq.distortion, stored=getattr(localizer.measurer, "structures", None))
+                                 sift, params, seq.distortion, stored=_stored_structure(localizer))
         steps = follower.steps(seq, indices, cancelled=cancelled)
     else:
         steps = (FollowedStep(s.result, s.latency_ms, "full") for s in
