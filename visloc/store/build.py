@@ -5,6 +5,7 @@ what these make; every step is resumable and skips what the store already holds.
 
 from __future__ import annotations
 
+import uuid
 from collections.abc import Callable
 
 import numpy as np
@@ -27,16 +28,18 @@ def ingest_sequence(ws: Workspace, sequence: Sequence, sift: SiftParams, *, work
                     limit: int | None = None, progress: Progress = None, structure_progress: Progress = None,
                     structure: bool = True, skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
                     vectors_progress: Progress = None, self_check_progress: Progress = None,
-                    repair: bool = False) -> IngestReport:
+                    repair: bool = False, cluster=None) -> IngestReport:
     """SIFT every frame of ``sequence`` the store lacks (``Workspace.add_features``; ``repair``: and those
     whose features are damaged), then its global vectors, its structure and its self-check
-    (``structure=False``: SIFT only); resumable."""
+    (``structure=False``: SIFT only); resumable. ``cluster``: describe the frames on a distributed engine's
+    workers (``visloc.store.cluster``)."""
     report = ws.add_features(sequence, sift, workers=workers, limit=limit, progress=progress,
-                             skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair)
+                             skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair,
+                             cluster=cluster)
     if structure and ws.stored_frame_count(sequence.source, sequence.camera):
         build_global_vectors(ws, sequence.source, sequence.camera, progress=vectors_progress)
-        build_structure(ws, sequence.source, sequence.camera, progress=structure_progress)
-        build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress)
+        build_structure(ws, sequence.source, sequence.camera, progress=structure_progress, cluster=cluster)
+        build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress, cluster=cluster)
     return report
 
 
@@ -68,11 +71,12 @@ def build_global_vectors(ws: Workspace, source: str, camera: str, params: FastPa
 
 
 def build_structure(ws: Workspace, source: str, camera: str, params: RefinedParams = REFINED,
-                    progress: Progress = None) -> int:
+                    progress: Progress = None, cluster=None) -> int:
     """Triangulate every image of (source, camera) the store holds no structure for (made with
     ``params``' structure settings), each variant of ``visloc.pose.structure``, committing image by
     image: an interrupted build resumes. Nothing to do without calibration and attitudes.
-    Returns the images built."""
+    ``cluster``: triangulate on a distributed engine's workers, a few images per task, each
+    committed as it comes back. Returns the images built."""
     settings = structure_settings_json(params)
     ids = ws.image_ids(source, camera)
     done = ws.structure_complete_ids(ids.tolist(), settings, len(VARIANTS))
@@ -86,17 +90,54 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
     todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
     if progress:
         progress(0, len(todo))
+    if cluster is not None:
+        run = uuid.uuid4().hex  # workers of a cluster outlive a run: what they loaded for another is not used
+        chunks = [(str(ws.path), source, camera, params, run, todo[i : i + 4]) for i in range(0, len(todo), 4)]
+        n = 0
+        for args, records in cluster.run_all(structure_records, chunks):
+            ws.save_structure(records)
+            n += len(args[-1])
+            if progress:
+                progress(n, len(todo))
+        return len(todo)
     for n, k in enumerate(todo, 1):
-        ws.save_structure([StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
-                                           s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
-                           for s in view_structures(geometry, k, params, StructureCache())])
+        ws.save_structure(_view_records(geometry, ids_of, k, params, settings))
         if progress:
             progress(n, len(todo))
     return len(todo)
 
 
+def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, settings: str) -> list[StructureRecord]:
+    return [StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
+                            s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
+            for s in view_structures(geometry, k, params, StructureCache())]
+
+
+_loaded: dict[tuple, tuple] = {}  # in a worker: the last database a task loaded, for the next task of its stage
+
+
+def _database_for(path: str, source: str, camera: str, run: str):
+    """(database, its geometry) of (source, camera) in the store at ``path``, loaded once per build step
+    (``run``) in a worker process of the distributed engine."""
+    key = (path, source, camera, run)
+    if key not in _loaded:
+        _loaded.clear()
+        db = Workspace(path, read_only=True).load_database(source, camera)
+        _loaded[key] = (db, db.geometry())
+    return _loaded[key]
+
+
+def structure_records(path: str, source: str, camera: str, params: RefinedParams, run: str, views: list[int]
+                      ) -> list[StructureRecord]:
+    """A task of the distributed engine: the structure records of the database indices ``views``."""
+    db, geometry = _database_for(path, source, camera, run)
+    ids_of = [im.image_id for im in db.images]
+    settings = structure_settings_json(params)
+    return [r for k in views for r in _view_records(geometry, ids_of, k, params, settings)]
+
+
 def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedParams = REFINED,
-                     progress: Progress = None) -> int:
+                     progress: Progress = None, cluster=None) -> int:
     """Pose every image of (source, camera) that has no self-check with ``params``' settings as a query
     of its own drive (``visloc.pose.selfcheck``), committing every few images: an interrupted check
     resumes. Nothing to do without calibration, attitudes or global vectors. Returns the images checked."""
@@ -114,6 +155,16 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
     if progress:
         progress(0, len(todo))
+    if cluster is not None:  # a chunk per task on the distributed engine, committed as each comes back
+        run = uuid.uuid4().hex
+        chunks = [(str(ws.path), source, camera, params, run, todo[i : i + 16]) for i in range(0, len(todo), 16)]
+        n = 0
+        for args, records in cluster.run_all(self_check_records, chunks):
+            ws.add_self_checks(records)
+            n += len(args[-1])
+            if progress:
+                progress(n, len(todo))
+        return len(todo)
     cache = seeded_structure_cache(ws.load_structure(db, params))  # the views' stored structure, read
     for start in range(0, len(todo), 16):
         chunk = todo[start : start + 16]
@@ -123,3 +174,18 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
         if progress:
             progress(start + len(chunk), len(todo))
     return len(todo)
+
+
+def self_check_records(path: str, source: str, camera: str, params: RefinedParams, run: str, indices: list[int]
+                       ) -> list:
+    """A task of the distributed engine: the self-check records of the database indices ``indices``."""
+    db, geometry = _database_for(path, source, camera, run)
+    if ("cache", run) not in _loaded:
+        ws = Workspace(path, read_only=True)
+        _loaded[("cache", run)] = (seeded_structure_cache(ws.load_structure(db, params)), ws.load_database_index(db))
+    cache, index = _loaded[("cache", run)]
+    settings = self_check_settings_json(params)
+    ids_of = [im.image_id for im in db.images]
+    poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
+                       index.vectors_f32, params, indices=indices, cache=cache)
+    return [pose_record(p, ids_of[p.index], settings) for p in poses]

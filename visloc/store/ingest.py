@@ -95,14 +95,29 @@ def stored_sift_params(store: FeatureStore) -> SiftParams | None:
 
 
 _worker_sift = None
+_worker_sift_params: SiftParams | None = None
 
 
 def _init_worker(params: SiftParams, single_thread: bool = True) -> None:
-    global _worker_sift
+    global _worker_sift, _worker_sift_params
     if single_thread:
         cv2.setNumThreads(1)  # in worker processes: parallelism comes from the processes
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C is the main process's to handle
-    _worker_sift = make_sift(params)
+    _worker_sift, _worker_sift_params = make_sift(params), params
+
+
+def _extract_on_cluster(item: "WorkItem") -> "Extracted | InputError":
+    """``_extract_frame`` in a worker of a distributed engine: the detector is made at its first task
+    (and again if the settings change); one OpenCV thread, the engine runs one task per core. A frame
+    that cannot be described gives back the ``InputError`` saying why (a result, not a failed task)."""
+    global _worker_sift, _worker_sift_params
+    if _worker_sift is None or _worker_sift_params != item[1]:
+        cv2.setNumThreads(1)
+        _worker_sift, _worker_sift_params = make_sift(item[1]), item[1]
+    try:
+        return _extract_frame(item)
+    except InputError as exc:
+        return exc
 
 
 # one work item: the frame, the SIFT settings, the pinhole K (3x3) and distortion coefficients to
@@ -143,14 +158,19 @@ class WorkerDiedError(InputError):
 
 
 def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Sequence,
-               max_image_mp: float) -> Iterator[tuple[Frame, Extracted | InputError]]:
+               max_image_mp: float, cluster=None) -> Iterator[tuple[Frame, Extracted | InputError]]:
     """(frame, its extraction or the ``InputError`` that says why it has none), in ``todo``'s order.
 
     With several workers, at most two frames per worker are in flight, and a worker that dies ends
     the iteration with ``WorkerDiedError`` instead of waiting for a result that never comes.
+    ``cluster``: a client of a distributed engine (``visloc.store.cluster``) whose workers describe the
+    frames instead; a worker that dies there has its frames described again by another.
     """
     K, distortion = _undistortion(sequence)
     items = [(f, params, K, distortion, sequence.image_size_px, max_image_mp) for f in todo]
+    if cluster is not None:
+        yield from cluster.extracted(_extract_on_cluster, items, sequence.name)
+        return
     if workers <= 1 or len(todo) <= 1:
         _init_worker(params, single_thread=False)  # in this process: leave OpenCV's threading alone
         for item in items:
@@ -204,6 +224,7 @@ def ingest(
     skip_bad_frames: bool = False,
     max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
     repair: bool = False,
+    cluster=None,
 ) -> IngestReport:
     """Add every frame of ``sequence`` missing from ``store``. ``progress(done, total)`` is told of
     the start (0 done) and of each image done.
@@ -237,7 +258,7 @@ def ingest(
     if progress:
         progress(0, len(todo))
     try:
-        for done, (frame, result) in enumerate(_extracted(todo, params, workers, sequence, max_image_mp), 1):
+        for done, (frame, result) in enumerate(_extracted(todo, params, workers, sequence, max_image_mp, cluster), 1):
             if isinstance(result, InputError):
                 if not (skip_bad_frames or frame.frame in skipped_before) or frame.frame in stored:
                     raise InputError(f"{result} (frame {frame.frame} of {sequence.name}); the images before it "

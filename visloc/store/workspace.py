@@ -26,6 +26,8 @@ from visloc.errors import InputError
 from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
+from visloc.store.sharded import merged_store
+from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
 from visloc.pose.selfcheck import lever_gain_from, record_pose, self_check_settings_json
@@ -63,6 +65,12 @@ class Workspace:
     def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False):
         self.path = Path(path)
         self.read_only = read_only
+        # a sharded store (a folder of tiles, ``visloc.store.sharded``) is read as one file made of its
+        # tiles; it is extended by 'visloc ingest --tile-m' only
+        self.sharded = is_sharded(self.path)
+        self._file = merged_store(self.path) if self.sharded else self.path
+        if self.sharded:
+            self.read_only, create = True, False
         with self._store(create=create) as store:  # fail now, with the file's name, if it is no store
             self._sift = stored_sift_params(store)
             # opening for writing migrates a store of an older schema version in place: from which, if it did
@@ -87,7 +95,7 @@ class Workspace:
     @contextmanager
     def _store(self, *, create: bool = False) -> Iterator[FeatureStore]:
         try:
-            store = FeatureStore(self.path, create=create and not self.read_only, read_only=self.read_only)
+            store = FeatureStore(self._file, create=create and not self.read_only, read_only=self.read_only)
         except StoreError as exc:
             raise InputError(str(exc)) from None
         except sqlite3.Error as exc:
@@ -143,13 +151,14 @@ class Workspace:
     def add_features(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None,
                      limit: int | None = None, progress: Callable[[int, int], None] | None = None,
                      skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
-                     repair: bool = False) -> IngestReport:
+                     repair: bool = False, cluster=None) -> IngestReport:
         """SIFT every frame of ``sequence`` that the store lacks, into the store (``visloc.store.ingest``, also
         for ``skip_bad_frames`` and ``max_image_mp``); resumable. ``visloc.store.build.ingest_sequence`` adds
         what the refined methods need after it."""
         with self._store(create=True) as store:
             report = ingest(store, sequence, sift, workers=workers, progress=progress, limit=limit,
-                            skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair)
+                            skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair,
+                            cluster=cluster)
             self._sift = stored_sift_params(store)
         return report
 
@@ -349,6 +358,17 @@ class Workspace:
         """Keep one global vector per image under ``name`` (replacing what was there)."""
         with self._store() as store:
             VectorTable(store).add_global_vectors(name, list(image_ids), vectors_f32)
+
+    def global_vectors_by_image(self, params: FastParams = FAST) -> tuple[str, dict[int, np.ndarray]]:
+        """(the names joined, image id -> global vector) of every dataset's global vectors made with ``params``."""
+        names, vectors = [], {}
+        for d in self.datasets():
+            name = global_vectors_name(d.source, d.camera, params)
+            if self.has_global_index(name):
+                image_ids, index = self.load_global_index(name)
+                vectors.update(zip(image_ids.tolist(), index.vectors_f32))
+                names.append(name)
+        return ";".join(names), vectors
 
     def has_global_index(self, name: str) -> bool:
         with self._store() as store:

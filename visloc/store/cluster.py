@@ -1,0 +1,113 @@
+"""The distributed engine a sharded ingest runs on: Dask distributed.
+
+Why Dask and not Ray: it is a pure-Python install of a few megabytes (Ray brings its own object
+store and control plane, hundreds of megabytes); its nannies restart a worker process that dies
+and its scheduler runs the dead worker's tasks again elsewhere (a task is given up only after it
+killed three workers); a worker per core with one thread each runs CPU-bound OpenCV work without
+contention; a real cluster is ``dask scheduler`` on one node and ``dask worker ADDRESS`` on each
+other. It is an optional extra (``pip install 'visloc[cluster]'``): a single-file store never needs it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+
+from visloc.errors import InputError
+
+WORKERS_TIMEOUT_S = 120.0  # how long ingest waits for a first worker to join a scheduler it was pointed at
+
+
+def _require_dask():
+    try:
+        import distributed
+    except ImportError:
+        raise InputError("a sharded ingest runs on Dask distributed, which is not installed: "
+                         "pip install 'visloc[cluster]'") from None
+    return distributed
+
+
+class Cluster:
+    """A client of a Dask cluster: a local one this process started, or one it joined."""
+
+    def __init__(self, client, n_workers: int, address: str | None):
+        self.client = client
+        self.n_workers = n_workers
+        self.address = address
+
+    def worker_pids(self) -> dict[str, int]:
+        """Worker address -> its process id (for a test that kills one)."""
+        import os
+        return self.client.run(os.getpid)
+
+    def extracted(self, fn: Callable, items: list, name: str) -> Iterator[tuple[object, object]]:
+        """(item[0], ``fn(item)`` or the ``InputError`` it raised), in ``items``' order, with at most two
+        items per worker in flight. A worker that dies has its items run again by another; an item that
+        killed three workers ends the iteration with an ``InputError`` naming it."""
+        distributed = _require_dask()
+        in_flight: deque = deque()
+        pending = iter(items)
+        width = 2 * max(self.n_workers, 1)
+        while True:
+            while len(in_flight) < width and (item := next(pending, None)) is not None:
+                in_flight.append((item, self.client.submit(fn, item, pure=False)))
+            if not in_flight:
+                return
+            item, future = in_flight.popleft()
+            try:
+                yield item[0], future.result()
+            except InputError as exc:
+                yield item[0], exc
+            except distributed.KilledWorker:
+                raise InputError(f"{name}: describing {getattr(item[0], 'image_path', item[0])} killed three "
+                                 "workers in turn (out of memory?); the images finished before are stored: "
+                                 "run the same command again to go on") from None
+
+    def run_all(self, fn: Callable, args: list[tuple]) -> Iterator[tuple[tuple, object]]:
+        """(args, ``fn(*args)``) for every tuple of ``args``, as each finishes; an error is raised as it comes."""
+        distributed = _require_dask()
+        futures = {self.client.submit(fn, *a, pure=False): a for a in args}
+        for future in distributed.as_completed(futures):
+            yield futures[future], future.result()
+
+
+@contextmanager
+def open_cluster(workers: int = 2, address: str | None = None) -> Iterator[Cluster]:
+    """A cluster for the ``with`` block: with ``address``, the Dask scheduler there; otherwise a local
+    cluster of ``workers`` processes of one thread each, shut down at the end."""
+    distributed = _require_dask()
+    if address:
+        try:
+            client = distributed.Client(address, timeout="30s")
+        except (OSError, TimeoutError) as exc:
+            raise InputError(f"--address {address}: no Dask scheduler answers there ({exc})") from None
+        try:
+            try:
+                client.wait_for_workers(1, timeout=WORKERS_TIMEOUT_S)
+            except TimeoutError:
+                raise InputError(f"--address {address}: no worker joined that scheduler within "
+                                 f"{WORKERS_TIMEOUT_S:g} s (start them with 'dask worker {address}')") from None
+            yield Cluster(client, max(len(client.scheduler_info().get("workers", {})), 1), address)
+        finally:
+            client.close()
+        return
+    if workers < 1:
+        raise InputError(f"--workers {workers}: give at least 1")
+    import dask
+
+    # Dask starts workers with one BLAS thread; here they keep the machine's default, as the process
+    # building a single file does: BLAS sums in another order with another thread count, and the
+    # structure and self-check made on the workers are then the single file's to the last bit.
+    environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
+               if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
+        cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                           dashboard_address=":0", silence_logs=logging.ERROR)
+    client = distributed.Client(cluster)
+    try:
+        yield Cluster(client, workers, None)
+    finally:
+        client.close()
+        cluster.close()
