@@ -31,6 +31,8 @@ from visloc.protocols.suite import database_row, drive_protocols, drives_of, poo
 from visloc.protocols.track import run_track, track_filter, track_localizer
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
 from visloc.store.build import ingest_sequence
+from visloc.cli.sharding import ingest_sharded
+from visloc.db.shards import is_sharded
 from visloc.store.check import check_store
 from visloc.cli.stopping import interrupted_status, interrupted_text
 
@@ -86,8 +88,8 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
 
 
 def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,
-            structure: bool = True, repair: bool = False):
-    report = ingest_sequence(ws, seq, sift, workers=a.workers, limit=limit, structure=structure,
+            structure: bool = True, repair: bool = False, cluster=None):
+    report = ingest_sequence(ws, seq, sift, workers=a.workers, limit=limit, structure=structure, cluster=cluster,
                              progress=progress_reporter(f"ingest {seq.name}", "images"),
                              vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
                              structure_progress=progress_reporter(f"structure {seq.name}", "images"),
@@ -120,6 +122,12 @@ def cmd_ingest(a: argparse.Namespace) -> int:
     refuse_camera_for_csv(a.source, "--camera", a.camera)
     cameras = a.camera or [kitti_camera(a.source, a.drive, None)]
     sequences = [_open_source(a.source, drive=a.drive, camera=camera) for camera in cameras]
+    if a.tile_m is not None or is_sharded(a.db):
+        return ingest_sharded(a, sequences, lambda ws, seq, cluster: _print_ingest(
+            a, seq, _ingest(ws, seq, sift, a, a.limit, repair=True, cluster=cluster)))
+    if a.halo_m is not None or a.address is not None:
+        raise InputError(f"{'--halo-m' if a.halo_m is not None else '--address'}: only for a sharded store "
+                         "(give --tile-m)")
     seq, ws = sequences[0], None
     try:
         # only once every source opened: a bad source creates no store file; a store this command

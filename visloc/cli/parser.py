@@ -153,6 +153,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_db(p)
     p.add_argument("--workers", type=int, default=None, help="SIFT processes (default: number of cores)")
     p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
+    p.add_argument("--tile-m", type=float, default=None, metavar="M",
+                   help="write a sharded store: --db is a folder of square tiles this many metres wide, one store "
+                        "each, ingested on a Dask cluster (pip install 'visloc[cluster]'); every command reads it "
+                        "like a file")
+    p.add_argument("--halo-m", type=float, default=None, metavar="M",
+                   help="sharded store: copy into each tile the images this close to its border (default 50)")
+    p.add_argument("--address", default=None, metavar="HOST:PORT",
+                   help="sharded store: ingest on the Dask scheduler at this address (default: a local cluster "
+                        "of --workers processes)")
     _add_bad_frames(p)
     _add_sift(p)
     p.set_defaults(func=commands.cmd_ingest)
