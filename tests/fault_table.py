@@ -22,6 +22,7 @@ FAULT_MODULES = (
     "test_faults_process",
     "test_faults_params",
     "test_faults_dashboard",
+    "test_faults_shards",
 )
 
 

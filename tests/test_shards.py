@@ -1,0 +1,185 @@
+"""Sharded stores: the grid, ingest on a real local Dask cluster, faults, and the same answers as one file."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from visloc.db.shards import Manifest, file_sha256, rows_digest, staging_images
+from visloc.store.sharded import GlobalSearch, TileIndex, merged_store
+from visloc.store.tiles import cells_within, owner_cells, tiles_of_images
+
+from conftest import KITTI_DRIVE, run_cli
+
+pytest.importorskip("distributed")
+
+SOURCE = f"{KITTI_DRIVE}_sync"
+
+
+# -- the grid, pure ----------------------------------------------------------------------------------
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.floats(-500, 500), st.floats(-500, 500)), min_size=1, max_size=40),
+       st.sampled_from([10.0, 25.0, 100.0]), st.sampled_from([0.0, 5.0, 30.0]))
+def test_a_tile_holds_every_image_within_its_halo(points, tile_m, halo_m):
+    """Each tile holds every image within ``halo_m`` of its square, and its owner holds every image."""
+    pts = np.array(points)
+    tiles = tiles_of_images(pts, tile_m, halo_m)
+    owners = owner_cells(pts, tile_m)
+    for k, owner in enumerate(map(tuple, owners)):
+        assert k in tiles[owner]
+    for (ix, iy), members in tiles.items():
+        lo, hi = np.array([ix, iy]) * tile_m, (np.array([ix, iy]) + 1) * tile_m
+        outside = np.maximum(np.maximum(lo - pts, pts - hi), 0).max(axis=1)  # Chebyshev distance to the square
+        assert set(members.tolist()) == set(np.flatnonzero(outside <= halo_m + 1e-9).tolist()) or \
+            set(np.flatnonzero(outside < halo_m - 1e-9).tolist()) <= set(members.tolist())
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.floats(-1000, 1000), st.floats(-1000, 1000), st.floats(0, 120), st.sampled_from([10.0, 25.0, 250.0]))
+def test_a_gate_opens_exactly_the_tiles_its_disc_meets(east, north, radius, tile_m):
+    centre = np.array([east, north])
+    picked = {tuple(c) for c in cells_within(centre, radius, tile_m).tolist()}
+    lo = np.floor((centre - radius - tile_m) / tile_m).astype(int)
+    hi = np.floor((centre + radius + tile_m) / tile_m).astype(int)
+    for ix in range(lo[0], hi[0] + 1):
+        for iy in range(lo[1], hi[1] + 1):
+            nearest = np.clip(centre, np.array([ix, iy]) * tile_m, (np.array([ix, iy]) + 1) * tile_m)
+            gap = np.linalg.norm(nearest - centre) - radius
+            if abs(gap) > 1e-9:  # on the circle itself either answer is right
+                assert ((ix, iy) in picked) == (gap < 0)
+    # a point within the radius lies in a picked tile
+    assert tuple(owner_cells(centre, tile_m)[0]) in picked
+
+
+def test_tile_index_and_global_search_pick_the_owners():
+    rng = np.random.default_rng(1)
+    cells = np.array([(0, 0), (1, 0), (5, 5)])
+    index = TileIndex.of(25.0, cells, ("a", "b", "c"))
+    assert sorted(index.for_gate(np.array([24.0, 10.0]), 3.0)) == [0, 1]
+    assert index.for_gate(np.array([140.0, 140.0]), 1.0) == [2]
+    assert index.for_gate(np.array([-500.0, 0.0]), 10.0) == []
+    vectors = rng.normal(size=(200, 16)).astype(np.float32)
+    vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
+    tiles = np.array([f"t{k % 7}" for k in range(200)], object)
+    rows, owners = GlobalSearch(vectors, tiles).tiles_for(vectors[42], k=5)
+    assert rows[0] == 42 and owners[0] == "t0"
+
+
+# -- ingest on a real local cluster (a synthetic drive) -----------------------------------------------
+
+def _ingest(drive, store, *extra):
+    return run_cli("ingest", drive, "--db", store, *extra, timeout=900)
+
+
+def _all_ids(path) -> list[int]:
+    return [r[0] for r in staging_images(path)]
+
+
+def test_sharded_ingest_equals_one_file_row_for_row_and_resumes(tmp_path, csv_drive):
+    single = tmp_path / "one.sqlite"
+    assert _ingest(csv_drive, single, "--workers", "1").returncode == 0
+    city = tmp_path / "city"
+    first = _ingest(csv_drive, city, "--tile-m", "4", "--halo-m", "1", "--workers", "2")
+    assert first.returncode == 0, first.stderr
+    line = first.stdout.strip().splitlines()[-1]
+    assert "tiles of 4 m" in line and "0 complete already" in line, line
+    with Manifest(city, read_only=True) as manifest:
+        tiles = manifest.tiles()
+        index, vectors = manifest.global_index()
+    assert len(tiles) >= 3  # the drive is 11 m long
+    assert sum(t.n_owned for t in tiles) == 12 and len(index["image_id"]) == 12 and vectors is not None
+    for t in tiles:  # each tile a complete store of its own, with the checksum the manifest states
+        assert file_sha256(city / t.file) == t.sha256
+        assert _all_ids(city / t.file) and rows_digest(city / t.file, _all_ids(city / t.file)) == t.rows_digest
+    merged = merged_store(city)
+    ids = _all_ids(single)
+    assert _all_ids(merged) == ids
+    assert rows_digest(merged, ids) == rows_digest(single, ids)  # every row, every BLOB's checksum
+
+    again = _ingest(csv_drive, city, "--workers", "2")  # the grid is the store's
+    assert again.returncode == 0, again.stderr
+    assert f"(0 written, {len(tiles)} complete already)" in again.stdout
+
+    info = run_cli("info", "--db", city)
+    assert info.returncode == 0 and "12 images" in info.stdout, info.stdout + info.stderr
+
+
+# -- the same answers as one file (drive 0001 in 25 m tiles, two workers) -------------------------------
+
+@pytest.fixture(scope="module")
+def city_0001(kitti_root, tmp_path_factory):
+    city = tmp_path_factory.mktemp("city") / "city"
+    made = run_cli("ingest", kitti_root, "--drive", KITTI_DRIVE, "--camera", "image_00", "--camera", "image_01",
+                   "--db", city, "--tile-m", "25", "--workers", "2", timeout=3600)
+    assert made.returncode == 0, made.stderr
+    return city
+
+
+@pytest.mark.kitti
+@pytest.mark.slow
+def test_paper_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_evaluation, tmp_path):
+    _, single, _ = kitti_evaluation
+    out = tmp_path / "eval.json"
+    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", city_0001, "--start-frames", "0,25,50",
+                     "--json", out, timeout=1800)
+    assert result.returncode == 0, result.stderr
+    sharded = json.loads(out.read_text())
+    for key in ("measurement_error_m", "estimate_error_m", "final_error_m"):
+        assert sharded[key] == single[key], key  # exactly
+    assert _errors(sharded) == _errors(single)
+
+
+@pytest.mark.kitti
+@pytest.mark.slow
+def test_refined_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_evaluation, tmp_path):
+    folder, _, _ = kitti_evaluation
+    runs = {}
+    for name, store in (("file", folder / "kitti.sqlite"), ("tiles", city_0001)):
+        out = tmp_path / f"{name}.json"
+        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--mode", "refined", "--db", store,
+                         "--start-frames", "0,50", "--json", out, timeout=1800)
+        assert result.returncode == 0, result.stderr
+        runs[name] = _errors(json.loads(out.read_text()))
+    assert len(runs["file"]) == len(runs["tiles"]) > 10
+    assert max(abs(a - b) for a, b in zip(runs["file"], runs["tiles"], strict=True)) <= 1e-6
+
+
+def _errors(report: dict) -> list[float]:
+    return [q["estimate_error_m"] for series in report["series"] for q in series]
+
+
+def test_ingest_joins_a_running_cluster_by_its_address(tmp_path, csv_drive):
+    """A scheduler and a worker started as a user starts them on a real cluster (``dask scheduler``,
+    ``dask worker``), and ingest pointed at the scheduler with --address."""
+    import subprocess
+    import sys
+
+    dask = Path(sys.executable).parent / "dask"
+    scheduler_file = tmp_path / "scheduler.json"
+    procs = [subprocess.Popen([dask, "scheduler", "--port", "0", "--dashboard-address", ":0",
+                               "--scheduler-file", scheduler_file], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 120
+        while not scheduler_file.exists() and time.monotonic() < deadline:  # the scheduler is up
+            time.sleep(0.1)
+        address = json.loads(scheduler_file.read_text())["address"]
+        procs.append(subprocess.Popen([dask, "worker", address, "--nworkers", "1", "--nthreads", "1",
+                                       "--dashboard-address", ":0"], stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL))
+        city = tmp_path / "city"
+        made = _ingest(csv_drive, city, "--tile-m", "4", "--address", address)
+        assert made.returncode == 0, made.stderr
+        assert "tiles of 4 m" in made.stdout
+        with Manifest(city, read_only=True) as manifest:
+            assert sum(t.n_owned for t in manifest.tiles()) == 12
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+            p.wait(timeout=60)
