@@ -47,7 +47,7 @@ STAGING_NAME = "work/staging.sqlite"
 
 # the tables a tile carries, and how their rows are tied to images (None: every row)
 _IMAGE_KEYED = {"images": "id", "structures": "image_id", "global_vectors": "image_id", "self_checks": "image_id"}
-_WHOLE = ("settings", "cameras", "arrays")
+_WHOLE = ("settings", "cameras", "arrays", "skipped_frames")
 # when a row was written, and how long making it took, are not what it says
 _DIGEST_SKIPS = {"created_at", "checked_at", "skipped_at", "sift_ms", "build_ms"}
 

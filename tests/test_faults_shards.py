@@ -66,9 +66,13 @@ def test_a_damaged_tile_is_named_and_written_again(fault, tmp_path, csv_drive):
     conn.close()
     refused = run_cli("info", "--db", city)
     one_line_error(refused, str(city / tile.file), "checksum")
+    checked = run_cli("check", "--db", city)
+    assert checked.returncode == 2 and str(city / tile.file) in checked.stdout, checked.stdout + checked.stderr
     redone = _ingest(csv_drive, city, "--workers", "2")
     assert redone.returncode == 0 and "(1 written," in redone.stdout, redone.stdout + redone.stderr
     assert run_cli("info", "--db", city).returncode == 0
+    checked = run_cli("check", "--db", city)
+    assert checked.returncode == 0 and "no damage found" in checked.stdout, checked.stdout + checked.stderr
 
 
 @pytest.mark.parametrize("fault", params([CASES["shards-bad-arguments"]]))

@@ -109,6 +109,7 @@ def test_sharded_ingest_equals_one_file_row_for_row_and_resumes(tmp_path, csv_dr
 
     info = run_cli("info", "--db", city)
     assert info.returncode == 0 and "12 images" in info.stdout, info.stdout + info.stderr
+    assert f"sharded store: {len(tiles)} tiles of 4 m" in info.stdout
 
 
 # -- the same answers as one file (drive 0001 in 25 m tiles, two workers) -------------------------------

@@ -32,8 +32,9 @@ from visloc.protocols.track import run_track, track_filter, track_localizer
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
 from visloc.store.build import ingest_sequence
 from visloc.cli.sharding import ingest_sharded
+from visloc.store.sharded import sharded_summary
 from visloc.db.shards import is_sharded
-from visloc.store.check import check_store
+from visloc.store.check import check_sharded, check_store
 from visloc.cli.stopping import interrupted_status, interrupted_text
 
 
@@ -421,16 +422,18 @@ def cmd_upgrade(a: argparse.Namespace) -> int:
 
 
 def cmd_check(a: argparse.Namespace) -> int:
-    report = check_store(a.db, progress=progress_reporter(f"check {a.db}", "images"))
-    for line in report.lines():
-        print(line)
-    return 0 if report.clean else 2
+    lines, clean = (check_sharded(a.db, progress=progress_reporter(f"check {a.db}", "tiles")) if is_sharded(a.db)
+                    else check_store(a.db, progress=progress_reporter(f"check {a.db}", "images")).summary())
+    print("\n".join(lines))
+    return 0 if clean else 2
 
 
 def cmd_info(a: argparse.Namespace) -> int:
     ws = Workspace(a.db, read_only=True)  # reading never changes the file
     sift = ws.sift_params
     print(f"{a.db}: {ws.image_count()} images")
+    if ws.sharded:
+        print(sharded_summary(a.db))
     print(f"SIFT settings: {sift.as_dict() if sift else 'none yet'}")
     for d in ws.datasets():
         calib = "P_rect known" if d.has_calibration else "no calibration"

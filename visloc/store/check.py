@@ -30,6 +30,9 @@ class CheckReport:
             out.setdefault(d.image, []).append(d.problem)
         return out
 
+    def summary(self) -> tuple[list[str], bool]:
+        return self.lines(), self.clean
+
     def lines(self) -> list[str]:
         """One line per problem of the file and per damaged image, then the summary."""
         label = str(self.path)
@@ -63,3 +66,29 @@ def check_store(path: str | Path, progress: Callable[[int, int], None] | None = 
         missing = tuple(missing_schema(store))
         damage = tuple(scan(store, progress=progress))
         return CheckReport(Path(path), problems, missing, damage, row_counts(store))
+
+
+def check_sharded(folder: str | Path, progress: Callable[[int, int], None] | None = None) -> tuple[list[str], bool]:
+    """Check a sharded store without changing it: every tile's file against the manifest's checksum, then
+    each tile as a store. (lines to print, whether it is whole)."""
+    from visloc.db.shards import Manifest
+    from visloc.store.sharded import check_tiles
+
+    lines = check_tiles(folder)
+    with Manifest(folder, read_only=True) as manifest:
+        tiles = manifest.tiles()
+    bad = {line.split(": tile ", 1)[0] for line in lines}
+    if progress:
+        progress(0, len(tiles))
+    for n, tile in enumerate(tiles, 1):
+        path = Path(folder) / tile.file
+        if str(path) not in bad:
+            report = check_store(path)
+            if not report.clean:
+                lines += report.lines()
+        if progress:
+            progress(n, len(tiles))
+    clean = not lines
+    lines.append(f"{folder}: {len(tiles)} tiles checked; " + ("no damage found" if clean else
+                 "damage found: 'visloc ingest' of its drives into the store writes the damaged tiles again"))
+    return lines, clean

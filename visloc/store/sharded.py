@@ -154,6 +154,15 @@ def check_tiles(folder: str | Path) -> list[str]:
     return problems
 
 
+def sharded_summary(folder: str | Path) -> str:
+    """One line on the sharded store ``folder``: its grid and tiles."""
+    with Manifest(folder, read_only=True) as manifest:
+        grid, tiles = manifest.grid(), manifest.tiles()
+    owned, held = sum(t.n_owned for t in tiles), sum(t.n_images for t in tiles)
+    return (f"sharded store: {len(tiles)} tiles of {grid.tile_m:g} m in EPSG:{grid.epsg} with a {grid.halo_m:g} m "
+            f"halo, {owned} images owned, {held / max(owned, 1):.1f} copies each")
+
+
 def merged_store(folder: str | Path) -> Path:
     """One store file holding every tile of the sharded store ``folder`` (each image once), made at the
     first read and kept in the temporary folder under the digest of the tiles' checksums: a store that
