@@ -9,6 +9,7 @@ import uuid
 from collections.abc import Callable
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from visloc.db import StructureRecord
 from visloc.features.vlad import train_encoder
@@ -108,9 +109,17 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
 
 
 def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, settings: str) -> list[StructureRecord]:
+    with one_blas_thread():
+        structures = view_structures(geometry, k, params, StructureCache())
     return [StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
-                            s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
-            for s in view_structures(geometry, k, params, StructureCache())]
+                            s.rows, s.points_world, s.cov_world, s.reason, s.build_ms) for s in structures]
+
+
+def one_blas_thread():
+    """Structure and self-checks are made with one BLAS thread, wherever they are made: BLAS sums in
+    another order with another number of threads, and a store built by one process, by the workers of
+    a cluster or on another machine then holds the same bits."""
+    return threadpool_limits(1, user_api="blas")
 
 
 _loaded: dict[tuple, tuple] = {}  # in a worker: the last database a task loaded, for the next task of its stage
@@ -168,8 +177,9 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     cache = seeded_structure_cache(ws.load_structure(db, params))  # the views' stored structure, read
     for start in range(0, len(todo), 16):
         chunk = todo[start : start + 16]
-        poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
-                           index.vectors_f32, params, indices=chunk, cache=cache)
+        with one_blas_thread():
+            poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
+                               index.vectors_f32, params, indices=chunk, cache=cache)
         ws.add_self_checks([pose_record(p, ids_of[p.index], settings) for p in poses])
         if progress:
             progress(start + len(chunk), len(todo))
@@ -186,6 +196,7 @@ def self_check_records(path: str, source: str, camera: str, params: RefinedParam
     cache, index = _loaded[("cache", run)]
     settings = self_check_settings_json(params)
     ids_of = [im.image_id for im in db.images]
-    poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
-                       index.vectors_f32, params, indices=indices, cache=cache)
+    with one_blas_thread():
+        poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
+                           index.vectors_f32, params, indices=indices, cache=cache)
     return [pose_record(p, ids_of[p.index], settings) for p in poses]

@@ -95,16 +95,8 @@ def open_cluster(workers: int = 2, address: str | None = None) -> Iterator[Clust
         return
     if workers < 1:
         raise InputError(f"--workers {workers}: give at least 1")
-    import dask
-
-    # Dask starts workers with one BLAS thread; here they keep the machine's default, as the process
-    # building a single file does: BLAS sums in another order with another thread count, and the
-    # structure and self-check made on the workers are then the single file's to the last bit.
-    environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
-               if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-        cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                           dashboard_address=":0", silence_logs=logging.ERROR)
+    cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                       dashboard_address=":0", silence_logs=logging.ERROR)
     client = distributed.Client(cluster)
     try:
         yield Cluster(client, workers, None)

@@ -1,0 +1,223 @@
+"""Sharded stores measured: ingest on a local Dask cluster against today's single file, and a synthetic city.
+
+    python scripts/shard_scale.py [--root ../shared/data/kitti] [--frames 100] [--images 1000000]
+    python scripts/shard_scale.py --page   # its section of docs/sharding.md from the JSON
+
+1. Ingest, on every drive of the data root: the first ``--frames`` frames of image_00 (SIFT, global vectors,
+   structure, self-check), one command after the other on this machine, each into a new store:
+   ``file_1``: today's single file, ``visloc ingest --workers 1``; ``tiles_1`` and ``tiles_2``:
+   ``visloc ingest --tile-m 250 --workers 1`` and ``--workers 2`` (a local cluster). Wall time, images per
+   second, and the largest resident memory of one worker process (sampled every 0.2 s).
+2. A synthetic city: ``--images`` images in tiles of 250 m over a square city (metadata and a 64-float global
+   vector per image in the manifest; no features). Timed in this process: picking the tiles of a gated
+   query (a disc of 30 m around a random point), the lost query (the 10 nearest global vectors by exact
+   inner product, and their tiles), and this process's peak memory.
+
+Writes docs/results/shard_scale.json; ``--page`` renders its section of docs/sharding.md from it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "scripts"))
+
+from page_sections import replace_section  # noqa: E402
+
+OUT = REPO / "docs" / "results" / "shard_scale.json"
+PAGE = REPO / "docs" / "sharding.md"
+BEGIN = "<!-- shard-scale: begin (python scripts/shard_scale.py --page) -->"
+END = "<!-- shard-scale: end -->"
+VISLOC = [sys.executable, "-m", "visloc"]
+RUNS = {"file_1": ["--workers", "1"], "tiles_1": ["--tile-m", "250", "--workers", "1"],
+        "tiles_2": ["--tile-m", "250", "--workers", "2"]}
+CITY_TILE_M = 250.0
+VECTOR_DIM = 64
+
+
+def _ingest(root: Path, drive: str, frames: int, store: Path, flags: list[str]) -> dict:
+    """One ingest command, timed, with the largest resident memory of any one of its child processes."""
+    import psutil
+
+    cmd = [*VISLOC, "ingest", str(root), "--drive", drive, "--camera", "image_00", "--db", str(store),
+           "--limit", str(frames), *flags]
+    start = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    parent = psutil.Process(proc.pid)
+    worker_rss, main_rss = 0, 0
+    while proc.poll() is None:
+        try:
+            main_rss = max(main_rss, parent.memory_info().rss)
+            for child in parent.children(recursive=True):
+                worker_rss = max(worker_rss, child.memory_info().rss)
+        except psutil.Error:
+            pass
+        time.sleep(0.2)
+    out, err = proc.communicate()
+    seconds = time.perf_counter() - start
+    if proc.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{err}")
+    return {"seconds": seconds, "images_per_s": frames / seconds, "worker_rss_mb": worker_rss / 2**20,
+            "main_rss_mb": main_rss / 2**20}
+
+
+def measure_ingest(root: Path, frames: int) -> list[dict]:
+    from visloc.sources.drives import open_source
+
+    drives = sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync"))
+    out = []
+    for drive in drives:
+        n = min(frames, len(open_source(root, drive=drive, camera="image_00")))
+        runs = {}
+        with tempfile.TemporaryDirectory() as tmp:
+            for name, flags in RUNS.items():
+                store = Path(tmp) / (name + (".sqlite" if name.startswith("file") else ""))
+                runs[name] = _ingest(root, drive, n, store, flags)
+                shutil.rmtree(store, ignore_errors=True) if store.is_dir() else store.unlink(missing_ok=True)
+                print(f"{drive} {name}: {runs[name]['seconds']:.0f} s", file=sys.stderr)
+        out.append({"drive": drive, "images": n, "runs": runs,
+                    "speedup_2_over_1": runs["tiles_1"]["seconds"] / runs["tiles_2"]["seconds"],
+                    "tiles_1_over_file_1": runs["tiles_1"]["seconds"] / runs["file_1"]["seconds"]})
+    return out
+
+
+def measure_city(n_images: int, folder: Path) -> dict:
+    """A synthetic city in ``folder``: a manifest of ``n_images`` images in 250 m tiles, then the reads."""
+    from visloc.db.shards import Manifest, TileRecord
+    from visloc.store.tiles import cell_bounds_m, owner_cells, tile_key
+
+    rng = np.random.default_rng(3)
+    side_m = CITY_TILE_M * np.ceil(np.sqrt(max(n_images / 900, 1000)))  # >= 1000 tiles, ~900 images each
+    east_north = rng.uniform(0, side_m, size=(n_images, 2)) + [500_000.0, 5_400_000.0]
+    cells = owner_cells(east_north, CITY_TILE_M)
+    keys = [tile_key(*c) for c in cells.tolist()]
+    start = time.perf_counter()
+    with Manifest(folder, create=True) as manifest:
+        from visloc.db.shards import Grid
+
+        manifest.require_grid(Grid(32632, CITY_TILE_M, 50.0))
+        unique, counts = np.unique(cells, axis=0, return_counts=True)
+        for (ix, iy), n in zip(unique.tolist(), counts.tolist()):
+            manifest.publish(TileRecord(tile_key(ix, iy), ix, iy, cell_bounds_m(ix, iy, CITY_TILE_M),
+                                        f"tiles/{tile_key(ix, iy)}.sqlite", int(n), int(n), "", ""))
+        for start_row in range(0, n_images, 200_000):  # written in parts: the vectors are made as they go
+            rows = range(start_row, min(start_row + 200_000, n_images))
+            vectors = rng.normal(size=(len(rows), VECTOR_DIM)).astype(np.float32)
+            vectors /= np.linalg.norm(vectors, axis=1, keepdims=True)
+            manifest.add_global_index([(k + 1, "city", "camera", k, float(k), float(east_north[k, 0]),
+                                        float(east_north[k, 1]), keys[k]) for k in rows], "synthetic", vectors)
+    write_s = time.perf_counter() - start
+    read = subprocess.run([sys.executable, __file__, "--read-city", str(folder), "--images", str(n_images)],
+                          capture_output=True, text=True, check=True)  # a fresh process: its memory is the query's
+    return {"images": n_images, "tiles": len(unique), "tile_m": CITY_TILE_M, "vector_dim": VECTOR_DIM,
+            "manifest_mb": (folder / "manifest.sqlite").stat().st_size / 2**20, "write_s": write_s,
+            **json.loads(read.stdout)}
+
+
+def read_city(folder: Path, n_images: int) -> dict:
+    """In a query process of its own: open the city's tile index and global index, then time the reads."""
+    from visloc.db.shards import Manifest
+    from visloc.store.sharded import GlobalSearch, TileIndex
+
+    rng = np.random.default_rng(4)
+    start = time.perf_counter()
+    tiles = TileIndex.from_manifest(folder)
+    open_tiles_s = time.perf_counter() - start
+    start = time.perf_counter()
+    with Manifest(folder, read_only=True) as manifest:
+        columns, vectors = manifest.global_index()
+    search = GlobalSearch(vectors, columns["tile"])
+    del vectors
+    open_index_s = time.perf_counter() - start
+
+    gate_ms = []
+    for centre in np.c_[columns["east_m"], columns["north_m"]][rng.integers(0, n_images, 2000)]:
+        t = time.perf_counter()
+        picked = tiles.for_gate(centre, 30.0)
+        gate_ms.append((time.perf_counter() - t) * 1000)
+        assert picked
+    lost_ms = []
+    queries = rng.normal(size=(40, VECTOR_DIM)).astype(np.float32)
+    for q in queries:
+        t = time.perf_counter()
+        search.tiles_for(q / np.linalg.norm(q), k=10)
+        lost_ms.append((time.perf_counter() - t) * 1000)
+    return {"open_tile_index_s": open_tiles_s, "open_global_index_s": open_index_s,
+            "gate_tiles_ms_p50": float(np.median(gate_ms)), "gate_tiles_ms_p95": float(np.percentile(gate_ms, 95)),
+            "lost_query_ms_p50": float(np.median(lost_ms)), "lost_query_ms_p95": float(np.percentile(lost_ms, 95)),
+            "process_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+
+
+def render(result: dict) -> str:
+    lines = [BEGIN, "", "Ingest, first frames of image_00 of each drive (wall time, images per second, the largest "
+             "worker process's resident memory):", "",
+             "| drive | images | one file, 1 process | tiles, 1 worker | tiles, 2 workers | 2 workers / 1 | "
+             "tiles 1 worker / one file |", "|---|---|---|---|---|---|---|"]
+    for d in result["ingest"]:
+        r = d["runs"]
+        cell = {k: f"{v['seconds']:.0f} s, {v['images_per_s']:.2f}/s, {v['worker_rss_mb']:.0f} MB" for k, v in r.items()}
+        cell["file_1"] = f"{r['file_1']['seconds']:.0f} s, {r['file_1']['images_per_s']:.2f}/s"
+        lines.append(f"| {d['drive']} | {d['images']} | {cell['file_1']} | {cell['tiles_1']} | {cell['tiles_2']} | "
+                     f"{d['speedup_2_over_1']:.2f}× | {d['tiles_1_over_file_1']:.2f}× |")
+    per_core_h = 3600 * float(np.median([d["runs"]["tiles_1"]["images_per_s"] for d in result["ingest"]]))
+    lines += ["", f"On paper, from the median one-worker rate ({per_core_h:.0f} images per core-hour, the whole "
+              "ingest: SIFT, global vectors, structure, self-check, tiles), if every core kept it:", "",
+              "| cluster | images per hour | 1,000,000 images in |", "|---|---|---|"]
+    for nodes, cores in ((1, 2), (10, 16), (100, 16)):
+        rate = per_core_h * nodes * cores
+        lines.append(f"| {nodes} node{'s' if nodes > 1 else ''} × {cores} cores | {rate:,.0f} | "
+                     f"{1e6 / rate:.1f} h |")
+    c = result["city"]
+    lines += ["", f"Synthetic city: {c['images']:,} images in {c['tiles']:,} tiles of {c['tile_m']:g} m, a "
+              f"{c['vector_dim']}-float global vector each; manifest {c['manifest_mb']:.0f} MB.", "",
+              "| what | p50 | p95 |", "|---|---|---|",
+              f"| tiles of a gated query (30 m disc) | {c['gate_tiles_ms_p50']:.3f} ms | {c['gate_tiles_ms_p95']:.3f} ms |",
+              f"| lost query: 10 nearest of {c['images']:,} global vectors, their tiles | {c['lost_query_ms_p50']:.0f} ms "
+              f"| {c['lost_query_ms_p95']:.0f} ms |", "",
+              f"Opening: the tile index {c['open_tile_index_s']:.2f} s, the global index {c['open_global_index_s']:.1f} s "
+              f"(once per query process). The query process's peak memory: {c['process_peak_mb']:.0f} MB.", "",
+              f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} after; "
+              f"{result['cores']} cores.", END]
+    return "\n".join(lines)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
+    ap.add_argument("--frames", type=int, default=100)
+    ap.add_argument("--images", type=int, default=1_000_000)
+    ap.add_argument("--skip-ingest", action="store_true", help="keep the JSON's ingest figures, measure the city only")
+    ap.add_argument("--page", action="store_true", help="only render docs/sharding.md's section from the JSON")
+    ap.add_argument("--read-city", type=Path, help=argparse.SUPPRESS)
+    a = ap.parse_args()
+    if a.read_city:
+        print(json.dumps(read_city(a.read_city, a.images)))
+        return 0
+    if not a.page:
+        before = os.getloadavg()[0]
+        old = json.loads(OUT.read_text()) if OUT.exists() else {}
+        ingest = old["ingest"] if a.skip_ingest else measure_ingest(a.root, a.frames)
+        with tempfile.TemporaryDirectory() as tmp:
+            city = measure_city(a.images, Path(tmp) / "city")
+        OUT.write_text(json.dumps({"ingest": ingest, "city": city, "load_1min_before": before,
+                                   "load_1min_after": os.getloadavg()[0], "cores": os.cpu_count()}, indent=1) + "\n")
+        print(f"wrote {OUT.relative_to(REPO)}")
+    PAGE.write_text(replace_section(PAGE, BEGIN, END, render(json.loads(OUT.read_text()))))
+    print(f"rendered {PAGE.relative_to(REPO)}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
