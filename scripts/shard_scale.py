@@ -5,7 +5,8 @@
 
 1. Ingest, on every drive of the data root: the first ``--frames`` frames of image_00 (SIFT, global vectors,
    structure, self-check), one command after the other on this machine, each into a new store:
-   ``file_1``: today's single file, ``visloc ingest --workers 1``; ``tiles_1`` and ``tiles_2``:
+   ``file_1``: today's single file, ``visloc ingest --workers 1`` (OpenCV's and BLAS's threads use every
+   core); ``file_1_one_core``: the same with one thread each; ``tiles_1`` and ``tiles_2``:
    ``visloc ingest --tile-m 250 --workers 1`` and ``--workers 2`` (a local cluster). Wall time, images per
    second, and the largest resident memory of one worker process (sampled every 0.2 s).
 2. A synthetic city: ``--images`` images in tiles of 250 m over a square city (metadata and a 64-float global
@@ -41,20 +42,24 @@ PAGE = REPO / "docs" / "sharding.md"
 BEGIN = "<!-- shard-scale: begin (python scripts/shard_scale.py --page) -->"
 END = "<!-- shard-scale: end -->"
 VISLOC = [sys.executable, "-m", "visloc"]
-RUNS = {"file_1": ["--workers", "1"], "tiles_1": ["--tile-m", "250", "--workers", "1"],
-        "tiles_2": ["--tile-m", "250", "--workers", "2"]}
+RUNS = {"file_1": ["--workers", "1"], "file_1_one_core": ["--workers", "1"],
+        "tiles_1": ["--tile-m", "250", "--workers", "1"], "tiles_2": ["--tile-m", "250", "--workers", "2"]}
+# today's ingest with one worker runs SIFT in its own process with OpenCV's threads, and BLAS's: on this
+# machine it uses both cores. Run again with one thread each, it is the one-core figure a worker compares with.
+ONE_CORE = {"OPENCV_FOR_THREADS_NUM": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 CITY_TILE_M = 250.0
 VECTOR_DIM = 64
 
 
-def _ingest(root: Path, drive: str, frames: int, store: Path, flags: list[str]) -> dict:
+def _ingest(root: Path, drive: str, frames: int, store: Path, flags: list[str], env: dict | None = None) -> dict:
     """One ingest command, timed, with the largest resident memory of any one of its child processes."""
     import psutil
 
     cmd = [*VISLOC, "ingest", str(root), "--drive", drive, "--camera", "image_00", "--db", str(store),
            "--limit", str(frames), *flags]
     start = time.perf_counter()
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, **(env or {})})
     parent = psutil.Process(proc.pid)
     worker_rss, main_rss = 0, 0
     while proc.poll() is None:
@@ -84,12 +89,13 @@ def measure_ingest(root: Path, frames: int) -> list[dict]:
         with tempfile.TemporaryDirectory() as tmp:
             for name, flags in RUNS.items():
                 store = Path(tmp) / (name + (".sqlite" if name.startswith("file") else ""))
-                runs[name] = _ingest(root, drive, n, store, flags)
+                runs[name] = _ingest(root, drive, n, store, flags, ONE_CORE if name.endswith("one_core") else None)
                 shutil.rmtree(store, ignore_errors=True) if store.is_dir() else store.unlink(missing_ok=True)
                 print(f"{drive} {name}: {runs[name]['seconds']:.0f} s", file=sys.stderr)
         out.append({"drive": drive, "images": n, "runs": runs,
                     "speedup_2_over_1": runs["tiles_1"]["seconds"] / runs["tiles_2"]["seconds"],
-                    "tiles_1_over_file_1": runs["tiles_1"]["seconds"] / runs["file_1"]["seconds"]})
+                    "tiles_1_over_file_1": runs["tiles_1"]["seconds"] / runs["file_1"]["seconds"],
+                    "tiles_1_over_file_1_one_core": runs["tiles_1"]["seconds"] / runs["file_1_one_core"]["seconds"]})
     return out
 
 
@@ -163,14 +169,17 @@ def read_city(folder: Path, n_images: int) -> dict:
 def render(result: dict) -> str:
     lines = [BEGIN, "", "Ingest, first frames of image_00 of each drive (wall time, images per second, the largest "
              "worker process's resident memory):", "",
-             "| drive | images | one file, 1 process | tiles, 1 worker | tiles, 2 workers | 2 workers / 1 | "
-             "tiles 1 worker / one file |", "|---|---|---|---|---|---|---|"]
+             "| drive | images | one file, 1 process | one file, 1 process, 1 thread | tiles, 1 worker | "
+             "tiles, 2 workers | 2 workers / 1 | tiles 1 worker / one file (1 thread) |",
+             "|---|---|---|---|---|---|---|---|"]
     for d in result["ingest"]:
         r = d["runs"]
-        cell = {k: f"{v['seconds']:.0f} s, {v['images_per_s']:.2f}/s, {v['worker_rss_mb']:.0f} MB" for k, v in r.items()}
-        cell["file_1"] = f"{r['file_1']['seconds']:.0f} s, {r['file_1']['images_per_s']:.2f}/s"
-        lines.append(f"| {d['drive']} | {d['images']} | {cell['file_1']} | {cell['tiles_1']} | {cell['tiles_2']} | "
-                     f"{d['speedup_2_over_1']:.2f}× | {d['tiles_1_over_file_1']:.2f}× |")
+        cell = {k: f"{v['seconds']:.0f} s, {v['images_per_s']:.2f}/s" for k, v in r.items()}
+        for k in ("tiles_1", "tiles_2"):
+            cell[k] += f", {r[k]['worker_rss_mb']:.0f} MB"
+        lines.append(f"| {d['drive']} | {d['images']} | {cell['file_1']} | {cell['file_1_one_core']} | "
+                     f"{cell['tiles_1']} | {cell['tiles_2']} | {d['speedup_2_over_1']:.2f}× | "
+                     f"{d['tiles_1_over_file_1']:.2f}× ({d['tiles_1_over_file_1_one_core']:.2f}×) |")
     per_core_h = 3600 * float(np.median([d["runs"]["tiles_1"]["images_per_s"] for d in result["ingest"]]))
     lines += ["", f"On paper, from the median one-worker rate ({per_core_h:.0f} images per core-hour, the whole "
               "ingest: SIFT, global vectors, structure, self-check, tiles), if every core kept it:", "",

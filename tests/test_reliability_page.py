@@ -86,3 +86,17 @@ def test_the_point_following_figures_are_what_their_json_renders():
         assert runs["follow_paced"]["sustained_hz"] <= 10.5  # paced at the camera's rate
         profile = runs["follow_paced"]["relocalizations"]
         assert profile["n"] > 0 and profile["total_ms"] >= profile["stages_ms"]["sift_ms"] > 0
+
+
+def test_the_sharding_figures_are_what_their_json_renders():
+    """docs/sharding.md's tables (ingest on a local cluster against one file, the synthetic city) are rendered
+    from docs/results/shard_scale.json, written by scripts/shard_scale.py: every drive, a city of a million
+    images in at least a thousand tiles."""
+    import json
+
+    import shard_scale
+
+    result = json.loads(shard_scale.OUT.read_text())
+    assert shard_scale.render(result) in (REPO / "docs" / "sharding.md").read_text()
+    assert len(result["ingest"]) == 3
+    assert result["city"]["images"] >= 1_000_000 and result["city"]["tiles"] >= 1000
