@@ -44,6 +44,7 @@ import time
 from collections.abc import Sequence
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from visloc.geometry.bundle import PosePriors, refine_database_poses
 from visloc.features.sift import Query
@@ -85,7 +86,22 @@ class StructureCache:
 def build_view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], params: RefinedParams,
                          cache: StructureCache) -> dict[int, np.ndarray]:
     """keypoint row of ``view`` -> (world point, its 3x3 covariance), triangulated from every neighbour
-    that sees it."""
+    that sees it. Made with one BLAS thread (``one_blas_thread``): the same bits at ingest, on a
+    cluster's workers and at query time."""
+    with one_blas_thread():
+        return _view_structure(geometry, view, neighbours, params, cache)
+
+
+def one_blas_thread():
+    """A context in which BLAS runs one thread. BLAS sums in another order with another number of
+    threads; what a store keeps (structure, self-checks) is made in it, so that a store built by one
+    process, by the workers of a cluster or on another machine holds the same bits, and the exact path
+    rebuilds a view's structure as the store holds it."""
+    return threadpool_limits(1, user_api="blas")
+
+
+def _view_structure(geometry: DatabaseGeometry, view: int, neighbours: Sequence[int], params: RefinedParams,
+                    cache: StructureCache) -> dict[int, np.ndarray]:
     tracks: dict[int, dict[int, np.ndarray]] = {}
     for c, j in enumerate(neighbours, 1):
         pairs = cache.pairs(geometry, view, j, params)

@@ -9,12 +9,11 @@ import uuid
 from collections.abc import Callable
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from visloc.db import StructureRecord
 from visloc.features.vlad import train_encoder
 from visloc.params import FAST, REFINED, FastParams, RefinedParams, SiftParams
-from visloc.pose.refined import StructureCache
+from visloc.pose.refined import StructureCache, one_blas_thread
 from visloc.pose.selfcheck import pose_record, self_check, self_check_settings_json
 from visloc.pose.structure import VARIANTS, seeded_structure_cache, structure_settings_json, view_structures
 from visloc.sources.drives import Sequence
@@ -109,17 +108,9 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
 
 
 def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, settings: str) -> list[StructureRecord]:
-    with one_blas_thread():
-        structures = view_structures(geometry, k, params, StructureCache())
     return [StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
-                            s.rows, s.points_world, s.cov_world, s.reason, s.build_ms) for s in structures]
-
-
-def one_blas_thread():
-    """Structure and self-checks are made with one BLAS thread, wherever they are made: BLAS sums in
-    another order with another number of threads, and a store built by one process, by the workers of
-    a cluster or on another machine then holds the same bits."""
-    return threadpool_limits(1, user_api="blas")
+                            s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
+            for s in view_structures(geometry, k, params, StructureCache())]  # with one BLAS thread
 
 
 _loaded: dict[tuple, tuple] = {}  # in a worker: the last database a task loaded, for the next task of its stage
