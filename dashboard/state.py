@@ -173,12 +173,13 @@ class Allowed:
 
 
 def discover_stores(path: Path, allowed: Allowed) -> list[str]:
-    """Store files to offer: ``path`` plus the SQLite files beside it, those the page may open."""
+    """Stores to offer: ``path`` plus the SQLite files beside it, those the page may open (a sharded
+    store is a folder: offered when it is ``path``)."""
     found: list[str] = []
     candidates = [path] + (sorted(path.parent.glob("*")) if path.parent.is_dir() else [])
     for c in candidates:
         if (c == path or c.suffix in STORE_SUFFIXES) and str(c) not in found and allowed.admits(c) \
-                and not c.is_dir():
+                and (not c.is_dir() or visloc.Workspace.is_sharded(c)):
             found.append(str(c))
     return found
 

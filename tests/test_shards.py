@@ -184,3 +184,22 @@ def test_ingest_joins_a_running_cluster_by_its_address(tmp_path, csv_drive):
         for p in reversed(procs):
             p.terminate()
             p.wait(timeout=60)
+
+
+@pytest.mark.kitti
+@pytest.mark.slow
+@pytest.mark.browser
+def test_the_dashboard_opens_a_sharded_store(city_0001, browser):
+    """``visloc dashboard --db FOLDER``: the page offers the folder as its store and plays the drive's first run."""
+    from helpers import RUN_S, DashboardProcess, new_page, screenshot
+
+    proc = DashboardProcess("--db", str(city_0001), "--port", "8431")
+    try:
+        page = new_page(browser)
+        page.goto(proc.url)
+        page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()
+        page.get_by_text("Step 1 of 11", exact=True).wait_for(timeout=RUN_S * 1000)
+        screenshot(page, "sharded_store_first_run.png")
+        page.close()
+    finally:
+        proc.stop()

@@ -100,7 +100,8 @@ def choose_database(ws: Workspace, query_source: str, *, db_source: str | None =
 def only_camera(path: Path | str) -> str | None:
     """The camera of a store holding exactly one (source, camera); None otherwise or if unreadable."""
     try:
-        datasets = Workspace(path, read_only=True).datasets() if Path(path).is_file() else []
+        datasets = (Workspace(path, read_only=True).datasets()
+                    if Path(path).is_file() or Workspace.is_sharded(path) else [])
     except InputError:
         return None
     return datasets[0].camera if len(datasets) == 1 else None

@@ -78,6 +78,11 @@ class Workspace:
             self.checksums_filled: int = store.checksums_filled  # arrays whose checksums that migration computed
 
     @staticmethod
+    def is_sharded(path: str | Path) -> bool:
+        """True when ``path`` is a sharded store (a folder of tiles) rather than a store file."""
+        return is_sharded(path)
+
+    @staticmethod
     @contextmanager
     def inspect(path: str | Path) -> Iterator[FeatureStore]:
         """The store at ``path`` read as it is, never changed, also when it lacks tables (``visloc check``)."""
