@@ -160,19 +160,47 @@ def lacking(db: sqlite_utils.Database, target: int = SCHEMA_VERSION) -> list[Cha
     return [change for step in HISTORY[:target] for change in step if not holds(change)]
 
 
+# A sharded store's manifest (``visloc.db.shards``): another kind of file than a store, with its own tables.
+MANIFEST_TABLES: tuple[Change, ...] = (
+    Table("grid", (("tile_schema_version", "INTEGER"), ("epsg", "INTEGER"), ("tile_m", "REAL"), ("halo_m", "REAL"),
+                   ("created_at", "TEXT"))),
+    Table("tiles", (("key", "TEXT PRIMARY KEY"), ("ix", "INTEGER"), ("iy", "INTEGER"), ("east_min_m", "REAL"),
+                    ("north_min_m", "REAL"), ("east_max_m", "REAL"), ("north_max_m", "REAL"), ("file", "TEXT"),
+                    ("n_images", "INTEGER"), ("n_owned", "INTEGER"), ("sha256", "TEXT"), ("rows_digest", "TEXT"),
+                    ("published_at", "TEXT"))),
+    Index("tiles", ("ix", "iy")),
+    Table("tile_datasets", (("tile", "TEXT"), ("source", "TEXT"), ("camera", "TEXT"), ("n_owned", "INTEGER"),
+                            ("first_timestamp_s", "REAL"), ("last_timestamp_s", "REAL")),
+          key=("tile", "source", "camera")),
+    Table("global_index", (("image_id", "INTEGER PRIMARY KEY"), ("source", "TEXT"), ("camera", "TEXT"),
+                           ("frame", "INTEGER"), ("timestamp_s", "REAL"), ("east_m", "REAL"), ("north_m", "REAL"),
+                           ("tile", "TEXT"), ("vector_name", "TEXT"), ("vector_f32", "BLOB"))),
+)
+
+
+def create_manifest(db: sqlite_utils.Database) -> None:
+    """Make a new manifest's tables, inside the caller's transaction."""
+    for change in MANIFEST_TABLES:
+        _apply(db, change, [], set())
+
+
+def _apply(db: sqlite_utils.Database, change: Change, todo: list[Change], made: set[str]) -> None:
+    if isinstance(change, Table):
+        db.execute(_create_table(change, [c for c in todo if isinstance(c, Column) and c.table == change.name]))
+    elif isinstance(change, Index):
+        db.execute(f"CREATE {'UNIQUE ' if change.unique else ''}INDEX {_quoted([change.name])}\n"
+                   f"    ON {_quoted([change.table])} ({_quoted(change.columns)})")
+    elif change.table not in made:
+        db.execute(f"ALTER TABLE [{change.table}] ADD COLUMN [{change.name}] {change.sql_type}")
+
+
 def upgrade(db: sqlite_utils.Database, version: int, target: int = SCHEMA_VERSION) -> None:
     """Bring a store of schema ``version`` (0: a new, empty store) to ``target``, inside the caller's
     transaction: apply what it lacks of the history's first ``target`` steps, then record ``target``."""
     todo = lacking(db, target)
     made = {change.name for change in todo if isinstance(change, Table)}
     for change in todo:
-        if isinstance(change, Table):
-            db.execute(_create_table(change, [c for c in todo if isinstance(c, Column) and c.table == change.name]))
-        elif isinstance(change, Index):
-            db.execute(f"CREATE {'UNIQUE ' if change.unique else ''}INDEX {_quoted([change.name])}\n"
-                       f"    ON {_quoted([change.table])} ({_quoted(change.columns)})")
-        elif change.table not in made:
-            db.execute(f"ALTER TABLE [{change.table}] ADD COLUMN [{change.name}] {change.sql_type}")
+        _apply(db, change, todo, made)
     if version == 0:
         db.execute("INSERT INTO visloc_schema (version, created_at) VALUES (?, ?)", [target, now_iso()])
     elif version < target:

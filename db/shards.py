@@ -38,7 +38,7 @@ import sqlite_utils
 
 from visloc.db.connection import BUSY_TIMEOUT_S, Database, connect
 from visloc.db.records import NotAStoreError, StoreError
-from visloc.db.schema import SCHEMA_VERSION, now_iso
+from visloc.db.schema import SCHEMA_VERSION, create_manifest, now_iso
 from visloc.db.store import FeatureStore
 
 MANIFEST_NAME = "manifest.sqlite"
@@ -98,18 +98,7 @@ class Manifest:
             raise NotAStoreError(f"{self.path}: not a visloc sharded store manifest")
 
     def _create(self) -> None:
-        self.db.execute("CREATE TABLE IF NOT EXISTS grid (tile_schema_version INTEGER, epsg INTEGER, tile_m REAL, "
-                        "halo_m REAL, created_at TEXT)")
-        self.db.execute("CREATE TABLE IF NOT EXISTS tiles (key TEXT PRIMARY KEY, ix INTEGER, iy INTEGER, "
-                        "east_min_m REAL, north_min_m REAL, east_max_m REAL, north_max_m REAL, file TEXT, "
-                        "n_images INTEGER, n_owned INTEGER, sha256 TEXT, rows_digest TEXT, published_at TEXT)")
-        self.db.execute("CREATE INDEX IF NOT EXISTS idx_tiles_ix_iy ON tiles (ix, iy)")
-        self.db.execute("CREATE TABLE IF NOT EXISTS tile_datasets (tile TEXT, source TEXT, camera TEXT, "
-                        "n_owned INTEGER, first_timestamp_s REAL, last_timestamp_s REAL, "
-                        "PRIMARY KEY (tile, source, camera))")
-        self.db.execute("CREATE TABLE IF NOT EXISTS global_index (image_id INTEGER PRIMARY KEY, source TEXT, "
-                        "camera TEXT, frame INTEGER, timestamp_s REAL, east_m REAL, north_m REAL, tile TEXT, "
-                        "vector_name TEXT, vector_f32 BLOB)")
+        create_manifest(self.db)
 
     def close(self) -> None:
         self.db.close()
