@@ -91,15 +91,7 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
     if progress:
         progress(0, len(todo))
     if cluster is not None:
-        run = uuid.uuid4().hex  # workers of a cluster outlive a run: what they loaded for another is not used
-        chunks = [(str(ws.path), source, camera, params, run, todo[i : i + 4]) for i in range(0, len(todo), 4)]
-        n = 0
-        for args, records in cluster.run_all(structure_records, chunks):
-            ws.save_structure(records)
-            n += len(args[-1])
-            if progress:
-                progress(n, len(todo))
-        return len(todo)
+        return _on_cluster(cluster, structure_records, ws.save_structure, ws, source, camera, params, todo, 4, progress)
     for n, k in enumerate(todo, 1):
         ws.save_structure(_view_records(geometry, ids_of, k, params, settings))
         if progress:
@@ -111,6 +103,21 @@ def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, se
     return [StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
                             s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
             for s in view_structures(geometry, k, params, StructureCache())]  # with one BLAS thread
+
+
+def _on_cluster(cluster, task, keep, ws: Workspace, source: str, camera: str, params: RefinedParams,
+                todo: list[int], per_task: int, progress: Progress) -> int:
+    """Run ``task`` on ``per_task`` database indices of ``todo`` at a time on the distributed engine, keeping
+    each chunk's records (``keep``) as it comes back: an interrupted step resumes. Returns len(todo)."""
+    run = uuid.uuid4().hex  # workers of a cluster outlive a run: what they loaded for another is not used
+    chunks = [(str(ws.path), source, camera, params, run, todo[i : i + per_task]) for i in range(0, len(todo), per_task)]
+    n = 0
+    for args, records in cluster.run_all(task, chunks):
+        keep(records)
+        n += len(args[-1])
+        if progress:
+            progress(n, len(todo))
+    return len(todo)
 
 
 _loaded: dict[tuple, tuple] = {}  # in a worker: the last database a task loaded, for the next task of its stage
@@ -155,16 +162,9 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
     if progress:
         progress(0, len(todo))
-    if cluster is not None:  # a chunk per task on the distributed engine, committed as each comes back
-        run = uuid.uuid4().hex
-        chunks = [(str(ws.path), source, camera, params, run, todo[i : i + 16]) for i in range(0, len(todo), 16)]
-        n = 0
-        for args, records in cluster.run_all(self_check_records, chunks):
-            ws.add_self_checks(records)
-            n += len(args[-1])
-            if progress:
-                progress(n, len(todo))
-        return len(todo)
+    if cluster is not None:
+        return _on_cluster(cluster, self_check_records, ws.add_self_checks, ws, source, camera, params, todo, 16,
+                           progress)
     cache = seeded_structure_cache(ws.load_structure(db, params))  # the views' stored structure, read
     for start in range(0, len(todo), 16):
         chunk = todo[start : start + 16]
