@@ -48,6 +48,7 @@ STAGING_NAME = "work/staging.sqlite"
 # the tables a tile carries, and how their rows are tied to images (None: every row)
 _IMAGE_KEYED = {"images": "id", "structures": "image_id", "global_vectors": "image_id", "self_checks": "image_id"}
 _WHOLE = ("settings", "cameras", "arrays", "skipped_frames")
+_FEATURE_BLOBS = {"keypoints_f32", "descriptors_u8"}
 # when a row was written, and how long making it took, are not what it says
 _DIGEST_SKIPS = {"created_at", "checked_at", "skipped_at", "sift_ms", "build_ms"}
 
@@ -167,6 +168,11 @@ class Manifest:
             self.db.conn.executemany("INSERT INTO global_index VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
                                      [(*r, vector_name, v) for r, v in zip(rows, vectors)])
 
+    def owner_tiles(self, source: str, camera: str) -> dict[int, str]:
+        """image id -> the key of the tile that owns it, for the images of (``source``, ``camera``)."""
+        return {int(i): t for i, t in self.db.execute(
+            "SELECT image_id, tile FROM global_index WHERE source = ? AND camera = ?", [source, camera])}
+
     def global_index(self) -> tuple[dict[str, np.ndarray], np.ndarray | None]:
         """(columns of the global index as arrays, the (N, D) vectors or None), read in parts so that a
         city's million rows never sit in memory as Python objects."""
@@ -257,9 +263,11 @@ def write_tile(staging: str | Path, folder: str | Path, key: str, image_ids: lis
     return relative, sha, digest
 
 
-def merge_tiles(folder: str | Path, files: list[str], target: str | Path) -> None:
+def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, features: bool = True) -> None:
     """One store at ``target`` holding every row of the tiles ``files`` (relative to ``folder``), each
-    image once: written into a temporary file and renamed into place."""
+    image once: written into a temporary file and renamed into place. ``features=False`` leaves the
+    images' keypoint and descriptor BLOBs out (NULL; their counts and checksums stay): a catalogue of
+    the store whose features are read from the tiles when a query needs them."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
@@ -272,8 +280,11 @@ def merge_tiles(folder: str | Path, files: list[str], target: str | Path) -> Non
                 conn.execute("ATTACH DATABASE ? AS tile", [(Path(folder) / file).absolute().as_uri() + "?mode=ro"])
                 with conn:
                     for table in (*_WHOLE, *_IMAGE_KEYED):
-                        names = ", ".join(f"[{c}]" for c in _columns(conn, "main", table))
-                        conn.execute(f"INSERT OR IGNORE INTO main.[{table}] ({names}) SELECT {names} "
+                        columns = _columns(conn, "main", table)
+                        names = ", ".join(f"[{c}]" for c in columns)
+                        picked = ", ".join("NULL" if not features and table == "images" and c in _FEATURE_BLOBS
+                                           else f"[{c}]" for c in columns)
+                        conn.execute(f"INSERT OR IGNORE INTO main.[{table}] ({names}) SELECT {picked} "
                                      f"FROM tile.[{table}] ORDER BY rowid")
                 conn.execute("DETACH DATABASE tile")
         finally:

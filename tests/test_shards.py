@@ -13,9 +13,11 @@ from hypothesis import strategies as st
 
 from visloc.db.shards import Manifest, file_sha256, rows_digest, staging_images
 from visloc.store.sharded import GlobalSearch, TileIndex, merged_store
+from visloc.store.workspace import Workspace
 from visloc.store.tiles import cells_within, owner_cells, tiles_of_images
 
 from conftest import KITTI_DRIVE, run_cli
+from helpers import one_line_error
 
 pytest.importorskip("distributed")
 
@@ -110,6 +112,52 @@ def test_sharded_ingest_equals_one_file_row_for_row_and_resumes(tmp_path, csv_dr
     info = run_cli("info", "--db", city)
     assert info.returncode == 0 and "12 images" in info.stdout, info.stdout + info.stderr
     assert f"sharded store: {len(tiles)} tiles of 4 m" in info.stdout
+
+
+def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_drive):
+    """A sharded store's database holds every image's metadata at once; the features of an image are
+    read from the tile that owns it when the engine asks for them, within the cache's budget."""
+    single = tmp_path / "one.sqlite"
+    assert _ingest(csv_drive, single, "--workers", "1").returncode == 0
+    city = tmp_path / "city"
+    assert _ingest(csv_drive, city, "--tile-m", "4", "--halo-m", "1", "--workers", "2").returncode == 0
+    with Manifest(city, read_only=True) as manifest:
+        n_tiles = len(manifest.tiles())
+    one = Workspace(single, read_only=True)
+    (dataset,) = one.datasets()
+    expected = one.load_database(dataset.source, dataset.camera)
+    ws = Workspace(city, tile_cache_mb=1.0)
+    db = ws.load_database(dataset.source, dataset.camera)
+    assert ws.tile_cache_stats.tiles_read == 0  # the metadata of every image, no features yet
+    assert [im.image_id for im in db.images] == [im.image_id for im in expected.images]
+    assert np.array_equal(db.east_north_m, expected.east_north_m)
+    assert np.array_equal(db.descriptors_u8[1], expected.descriptors_u8[1])
+    assert ws.tile_cache_stats.distinct_tiles == set(db.descriptors_u8.tiles_of([1]))  # its owner, only
+    assert ws.tile_cache_stats.tiles_read == 1 and n_tiles >= 3
+    geometry = db.geometry()
+    for k in range(len(db)):  # every image, the same bits, whichever tile it is read from
+        assert np.array_equal(db.keypoints_f32[k], expected.keypoints_f32[k])
+        assert np.array_equal(db.descriptors_u8[k], expected.descriptors_u8[k])
+        assert np.array_equal(geometry.keypoints_xy_px[k], expected.geometry().keypoints_xy_px[k])
+    assert ws.tile_cache_stats.distinct_tiles == set(db.descriptors_u8.tiles_of(range(len(db))))
+    small = Workspace(city, tile_cache_mb=1e-6)  # room for one tile at a time: read, dropped, read again
+    tiny = small.load_database(dataset.source, dataset.camera)
+    for k in (0, len(tiny) - 1, 0):
+        assert np.array_equal(tiny.descriptors_u8[k], expected.descriptors_u8[k])
+    stats = small.tile_cache_stats
+    assert stats.tiles_read == 3 and stats.tiles_evicted == 2 and len(stats.distinct_tiles) == 2
+    queries = small.load_queries(dataset.source, dataset.camera)
+    assert np.array_equal(queries.query(5).descriptors_u8, expected.descriptors_u8[5])
+    with pytest.raises(IndexError):
+        tiny.descriptors_u8[len(tiny)]
+    located = run_cli("localize", csv_drive, "--db", city, "--steps", "4")
+    assert located.returncode == 0, located.stderr
+    assert f"tiles read: {n_tiles} of {n_tiles} (" in located.stdout  # the first query is compared with every image
+
+    partial = tmp_path / "partial"  # a reading command never writes a sharded store: it says how to extend it
+    assert _ingest(csv_drive, partial, "--tile-m", "4", "--workers", "1", "--limit", "6").returncode == 0
+    refused = run_cli("evaluate", csv_drive, "--db", partial)
+    one_line_error(refused, str(partial), "6 of the 12 frames", "visloc ingest")
 
 
 # -- the same answers as one file (drive 0001 in 25 m tiles, two workers) -------------------------------

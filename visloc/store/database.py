@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,8 +34,8 @@ class GeoDatabase:
     lat_deg: np.ndarray  # (N,)
     lon_deg: np.ndarray  # (N,)
     east_north_m: np.ndarray  # (N, 2)
-    keypoints_f32: tuple[np.ndarray, ...]
-    descriptors_u8: tuple[np.ndarray, ...]
+    keypoints_f32: Sequence[np.ndarray]  # a tuple, or read from a sharded store's tiles when asked for
+    descriptors_u8: Sequence[np.ndarray]
     calibration: CameraRecord | None
     frame: LocalFrame
     up_m: np.ndarray | None = None  # (N,)
@@ -66,13 +67,18 @@ class GeoDatabase:
                                     "ingest' on the drive to fill them")
         T_world_camera = T_world_imu @ invert(camera.T_camera_imu) if camera is not None else T_world_imu
         return DatabaseGeometry(T_world_camera=T_world_camera,
-                                keypoints_xy_px=tuple(np.ascontiguousarray(k[:, :2], dtype=np.float64)
-                                                      for k in self.keypoints_f32),
+                                keypoints_xy_px=(tuple(map(_xy_f64, self.keypoints_f32))
+                                                 if isinstance(self.keypoints_f32, tuple)
+                                                 else self.keypoints_f32.map(_xy_f64)),  # read when asked
                                 descriptors_u8=self.descriptors_u8, camera=camera, unavailable_reason=reason,
                                 geotag_sigma_m=self.geotag_sigma_m,
                                 heading_spread_rad=(heading_spread_rad(self.east_north_m, self.rpy_rad[:, 2])
                                                     if self.rpy_rad is not None else None),
                                 lever_gain=self.lever_gain)
+
+
+def _xy_f64(keypoints_f32: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(keypoints_f32[:, :2], dtype=np.float64)
 
 
 def camera_model(record: CameraRecord | None, what: str) -> tuple[CameraModel | None, str | None]:
@@ -95,11 +101,11 @@ class QuerySet:
     timestamps_s: np.ndarray  # (N,)
     lat_deg: np.ndarray  # (N,) ground truth
     lon_deg: np.ndarray
-    descriptors_u8: tuple[np.ndarray, ...]
+    descriptors_u8: Sequence[np.ndarray]  # a tuple, or read from a sharded store's tiles when asked for
     sift_ms: np.ndarray  # (N,) time SIFT took on each query image, ms (NaN if unknown)
     image_ids: tuple[int, ...] = ()  # store ids, keys of cached correspondence counts
     paths: tuple[str, ...] = ()  # original image files (may be unreachable)
-    keypoints_f32: tuple[np.ndarray, ...] = ()  # (N, 6) per image: x_px, y_px, size, angle, response, octave
+    keypoints_f32: Sequence[np.ndarray] = ()  # (N, 6) per image: x_px, y_px, size, angle, response, octave
     heading_deg: np.ndarray | None = None  # (N,) ground-truth compass heading, NaN if unknown
     calibration: CameraRecord | None = None
     truth_sigma_m: np.ndarray | None = None  # (N,) the ground truth's stated accuracy, sigma per axis, m; NaN if unknown

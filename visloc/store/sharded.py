@@ -9,13 +9,15 @@ place and only then recorded in the manifest. A tile the manifest records with t
 redoes only what it had not finished.
 
 Reading: ``TileIndex`` picks the tiles a gate touches from the manifest, and the global index
-answers a query without a prediction; ``merged_store`` gives the commands one store file made of
-the tiles they read, cached by the tiles' checksums.
+answers a query without a prediction; ``merged_store`` gives the commands the store's catalogue (every
+row but the features, cached by the tiles' checksums), and ``visloc.store.tilecache`` reads the features
+of the tiles a query touches.
 """
 
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import tempfile
 from collections.abc import Callable
@@ -142,16 +144,19 @@ def sharded_grid(folder: str | Path) -> Grid:
 
 def check_tiles(folder: str | Path) -> list[str]:
     """One line per tile whose file is missing or no longer has the checksum the manifest states."""
-    problems = []
     with Manifest(folder, read_only=True) as manifest:
-        for t in manifest.tiles():
-            path = Path(folder) / t.file
-            if not path.is_file():
-                problems.append(f"{path}: tile {t.key} is missing")
-            elif file_sha256(path) != t.sha256:
-                problems.append(f"{path}: tile {t.key} does not match its checksum in the manifest (damaged or "
-                                "changed); 'visloc ingest' of its drives into the store writes it again")
-    return problems
+        tiles = manifest.tiles()
+    return [problem for t in tiles if (problem := _tile_problem(Path(folder), t)) is not None]
+
+
+def _tile_problem(folder: Path, tile: TileRecord) -> str | None:
+    path = folder / tile.file
+    if not path.is_file():
+        return f"{path}: tile {tile.key} is missing"
+    if file_sha256(path) != tile.sha256:
+        return (f"{path}: tile {tile.key} does not match its checksum in the manifest (damaged or changed); "
+                "'visloc ingest' of its drives into the store writes it again")
+    return None
 
 
 def sharded_summary(folder: str | Path) -> str:
@@ -163,23 +168,62 @@ def sharded_summary(folder: str | Path) -> str:
             f"halo, {owned} images owned, {held / max(owned, 1):.1f} copies each")
 
 
-def merged_store(folder: str | Path) -> Path:
+def _cache_folder() -> Path:
+    return Path(tempfile.gettempdir()) / f"visloc-{os.getuid() if hasattr(os, 'getuid') else 0}"
+
+
+def verify_tiles(folder: str | Path, tiles: list[TileRecord]) -> None:
+    """Refuse, naming the file, a tile that is missing or fails the checksum the manifest states. A
+    tile is hashed again only when its size or modification time changed since it last matched (as
+    git checks its working tree), so opening a large store reads no tile it does not need."""
+    folder = Path(folder)
+    stamps_path = _cache_folder() / "tile-stamps" / (
+        hashlib.sha256(str(folder.resolve()).encode()).hexdigest()[:24] + ".json")
+    try:
+        known = json.loads(stamps_path.read_text())
+    except (OSError, ValueError):
+        known = {}
+    fresh = {}
+    for t in tiles:
+        try:
+            st = (folder / t.file).stat()
+        except OSError:
+            raise InputError(f"{folder / t.file}: tile {t.key} is missing") from None
+        stamp = [t.sha256, st.st_size, st.st_mtime_ns]
+        if known.get(t.file) != stamp and (problem := _tile_problem(folder, t)) is not None:
+            raise InputError(problem)
+        fresh[t.file] = stamp
+    if fresh != known:
+        stamps_path.parent.mkdir(parents=True, exist_ok=True)
+        temporary = stamps_path.with_name(f".{stamps_path.name}.{os.getpid()}.tmp")
+        temporary.write_text(json.dumps(fresh))
+        os.replace(temporary, stamps_path)
+
+
+def merged_store(folder: str | Path, *, features: bool = True) -> Path:
     """One store file holding every tile of the sharded store ``folder`` (each image once), made at the
     first read and kept in the temporary folder under the digest of the tiles' checksums: a store that
-    changes gets a new one. Refuses a store with a tile that is missing or fails its checksum."""
+    changes gets a new one. ``features=False``: its catalogue, every row but the images' keypoints and
+    descriptors, which ``visloc.store.tilecache`` reads from the tiles a query needs. Refuses a store
+    with a tile that is missing or fails its checksum (``verify_tiles``)."""
     folder = Path(folder)
-    problems = check_tiles(folder)
-    if problems:
-        raise InputError(problems[0])
     with Manifest(folder, read_only=True) as manifest:
         tiles = manifest.tiles()
     if not tiles:
         raise InputError(f"{folder}: a sharded store without tiles yet (build it with 'visloc ingest --tile-m')")
-    digest = hashlib.sha256("".join(f"{t.key}:{t.sha256};" for t in tiles).encode()).hexdigest()[:24]
-    target = Path(tempfile.gettempdir()) / f"visloc-{os.getuid() if hasattr(os, 'getuid') else 0}" / f"{digest}.sqlite"
+    verify_tiles(folder, tiles)
+    kind = "store" if features else "catalogue"
+    digest = hashlib.sha256((kind + "".join(f"{t.key}:{t.sha256};" for t in tiles)).encode()).hexdigest()[:24]
+    target = _cache_folder() / f"{digest}.sqlite"
     if not target.is_file():
-        merge_tiles(folder, [t.file for t in tiles], target)
+        merge_tiles(folder, [t.file for t in tiles], target, features=features)
     return target
+
+
+def owner_tiles(folder: str | Path, source: str, camera: str) -> dict[int, str]:
+    """image id -> the tile that owns it, for (``source``, ``camera``) of the sharded store ``folder``."""
+    with Manifest(folder, read_only=True) as manifest:
+        return manifest.owner_tiles(source, camera)
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,8 @@ from visloc.errors import InputError
 from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
-from visloc.store.sharded import merged_store
+from visloc.store.sharded import merged_store, owner_tiles
+from visloc.store.tilecache import DEFAULT_TILE_CACHE_MB, TileCache, TileCacheStats
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
@@ -62,13 +63,16 @@ class Workspace:
     ``read_only=True`` never changes the file (no migration, no cached counts saved, works on a
     read-only medium): every method that would write raises ``InputError`` instead."""
 
-    def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False):
+    def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False,
+                 tile_cache_mb: float = DEFAULT_TILE_CACHE_MB):
         self.path = Path(path)
         self.read_only = read_only
-        # a sharded store (a folder of tiles, ``visloc.store.sharded``) is read as one file made of its
-        # tiles; it is extended by 'visloc ingest --tile-m' only
+        # a sharded store (a folder of tiles, ``visloc.store.sharded``) is read from its catalogue (every
+        # row but the features) and its features from the tiles a query touches, ``tile_cache_mb`` of
+        # them kept open (``visloc.store.tilecache``); it is extended by 'visloc ingest --tile-m' only
         self.sharded = is_sharded(self.path)
-        self._file = merged_store(self.path) if self.sharded else self.path
+        self._file = merged_store(self.path, features=False) if self.sharded else self.path
+        self._tiles = TileCache(self.path, tile_cache_mb) if self.sharded else None
         if self.sharded:
             self.read_only, create = True, False
         with self._store(create=create) as store:  # fail now, with the file's name, if it is no store
@@ -76,6 +80,15 @@ class Workspace:
             # opening for writing migrates a store of an older schema version in place: from which, if it did
             self.migrated_from: int | None = store.migrated_from
             self.checksums_filled: int = store.checksums_filled  # arrays whose checksums that migration computed
+
+    @property
+    def tile_cache_stats(self) -> TileCacheStats | None:
+        """What reading a sharded store's tiles did so far (None for a store file)."""
+        return None if self._tiles is None else self._tiles.stats
+
+    def tile_count(self) -> int:
+        """How many tiles the sharded store has (0 for a store file)."""
+        return 0 if self._tiles is None else self._tiles.n_tiles
 
     @staticmethod
     def is_sharded(path: str | Path) -> bool:
@@ -253,6 +266,9 @@ class Workspace:
         if not images:
             have = ", ".join(f"{s['source']}/{s['camera']}" for s in store.sources()) or "nothing"
             raise EmptyStoreError(f"{store.label}: no images of {source}/{camera} (it holds {have})")
+        if self._tiles is not None:
+            return (images, *self._tiles.features([im.image_id for im in images],
+                                                  owner_tiles(self.path, source, camera)))
         features = store.features(im.image_id for im in images)
         keypoints = tuple(features[im.image_id][0] for im in images)
         descriptors = tuple(features[im.image_id][1] for im in images)
@@ -348,6 +364,13 @@ class Workspace:
     def iter_descriptors(self, image_ids, chunk_size: int = 256) -> Iterator[tuple[int, np.ndarray]]:
         """(image id, descriptors_u8) for ``image_ids`` in order, read ``chunk_size`` images at a time:
         memory stays bounded however large the store."""
+        if self._tiles is not None:
+            ids = [int(i) for i in image_ids]
+            owners: dict[int, str] = {}
+            for d in self.datasets():
+                owners.update(owner_tiles(self.path, d.source, d.camera))
+            yield from zip(ids, self._tiles.features(ids, owners)[1])
+            return
         with self._store() as store:
             yield from store.iter_descriptors(image_ids, chunk_size)
 

@@ -1,0 +1,143 @@
+"""Features of a sharded store read tile by tile, when a query needs them, within a memory budget.
+
+A sharded store's database and queries carry every image's metadata (its time, geotag, attitude)
+from the store's catalogue, but their keypoints and descriptors are sequences that read an image's
+tile the first time the engine asks for one of its images: the search window (or the filter's gate,
+or a shortlist from the global vectors) decides which images a query looks at, so it decides which
+tiles are opened. Open tiles are kept, least recently used first out, while their arrays fit the
+budget; an image is always read from the tile that owns it, so a halo copy is never held twice.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from visloc.db import FeatureStore, StoreError
+from visloc.db.shards import Manifest
+from visloc.errors import InputError
+
+DEFAULT_TILE_CACHE_MB = 512.0  # features of open tiles a query process keeps, MB
+
+
+@dataclass
+class TileCacheStats:
+    """What a ``TileCache`` did: tiles read (again after an eviction counts again), tiles dropped to
+    stay within the budget, the distinct tiles read, the most bytes it held at once."""
+
+    tiles_read: int = 0
+    tiles_evicted: int = 0
+    distinct_tiles: set = field(default_factory=set)
+    peak_bytes: int = 0
+
+
+class TileCache:
+    """Open tiles of the sharded store ``folder``: tile key -> image id -> (keypoints_f32, descriptors_u8),
+    at most ``budget_mb`` of arrays (the tile being read is kept whatever its size). Thread-safe."""
+
+    def __init__(self, folder: str | Path, budget_mb: float = DEFAULT_TILE_CACHE_MB):
+        if not budget_mb > 0:
+            raise InputError(f"tile cache budget must be > 0 MB, got {budget_mb}")
+        self.folder = Path(folder)
+        self.budget_bytes = int(budget_mb * 1e6)
+        with Manifest(self.folder, read_only=True) as manifest:
+            self._files = {t.key: t.file for t in manifest.tiles()}
+        self._owned: dict[str, set[int]] = {}  # image ids a tile serves, as datasets were asked for
+        self._open: OrderedDict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = OrderedDict()
+        self._bytes: dict[str, int] = {}
+        self._lock = threading.RLock()
+        self.stats = TileCacheStats()
+
+    def __getstate__(self) -> dict:  # a copy in another process starts empty
+        state = self.__dict__.copy()
+        state.update(_open=OrderedDict(), _bytes={}, _lock=None, stats=TileCacheStats())
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
+
+    @property
+    def n_tiles(self) -> int:
+        return len(self._files)
+
+    @property
+    def held_bytes(self) -> int:
+        return sum(self._bytes.values())
+
+    def features(self, image_ids: Sequence[int], owners: dict[int, str]) -> tuple["TileFeatures", "TileFeatures"]:
+        """(keypoints, descriptors) of ``image_ids`` as lazy sequences; ``owners``: image id -> its tile."""
+        ids = [int(i) for i in image_ids]
+        lacking = [i for i in ids if i not in owners]
+        if lacking:
+            raise InputError(f"{self.folder}: image {lacking[0]} is in no tile of the manifest; run 'visloc ingest' "
+                             "of its drive into the store again")
+        keys = [owners[i] for i in ids]
+        with self._lock:
+            for i, key in zip(ids, keys):
+                self._owned.setdefault(key, set()).add(i)
+        return TileFeatures(self, ids, keys, 0), TileFeatures(self, ids, keys, 1)
+
+    def get(self, key: str, image_id: int) -> tuple[np.ndarray, np.ndarray]:
+        with self._lock:
+            tile = self._open.get(key)
+            if tile is None or image_id not in tile:
+                tile = self._read(key)
+            self._open.move_to_end(key)
+            return tile[image_id]
+
+    def _read(self, key: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        if key not in self._files:
+            raise InputError(f"{self.folder}: tile {key} is not in the manifest; run 'visloc ingest' into the store "
+                             "again")
+        path = self.folder / self._files[key]
+        try:
+            with FeatureStore(path, read_only=True) as store:
+                tile = store.features(sorted(self._owned.get(key, ())))
+        except StoreError as exc:
+            raise InputError(str(exc)) from None
+        for array in (a for pair in tile.values() for a in pair):
+            array.setflags(write=False)  # shared by every caller
+        self._open.pop(key, None)
+        self._bytes.pop(key, None)
+        self._open[key] = tile
+        self._bytes[key] = sum(kp.nbytes + desc.nbytes for kp, desc in tile.values())
+        self.stats.tiles_read += 1
+        self.stats.distinct_tiles.add(key)
+        self.stats.peak_bytes = max(self.stats.peak_bytes, self.held_bytes)
+        while self.held_bytes > self.budget_bytes and len(self._open) > 1:
+            oldest = next(iter(self._open))
+            del self._open[oldest], self._bytes[oldest]
+            self.stats.tiles_evicted += 1
+        return tile
+
+
+class TileFeatures(Sequence):
+    """One part (0: keypoints_f32, 1: descriptors_u8) of the features of a list of images, read from
+    their tiles through a ``TileCache`` when asked for; ``map(fn)`` gives the same sequence through ``fn``."""
+
+    def __init__(self, cache: TileCache, image_ids: list[int], tiles: list[str], part: int,
+                 fn: Callable[[np.ndarray], np.ndarray] | None = None):
+        self.cache, self.image_ids, self.tiles, self.part, self.fn = cache, image_ids, tiles, part, fn
+
+    def __len__(self) -> int:
+        return len(self.image_ids)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[k] for k in range(*index.indices(len(self)))]
+        k = range(len(self))[int(index)]  # IndexError as a list gives it
+        array = self.cache.get(self.tiles[k], self.image_ids[k])[self.part]
+        return array if self.fn is None else self.fn(array)
+
+    def map(self, fn: Callable[[np.ndarray], np.ndarray]) -> "TileFeatures":
+        return TileFeatures(self.cache, self.image_ids, self.tiles, self.part, fn)
+
+    def tiles_of(self, indices) -> list[str]:
+        """The distinct tiles the images at ``indices`` are read from, in first-use order."""
+        return list(dict.fromkeys(self.tiles[int(k)] for k in indices))
