@@ -91,9 +91,17 @@ class StructureMatcher:
         self.against = against
         self._rows = {i: structure_rows(s) for i, s in structures.items()}
         self._db_descriptors = db_descriptors
-        self._descriptors = {i: np.ascontiguousarray(db_descriptors[i][rows], np.float32)
-                             for i, rows in self._rows.items()}
-        self._half_sq = {i: 0.5 * np.einsum("ij,ij->i", d, d) for i, d in self._descriptors.items()}
+        # a view's structured descriptors as floats, made when a retrieval first counts it: a database
+        # read from a sharded store's tiles reads only the views its queries are compared with
+        self._views: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    def _view(self, i: int) -> tuple[np.ndarray, np.ndarray]:
+        """(descriptors of view ``i``'s structured keypoints as float32, half their squared norms)."""
+        view = self._views.get(i)
+        if view is None:
+            d = np.ascontiguousarray(self._db_descriptors[i][self._rows[i]], np.float32)
+            view = self._views[i] = (d, 0.5 * np.einsum("ij,ij->i", d, d))
+        return view
 
     def __call__(self, query_u8: np.ndarray, key: Hashable = None) -> CountFn:
         q = np.asarray(query_u8, np.float32)
@@ -110,7 +118,7 @@ class StructureMatcher:
                     pairs = correspondences(query_u8, self._db_descriptors[i], self.match)
                     n_3d = int(np.isin(pairs[:, 1], rows).sum())
                 else:
-                    pairs = _matches(q, q_sq, self._descriptors[i], self._half_sq[i], self.match.tau1, mutual=True)
+                    pairs = _matches(q, q_sq, *self._view(i), self.match.tau1, mutual=True)
                     pairs[:, 1] = rows[pairs[:, 1]]  # subset index -> keypoint row of the view
                     n_3d = len(pairs)
                 pairs_of[i] = pairs
