@@ -209,3 +209,19 @@ def write_exports(a: argparse.Namespace, run, frame, name: str) -> None:
         if path is not None:
             write_trajectory(path, run, frame, name=name)
             print(f"wrote {path}")
+
+
+def start_indices(a: argparse.Namespace, query_seq, schedule: list[list[int]]) -> set[int] | None:
+    """The start frames ``--start-frames`` asks for, checked against the series that fit."""
+    if not a.start_frames:
+        return None
+    try:
+        wanted = {int(v) for v in a.start_frames.split(",")}
+    except ValueError:
+        raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
+    allowed = {query_seq.frames[s[0]].frame for s in schedule}
+    if wanted - allowed:
+        raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at "
+                         f"{sorted(wanted - allowed)[:5]} (this drive's series start at frames {min(allowed)}.."
+                         f"{max(allowed)}: pick start frames there, or leave out --start-frames for every series)")
+    return wanted

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from visloc.bench.run import BenchParams, run_bench
 from visloc.cli.choices import (PAPER_DATABASE_CAMERA, require_exports, write_exports, choose_database, exclusion_for, kitti_camera, kitti_only_camera,
-                            make_folder_of, refuse_camera_for_csv, require_output, store_for_writing)
+                            make_folder_of, refuse_camera_for_csv, require_output, start_indices, store_for_writing)
 from visloc.errors import InputError, ParameterError
 from visloc.protocols.evaluation import evaluate, series_schedule
 from visloc.tracking.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
@@ -31,7 +31,7 @@ from visloc.protocols.suite import database_row, drive_protocols, drives_of, poo
 from visloc.protocols.track import run_track, track_filter, track_localizer
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
 from visloc.store.build import ingest_sequence
-from visloc.cli.sharding import ingest_sharded
+from visloc.cli.sharding import ingest_sharded, print_tiles_read, require_stored
 from visloc.store.sharded import sharded_summary
 from visloc.db.shards import is_sharded
 from visloc.store.check import check_sharded, check_store
@@ -90,6 +90,8 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
 
 def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,
             structure: bool = True, repair: bool = False, cluster=None):
+    if ws.sharded:  # read by this command, never written: it holds the drive, or says how to add it
+        return require_stored(ws, seq)
     report = ingest_sequence(ws, seq, sift, workers=a.workers, limit=limit, structure=structure, cluster=cluster,
                              progress=progress_reporter(f"ingest {seq.name}", "images"),
                              vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
@@ -195,6 +197,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
           f"mode {method.name}")
     print()
     print(series_tables(records, db.frame))
+    print_tiles_read(ws)
     if a.json:
         write_json(a.json, {"queries": seq.name, "database": f"{db.source}/{db.camera}", "mode": method.name,
                             "steps": [record_json(r, db.frame) for r in records],
@@ -204,22 +207,6 @@ def cmd_localize(a: argparse.Namespace) -> int:
         print(f"\nwrote {a.json}")
     write_exports(a, [records], db.frame, f"{seq.name} against {db.source}/{db.camera}, mode {method.name}")
     return 0
-
-
-def _start_indices(a: argparse.Namespace, query_seq: Sequence, schedule: list[list[int]]) -> set[int] | None:
-    """The start frames ``--start-frames`` asks for, checked against the series that fit."""
-    if not a.start_frames:
-        return None
-    try:
-        wanted = {int(v) for v in a.start_frames.split(",")}
-    except ValueError:
-        raise InputError(f"--start-frames {a.start_frames!r}: expected comma-separated frame numbers") from None
-    allowed = {query_seq.frames[s[0]].frame for s in schedule}
-    if wanted - allowed:
-        raise InputError(f"--start-frames {a.start_frames}: no series of {a.steps} queries starts at "
-                         f"{sorted(wanted - allowed)[:5]} (this drive's series start at frames {min(allowed)}.."
-                         f"{max(allowed)}: pick start frames there, or leave out --start-frames for every series)")
-    return wanted
 
 
 def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence | None, query_seq: Sequence,
@@ -284,7 +271,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
     schedule = series_schedule(query_seq.timestamps_s, filt.dt_s, a.steps, a.sampling)
     if not schedule:
         raise InputError(f"{query_seq.name}: too short for {a.steps} queries {filt.dt_s} s apart")
-    wanted = _start_indices(a, query_seq, schedule)
+    wanted = start_indices(a, query_seq, schedule)
     with store_for_writing(a.db):
         ws = Workspace(a.db, create=True)
         db_key = None if db_seq else choose_database(ws, query_seq.source, db_source=a.db_source,
@@ -293,6 +280,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
                                                   db_key=db_key)
     summary = _summary(result, sift)
     print(summary_text(summary))
+    print_tiles_read(ws)
     if a.json:
         write_json(a.json, evaluation_json(result, summary))
         print(f"wrote {a.json}")
@@ -400,6 +388,7 @@ def cmd_track(a: argparse.Namespace) -> int:
     run = run_track(localizer, seq, query_sift, db, params, indices=indices, progress=progress,
                     path_params={"method": method.as_dict()}, pose=method.pose)
     print(track_text(run.summary()))
+    print_tiles_read(ws)
     if a.json:
         write_json(a.json, run.as_json())
         print(f"wrote {a.json}")

@@ -58,3 +58,22 @@ def ingest_sharded(a: argparse.Namespace, sequences: list[Sequence], ingest_one:
           f"already), {report.n_images} images, {report.n_copies / max(report.n_images, 1):.1f} copies each with "
           f"the {halo_m:g} m halo")
     return 0
+
+
+def print_tiles_read(ws: Workspace) -> None:
+    """For a sharded store, one line on the tiles the command read and the memory they held."""
+    stats = ws.tile_cache_stats
+    if stats is not None:
+        print(f"tiles read: {len(stats.distinct_tiles)} of {ws.tile_count()} ({stats.tiles_read} reads, "
+              f"{stats.tiles_evicted} dropped to stay within the cache, at most {stats.peak_bytes / 1e6:.1f} MB of "
+              "features held)")
+
+
+def require_stored(ws: Workspace, seq: Sequence) -> None:
+    """A reading command's drive must be in the sharded store whole (its frames stored, or skipped as
+    unreadable at ingest): a sharded store is extended by 'visloc ingest --db FOLDER' only."""
+    skipped = sum(1 for f in ws.skipped_frames() if (f.source, f.camera) == (seq.source, seq.camera))
+    n = ws.stored_frame_count(seq.source, seq.camera)
+    if n + skipped < len(seq):
+        raise InputError(f"--db {ws.path}: the sharded store holds {n} of the {len(seq)} frames of {seq.name}; add "
+                         f"them with 'visloc ingest' of the drive into --db {ws.path}")
