@@ -13,6 +13,10 @@
    vector per image in the manifest; no features). Timed in this process: picking the tiles of a gated
    query (a disc of 30 m around a random point), the lost query (the 10 nearest global vectors by exact
    inner product, and their tiles), and this process's peak memory.
+3. Reading, on every drive of the data root: image_00 whole in tiles of 25 m (two workers), then the
+   paper's ``visloc localize`` (one series from the middle of the drive) and ``visloc track`` (every frame)
+   on it: the tiles each read (of how many), how often, and the most memory their features held, against
+   the features of every tile and the catalogue every command reads whole.
 
 Writes docs/results/shard_scale.json; ``--page`` renders its section of docs/sharding.md from it.
 """
@@ -22,6 +26,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import resource
 import shutil
 import subprocess
@@ -166,6 +171,56 @@ def read_city(folder: Path, n_images: int) -> dict:
             "process_peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
+READ_TILE_M = 25.0
+TILES_LINE = re.compile(r"tiles read: (\d+) of (\d+) \((\d+) reads, (\d+) dropped .* at most ([\d.]+) MB")
+
+
+def _tiles_read(cmd: list[str]) -> dict:
+    """Run a reading command; its "tiles read" line as numbers."""
+    done = subprocess.run([*VISLOC, *cmd], capture_output=True, text=True)
+    found = TILES_LINE.search(done.stdout)
+    if done.returncode != 0 or found is None:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{done.stdout[-2000:]}{done.stderr[-2000:]}")
+    distinct, total, reads, dropped, peak = found.groups()
+    return {"tiles_read": int(distinct), "tiles": int(total), "reads": int(reads), "dropped": int(dropped),
+            "peak_mb": float(peak)}
+
+
+def measure_reads(root: Path) -> list[dict]:
+    from visloc.sources.drives import open_source
+    from visloc.store.sharded import merged_store
+
+    out = []
+    for drive in sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync")):
+        n = len(open_source(root, drive=drive, camera="image_00"))
+        with tempfile.TemporaryDirectory() as tmp:
+            city = Path(tmp) / "city"
+            made = _ingest(root, drive, n, city, ["--tile-m", str(READ_TILE_M), "--workers", "2"])
+            where = [str(root), "--drive", drive, "--db", str(city)]
+            localize = _tiles_read(["localize", *where, "--start-frame", str(n // 2)])
+            track = _tiles_read(["track", *where])
+            tiles_mb = sum(f.stat().st_size for f in (city / "tiles").glob("*.sqlite")) / 1e6
+            catalogue_mb = merged_store(city, features=False).stat().st_size / 1e6
+        print(f"{drive} reads: localize {localize}, track {track}", file=sys.stderr)
+        out.append({"drive": drive, "images": n, "tile_m": READ_TILE_M, "ingest_s": made["seconds"], "tiles_mb": tiles_mb,
+                    "catalogue_mb": catalogue_mb, "localize": localize, "track": track})
+    return out
+
+
+def _render_reads(reads: list[dict]) -> list[str]:
+    lines = ["", f"Reading, image_00 of each drive whole in tiles of {reads[0]['tile_m']:g} m: the tiles a command "
+             "read (of the store's), how many reads (a tile dropped from the cache and read again counts again) "
+             "and the most memory the open tiles' features held; the catalogue is read whole by every command.", "",
+             "| drive | images | tile files | catalogue | localize, paper mode, one series | track, every frame |",
+             "|---|---|---|---|---|---|"]
+    for d in reads:
+        cell = {k: f"{d[k]['tiles_read']} of {d[k]['tiles']} tiles, {d[k]['reads']} reads, {d[k]['peak_mb']:.0f} MB"
+                for k in ("localize", "track")}
+        lines.append(f"| {d['drive']} | {d['images']} | {d['tiles_mb']:.0f} MB | {d['catalogue_mb']:.0f} MB | "
+                     f"{cell['localize']} | {cell['track']} |")
+    return lines
+
+
 def render(result: dict) -> str:
     lines = [BEGIN, "", "Ingest, first frames of image_00 of each drive (wall time, images per second, the largest "
              "worker process's resident memory):", "",
@@ -196,7 +251,8 @@ def render(result: dict) -> str:
               f"| lost query: 10 nearest of {c['images']:,} global vectors, their tiles | {c['lost_query_ms_p50']:.0f} ms "
               f"| {c['lost_query_ms_p95']:.0f} ms |", "",
               f"Opening: the tile index {c['open_tile_index_s']:.2f} s, the global index {c['open_global_index_s']:.1f} s "
-              f"(once per query process). The query process's peak memory: {c['process_peak_mb']:.0f} MB.", "",
+              f"(once per query process). The query process's peak memory: {c['process_peak_mb']:.0f} MB.",
+              *(_render_reads(result["reads"]) if result.get("reads") else []), "",
               f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} after; "
               f"{result['cores']} cores.", END]
     return "\n".join(lines)
@@ -208,6 +264,7 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--images", type=int, default=1_000_000)
     ap.add_argument("--skip-ingest", action="store_true", help="keep the JSON's ingest figures, measure the city only")
+    ap.add_argument("--reads-only", action="store_true", help="keep the JSON's other figures, measure reading only")
     ap.add_argument("--page", action="store_true", help="only render docs/sharding.md's section from the JSON")
     ap.add_argument("--read-city", type=Path, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -217,10 +274,14 @@ def main() -> int:
     if not a.page:
         before = os.getloadavg()[0]
         old = json.loads(OUT.read_text()) if OUT.exists() else {}
-        ingest = old["ingest"] if a.skip_ingest else measure_ingest(a.root, a.frames)
-        with tempfile.TemporaryDirectory() as tmp:
-            city = measure_city(a.images, Path(tmp) / "city")
-        OUT.write_text(json.dumps({"ingest": ingest, "city": city, "load_1min_before": before,
+        ingest = old["ingest"] if a.skip_ingest or a.reads_only else measure_ingest(a.root, a.frames)
+        if a.reads_only:
+            city = old["city"]
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                city = measure_city(a.images, Path(tmp) / "city")
+        reads = measure_reads(a.root)
+        OUT.write_text(json.dumps({"ingest": ingest, "city": city, "reads": reads, "load_1min_before": before,
                                    "load_1min_after": os.getloadavg()[0], "cores": os.cpu_count()}, indent=1) + "\n")
         print(f"wrote {OUT.relative_to(REPO)}")
     PAGE.write_text(replace_section(PAGE, BEGIN, END, render(json.loads(OUT.read_text()))))
