@@ -213,18 +213,41 @@ def rows_digest(path: str | Path, image_ids: list[int]) -> str:
     conn = connect(Path(path), str(path), read_only=True)
     try:
         digest = hashlib.sha256()
-        conn.execute("CREATE TEMP TABLE wanted (id INTEGER PRIMARY KEY)")
-        conn.executemany("INSERT INTO wanted VALUES (?)", [(i,) for i in ids])
+        _want(conn, ids, "main")
         for table in (*_WHOLE, *_IMAGE_KEYED):
             declared = conn.execute(f"PRAGMA main.table_info([{table}])").fetchall()
             names = [r[1] for r in declared if r[2].upper() != "BLOB" and r[1] not in _DIGEST_SKIPS]
-            where = f" WHERE [{_IMAGE_KEYED[table]}] IN (SELECT id FROM wanted)" if table in _IMAGE_KEYED else ""
+            where = _tile_rows(table)
             listed = ", ".join(f"[{n}]" for n in names)
             for row in conn.execute(f"SELECT {listed} FROM [{table}]{where} ORDER BY {listed}"):
                 digest.update(json.dumps([table, *row]).encode())
         return digest.hexdigest()
     finally:
         conn.close()
+
+
+def _want(conn: sqlite3.Connection, image_ids: list[int], schema: str) -> None:
+    """Temporary tables of the images a tile holds and of their (source, camera)s, from ``schema``'s images."""
+    conn.execute("CREATE TEMP TABLE wanted (id INTEGER PRIMARY KEY)")
+    conn.executemany("INSERT INTO wanted VALUES (?)", [(int(i),) for i in image_ids])
+    conn.execute("CREATE TEMP TABLE wanted_datasets (source TEXT, camera TEXT, prefix TEXT)")
+    conn.execute(f"INSERT INTO wanted_datasets SELECT DISTINCT source, camera, 'vlad:' || source || '/' || camera "
+                 f"|| ':' FROM [{schema}].images WHERE id IN (SELECT id FROM wanted)")
+
+
+def _tile_rows(table: str) -> str:
+    """The WHERE clause picking a tile's rows of ``table`` (after ``_want``): the rows of its images, and of
+    the store-wide tables only what its drives need. A drive added to the store changes only the tiles
+    it passes through: its camera and its global vectors' encoder (named 'vlad:SOURCE/CAMERA:...', as
+    ``visloc.store.workspace.global_vectors_name`` names them) go only into the tiles holding its images."""
+    if table in _IMAGE_KEYED:
+        return f" WHERE [{_IMAGE_KEYED[table]}] IN (SELECT id FROM wanted)"
+    if table in ("cameras", "skipped_frames"):
+        return " WHERE (source, camera) IN (SELECT source, camera FROM wanted_datasets)"
+    if table == "arrays":
+        return (" WHERE substr([key], 1, 5) != 'vlad:' OR EXISTS (SELECT 1 FROM wanted_datasets w "
+                "WHERE substr([key], 1, length(w.prefix)) = w.prefix)")
+    return ""
 
 
 def write_tile(staging: str | Path, folder: str | Path, key: str, image_ids: list[int]) -> tuple[str, str, str]:
@@ -242,13 +265,11 @@ def write_tile(staging: str | Path, folder: str | Path, key: str, image_ids: lis
         try:
             conn.execute("PRAGMA journal_mode=DELETE")  # one self-contained file, no side files to rename
             conn.execute("ATTACH DATABASE ? AS staging", [Path(staging).absolute().as_uri() + "?mode=ro"])
-            conn.execute("CREATE TEMP TABLE wanted (id INTEGER PRIMARY KEY)")
-            conn.executemany("INSERT INTO wanted VALUES (?)", [(int(i),) for i in sorted(image_ids)])
+            _want(conn, sorted(int(i) for i in image_ids), "staging")
             with conn:
                 for table in (*_WHOLE, *_IMAGE_KEYED):
                     names = ", ".join(f"[{c}]" for c in _columns(conn, "main", table))
-                    where = (f" WHERE [{_IMAGE_KEYED[table]}] IN (SELECT id FROM wanted)"
-                             if table in _IMAGE_KEYED else "")
+                    where = _tile_rows(table)
                     conn.execute(f"INSERT OR REPLACE INTO main.[{table}] ({names}) SELECT {names} "
                                  f"FROM staging.[{table}]{where} ORDER BY rowid")
             conn.execute("DETACH DATABASE staging")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 import time
 from pathlib import Path
 
@@ -112,6 +113,29 @@ def test_sharded_ingest_equals_one_file_row_for_row_and_resumes(tmp_path, csv_dr
     info = run_cli("info", "--db", city)
     assert info.returncode == 0 and "12 images" in info.stdout, info.stdout + info.stderr
     assert f"sharded store: {len(tiles)} tiles of 4 m" in info.stdout
+
+
+def test_a_drive_added_elsewhere_leaves_every_tile_there_as_it_was(tmp_path, csv_drive):
+    """A city grows drive by drive: a drive 1 km north writes its own tiles only; the tiles already
+    there (their rows, their files) stay untouched."""
+    other = tmp_path / "north"
+    shutil.copytree(csv_drive.parent, other)
+    lines = (other / "geotags.csv").read_text().splitlines()
+    moved = [lines[0]] + [",".join([f, t, f"{float(lat) + 0.009:.9f}", lon, h])
+                          for f, t, lat, lon, h in (line.split(",") for line in lines[1:])]
+    (other / "geotags.csv").write_text("\n".join(moved) + "\n")
+    city = tmp_path / "city"
+    assert _ingest(csv_drive, city, "--tile-m", "4", "--workers", "2").returncode == 0
+    with Manifest(city, read_only=True) as manifest:
+        before = {t.key: t.sha256 for t in manifest.tiles()}
+    added = _ingest(other / "geotags.csv", city, "--workers", "2")
+    assert added.returncode == 0, added.stderr
+    with Manifest(city, read_only=True) as manifest:
+        after = {t.key: t.sha256 for t in manifest.tiles()}
+    assert len(after) == 2 * len(before) and all(after[k] == sha for k, sha in before.items())
+    assert f"({len(before)} written, {len(before)} complete already)" in added.stdout
+    info = run_cli("info", "--db", city)
+    assert info.returncode == 0 and "24 images" in info.stdout, info.stdout + info.stderr
 
 
 def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_drive):
