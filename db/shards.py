@@ -316,6 +316,13 @@ def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, fea
         raise
 
 
+def tile_features(path: str | Path, image_ids: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """image id -> (keypoints_f32, descriptors_u8) of ``image_ids`` from the tile at ``path`` (each checked
+    against its CRC-32); ``StoreError`` naming the file when it cannot be read."""
+    with FeatureStore(path, read_only=True) as store:
+        return store.features(image_ids)
+
+
 def staging_images(path: str | Path) -> list[tuple[int, str, str, int, float, float, float]]:
     """(id, source, camera, frame, timestamp_s, lat_deg, lon_deg) of every image of the store at ``path``."""
     db = sqlite_utils.Database(connect(Path(path), str(path), read_only=True))

@@ -10,6 +10,7 @@ budget; an image is always read from the tile that owns it, so a halo copy is ne
 
 from __future__ import annotations
 
+import sqlite3
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
@@ -18,8 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from visloc.db import FeatureStore, StoreError
-from visloc.db.shards import Manifest
+from visloc.db import StoreError
+from visloc.db.connection import sqlite_error_line
+from visloc.db.shards import Manifest, tile_features
 from visloc.errors import InputError
 
 DEFAULT_TILE_CACHE_MB = 512.0  # features of open tiles a query process keeps, MB
@@ -97,10 +99,11 @@ class TileCache:
                              "again")
         path = self.folder / self._files[key]
         try:
-            with FeatureStore(path, read_only=True) as store:
-                tile = store.features(sorted(self._owned.get(key, ())))
+            tile = tile_features(path, sorted(self._owned.get(key, ())))
         except StoreError as exc:
             raise InputError(str(exc)) from None
+        except sqlite3.Error as exc:
+            raise InputError(sqlite_error_line(str(path), exc)) from None
         for array in (a for pair in tile.values() for a in pair):
             array.setflags(write=False)  # shared by every caller
         self._open.pop(key, None)
