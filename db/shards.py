@@ -323,6 +323,19 @@ def tile_features(path: str | Path, image_ids: list[int]) -> dict[int, tuple[np.
         return store.features(image_ids)
 
 
+def table_bytes(path: str | Path) -> dict[str, int]:
+    """Table -> the bytes its pages (indexes included) take in the store at ``path`` (SQLite's dbstat)."""
+    conn = connect(Path(path), str(path), read_only=True)
+    try:
+        out: dict[str, int] = {}
+        for name, table, size in conn.execute("SELECT d.name, m.tbl_name, sum(d.pgsize) FROM dbstat d "
+                                              "JOIN sqlite_master m ON m.name = d.name GROUP BY d.name"):
+            out[table] = out.get(table, 0) + int(size)
+        return out
+    finally:
+        conn.close()
+
+
 def staging_images(path: str | Path) -> list[tuple[int, str, str, int, float, float, float]]:
     """(id, source, camera, frame, timestamp_s, lat_deg, lon_deg) of every image of the store at ``path``."""
     db = sqlite_utils.Database(connect(Path(path), str(path), read_only=True))

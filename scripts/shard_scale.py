@@ -14,8 +14,8 @@
    query (a disc of 30 m around a random point), the lost query (the 10 nearest global vectors by exact
    inner product, and their tiles), and this process's peak memory.
 3. Reading, on every drive of the data root: image_00 whole in tiles of 25 m (two workers), then the
-   paper's ``visloc localize`` (one series from the middle of the drive) and ``visloc track`` (every frame)
-   on it: the tiles each read (of how many), how often, and the most memory their features held, against
+   paper's ``visloc localize`` (one series from the middle of the drive) and ``visloc track`` (every frame,
+   then the first third of the frames) on it: the tiles each read (of how many), how often, and the most memory their features held, against
    the features of every tile and the catalogue every command reads whole.
 
 Writes docs/results/shard_scale.json; ``--page`` renders its section of docs/sharding.md from it.
@@ -188,6 +188,7 @@ def _tiles_read(cmd: list[str]) -> dict:
 
 def measure_reads(root: Path) -> list[dict]:
     from visloc.sources.drives import open_source
+    from visloc.db.shards import table_bytes
     from visloc.store.sharded import merged_store
 
     out = []
@@ -199,11 +200,16 @@ def measure_reads(root: Path) -> list[dict]:
             where = [str(root), "--drive", drive, "--db", str(city)]
             localize = _tiles_read(["localize", *where, "--start-frame", str(n // 2)])
             track = _tiles_read(["track", *where])
+            track_third = _tiles_read(["track", *where, "--frames", str(n // 3)])
             tiles_mb = sum(f.stat().st_size for f in (city / "tiles").glob("*.sqlite")) / 1e6
-            catalogue_mb = merged_store(city, features=False).stat().st_size / 1e6
+            catalogue = merged_store(city, features=False)
+            catalogue_mb = catalogue.stat().st_size / 1e6
+            catalogue_tables_mb = {k: v / 1e6 for k, v in table_bytes(catalogue).items()}
         print(f"{drive} reads: localize {localize}, track {track}", file=sys.stderr)
         out.append({"drive": drive, "images": n, "tile_m": READ_TILE_M, "ingest_s": made["seconds"], "tiles_mb": tiles_mb,
-                    "catalogue_mb": catalogue_mb, "localize": localize, "track": track})
+                    "catalogue_mb": catalogue_mb,
+                    "catalogue_tables_mb": catalogue_tables_mb, "localize": localize, "track": track,
+                    "track_first_third": track_third})
     return out
 
 
@@ -211,13 +217,15 @@ def _render_reads(reads: list[dict]) -> list[str]:
     lines = ["", f"Reading, image_00 of each drive whole in tiles of {reads[0]['tile_m']:g} m: the tiles a command "
              "read (of the store's), how many reads (a tile dropped from the cache and read again counts again) "
              "and the most memory the open tiles' features held; the catalogue is read whole by every command.", "",
-             "| drive | images | tile files | catalogue | localize, paper mode, one series | track, every frame |",
-             "|---|---|---|---|---|---|"]
+             "| drive | images | tile files | catalogue (its structure, its global vectors) | localize, paper mode, one series | track, every frame | "
+             "track, first third of the frames |", "|---|---|---|---|---|---|---|"]
     for d in reads:
         cell = {k: f"{d[k]['tiles_read']} of {d[k]['tiles']} tiles, {d[k]['reads']} reads, {d[k]['peak_mb']:.0f} MB"
-                for k in ("localize", "track")}
-        lines.append(f"| {d['drive']} | {d['images']} | {d['tiles_mb']:.0f} MB | {d['catalogue_mb']:.0f} MB | "
-                     f"{cell['localize']} | {cell['track']} |")
+                for k in ("localize", "track", "track_first_third")}
+        t = d.get("catalogue_tables_mb", {})
+        lines.append(f"| {d['drive']} | {d['images']} | {d['tiles_mb']:.0f} MB | {d['catalogue_mb']:.0f} MB "
+                     f"({t.get('structures', 0):.0f} MB, {t.get('global_vectors', 0):.1f} MB) | "
+                     f"{cell['localize']} | {cell['track']} | {cell['track_first_third']} |")
     return lines
 
 
