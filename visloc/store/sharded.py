@@ -188,7 +188,7 @@ def verify_tiles(folder: str | Path, tiles: list[TileRecord]) -> None:
         try:
             st = (folder / t.file).stat()
         except OSError:
-            raise InputError(f"{folder / t.file}: tile {t.key} is missing") from None
+            raise InputError(_tile_problem(folder, t)) from None
         stamp = [t.sha256, st.st_size, st.st_mtime_ns]
         if known.get(t.file) != stamp and (problem := _tile_problem(folder, t)) is not None:
             raise InputError(problem)

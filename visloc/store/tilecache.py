@@ -55,15 +55,6 @@ class TileCache:
         self._lock = threading.RLock()
         self.stats = TileCacheStats()
 
-    def __getstate__(self) -> dict:  # a copy in another process starts empty
-        state = self.__dict__.copy()
-        state.update(_open=OrderedDict(), _bytes={}, _lock=None, stats=TileCacheStats())
-        return state
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._lock = threading.RLock()
-
     @property
     def n_tiles(self) -> int:
         return len(self._files)
