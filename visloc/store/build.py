@@ -5,6 +5,7 @@ what these make; every step is resumable and skips what the store already holds.
 
 from __future__ import annotations
 
+import math
 import uuid
 from collections.abc import Callable
 
@@ -108,8 +109,11 @@ def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, se
 def _on_cluster(cluster, task, keep, ws: Workspace, source: str, camera: str, params: RefinedParams,
                 todo: list[int], per_task: int, progress: Progress) -> int:
     """Run ``task`` on ``per_task`` database indices of ``todo`` at a time on the distributed engine, keeping
-    each chunk's records (``keep``) as it comes back: an interrupted step resumes. Returns len(todo)."""
+    each chunk's records (``keep``) as it comes back: an interrupted step resumes. Fewer per task when
+    that gives every worker fewer than four tasks, so that no worker is left with the last long task
+    while the others idle. Returns len(todo)."""
     run = uuid.uuid4().hex  # workers of a cluster outlive a run: what they loaded for another is not used
+    per_task = max(1, min(per_task, math.ceil(len(todo) / (4 * max(cluster.n_workers, 1)))))
     chunks = [(str(ws.path), source, camera, params, run, todo[i : i + per_task]) for i in range(0, len(todo), per_task)]
     n = 0
     for args, records in cluster.run_all(task, chunks):
