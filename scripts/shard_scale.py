@@ -1,6 +1,7 @@
 """Sharded stores measured: ingest on a local Dask cluster against today's single file, and a synthetic city.
 
-    python scripts/shard_scale.py [--root ../shared/data/kitti] [--frames 100] [--images 1000000]
+    python scripts/shard_scale.py [--root ../shared/data/kitti] [--frames 100] [--repeats 3] [--images 1000000]
+    python scripts/shard_scale.py --only ingest --only city   # measure those parts, keep the JSON's others
     python scripts/shard_scale.py --page   # its section of docs/sharding.md from the JSON
 
 1. Ingest, on every drive of the data root: the first ``--frames`` frames of image_00 (SIFT, global vectors,
@@ -52,6 +53,7 @@ RUNS = {"file_1": ["--workers", "1"], "file_1_one_core": ["--workers", "1"],
 # today's ingest with one worker runs SIFT in its own process with OpenCV's threads, and BLAS's: on this
 # machine it uses both cores. Run again with one thread each, it is the one-core figure a worker compares with.
 ONE_CORE = {"OPENCV_FOR_THREADS_NUM": "1", "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+PARTS = ("ingest", "city", "reads")
 CITY_TILE_M = 250.0
 VECTOR_DIM = 64
 
@@ -83,24 +85,44 @@ def _ingest(root: Path, drive: str, frames: int, store: Path, flags: list[str], 
             "main_rss_mb": main_rss / 2**20}
 
 
-def measure_ingest(root: Path, frames: int) -> list[dict]:
+def measure_ingest(root: Path, frames: int, repeats: int) -> list[dict]:
+    """Every configuration of ``RUNS`` on every drive, ``repeats`` rounds, each round running every
+    configuration once (so that a change of load meets all of them); per configuration the median time,
+    and each ratio as the median of the rounds' ratios (paths compared within the same round)."""
     from visloc.sources.drives import open_source
 
     drives = sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync"))
+    counts = {drive: min(frames, len(open_source(root, drive=drive, camera="image_00"))) for drive in drives}
+    rounds: dict[str, list[dict]] = {drive: [] for drive in drives}
+    for k in range(repeats):
+        for drive in drives:
+            runs = {}
+            with tempfile.TemporaryDirectory() as tmp:
+                for name, flags in RUNS.items():
+                    store = Path(tmp) / (name + (".sqlite" if name.startswith("file") else ""))
+                    runs[name] = _ingest(root, drive, counts[drive], store, flags,
+                                         ONE_CORE if name.endswith("one_core") else None)
+                    shutil.rmtree(store, ignore_errors=True) if store.is_dir() else store.unlink(missing_ok=True)
+                    print(f"round {k + 1}/{repeats} {drive} {name}: {runs[name]['seconds']:.0f} s", file=sys.stderr)
+            rounds[drive].append(runs)
     out = []
     for drive in drives:
-        n = min(frames, len(open_source(root, drive=drive, camera="image_00")))
+        n, done = counts[drive], rounds[drive]
         runs = {}
-        with tempfile.TemporaryDirectory() as tmp:
-            for name, flags in RUNS.items():
-                store = Path(tmp) / (name + (".sqlite" if name.startswith("file") else ""))
-                runs[name] = _ingest(root, drive, n, store, flags, ONE_CORE if name.endswith("one_core") else None)
-                shutil.rmtree(store, ignore_errors=True) if store.is_dir() else store.unlink(missing_ok=True)
-                print(f"{drive} {name}: {runs[name]['seconds']:.0f} s", file=sys.stderr)
-        out.append({"drive": drive, "images": n, "runs": runs,
-                    "speedup_2_over_1": runs["tiles_1"]["seconds"] / runs["tiles_2"]["seconds"],
-                    "tiles_1_over_file_1": runs["tiles_1"]["seconds"] / runs["file_1"]["seconds"],
-                    "tiles_1_over_file_1_one_core": runs["tiles_1"]["seconds"] / runs["file_1_one_core"]["seconds"]})
+        for name in RUNS:
+            seconds = [r[name]["seconds"] for r in done]
+            median_s = float(np.median(seconds))
+            runs[name] = {"seconds": median_s, "seconds_each": seconds, "images_per_s": n / median_s,
+                          "worker_rss_mb": max(r[name]["worker_rss_mb"] for r in done),
+                          "main_rss_mb": max(r[name]["main_rss_mb"] for r in done)}
+
+        def ratio(a: str, b: str) -> float:
+            return float(np.median([r[a]["seconds"] / r[b]["seconds"] for r in done]))
+
+        out.append({"drive": drive, "images": n, "repeats": repeats, "runs": runs,
+                    "speedup_2_over_1": ratio("tiles_1", "tiles_2"),
+                    "tiles_1_over_file_1": ratio("tiles_1", "file_1"),
+                    "tiles_1_over_file_1_one_core": ratio("tiles_1", "file_1_one_core")})
     return out
 
 
@@ -230,8 +252,11 @@ def _render_reads(reads: list[dict]) -> list[str]:
 
 
 def render(result: dict) -> str:
+    repeats = result["ingest"][0].get("repeats", 1)
     lines = [BEGIN, "", "Ingest, first frames of image_00 of each drive (wall time, images per second, the largest "
-             "worker process's resident memory):", "",
+             "worker process's resident memory; " + (f"the median of {repeats} rounds, each running every "
+             "configuration once, and each ratio the median of the rounds' ratios" if repeats > 1 else "one run")
+             + "):", "",
              "| drive | images | one file, 1 process | one file, 1 process, 1 thread | tiles, 1 worker | "
              "tiles, 2 workers | 2 workers / 1 | tiles 1 worker / one file (1 thread) |",
              "|---|---|---|---|---|---|---|---|"]
@@ -243,6 +268,7 @@ def render(result: dict) -> str:
         lines.append(f"| {d['drive']} | {d['images']} | {cell['file_1']} | {cell['file_1_one_core']} | "
                      f"{cell['tiles_1']} | {cell['tiles_2']} | {d['speedup_2_over_1']:.2f}× | "
                      f"{d['tiles_1_over_file_1']:.2f}× ({d['tiles_1_over_file_1_one_core']:.2f}×) |")
+    lines += _load_line(result, "ingest_load_1min", "while ingesting")
     per_core_h = 3600 * float(np.median([d["runs"]["tiles_1"]["images_per_s"] for d in result["ingest"]]))
     lines += ["", f"On paper, from the median one-worker rate ({per_core_h:.0f} images per core-hour, the whole "
               "ingest: SIFT, global vectors, structure, self-check, tiles), if every core kept it:", "",
@@ -260,13 +286,18 @@ def render(result: dict) -> str:
               f"| {c['lost_query_ms_p95']:.0f} ms |", "",
               f"Opening: the tile index {c['open_tile_index_s']:.2f} s, the global index {c['open_global_index_s']:.1f} s "
               f"(once per query process). The query process's peak memory: {c['process_peak_mb']:.0f} MB.",
-              "", f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} after; "
-              f"{result['cores']} cores.",
+              *_load_line(result, "city_load_1min", "while timing the city"),
               *(_render_reads(result["reads"]) if result.get("reads") else []),
-              *([f"Load average (1 min) while reading {result['reads_load_1min'][0]:.1f} before, "
-                 f"{result['reads_load_1min'][1]:.1f} after (the figures are counts, not times)."]
-                if result.get("reads_load_1min") else []), END]
+              *_load_line(result, "reads_load_1min", "while reading", " (the figures are counts, not times)"),
+              END]
     return "\n".join(lines)
+
+
+def _load_line(result: dict, key: str, what: str, tail: str = "") -> list[str]:
+    if key not in result:
+        return []
+    before, after = result[key]
+    return ["", f"Load average (1 min) {what}: {before:.1f} before, {after:.1f} after, on {result['cores']} cores{tail}."]
 
 
 def main() -> int:
@@ -274,8 +305,9 @@ def main() -> int:
     ap.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--images", type=int, default=1_000_000)
-    ap.add_argument("--skip-ingest", action="store_true", help="keep the JSON's ingest figures, measure the city only")
-    ap.add_argument("--reads-only", action="store_true", help="keep the JSON's other figures, measure reading only")
+    ap.add_argument("--repeats", type=int, default=3, help="rounds of the ingest measurement (medians are quoted)")
+    ap.add_argument("--only", action="append", choices=PARTS,
+                    help="measure this part only (again for another), keeping the JSON's other figures")
     ap.add_argument("--page", action="store_true", help="only render docs/sharding.md's section from the JSON")
     ap.add_argument("--read-city", type=Path, help=argparse.SUPPRESS)
     a = ap.parse_args()
@@ -283,21 +315,26 @@ def main() -> int:
         print(json.dumps(read_city(a.read_city, a.images)))
         return 0
     if not a.page:
-        before = os.getloadavg()[0]
         old = json.loads(OUT.read_text()) if OUT.exists() else {}
-        ingest = old["ingest"] if a.skip_ingest or a.reads_only else measure_ingest(a.root, a.frames)
-        if a.reads_only:
-            city = old["city"]
-        else:
+        result = dict(old)
+        parts = a.only or PARTS
+        if "ingest" in parts:
+            before = os.getloadavg()[0]
+            result["ingest"] = measure_ingest(a.root, a.frames, a.repeats)
+            result["ingest_load_1min"] = [before, os.getloadavg()[0]]
+        if "city" in parts:
+            before = os.getloadavg()[0]
             with tempfile.TemporaryDirectory() as tmp:
-                city = measure_city(a.images, Path(tmp) / "city")
-        loads = ({k: old[k] for k in ("load_1min_before", "load_1min_after")} if a.reads_only
-                 else {"load_1min_before": before, "load_1min_after": os.getloadavg()[0]})
-        reads_before = os.getloadavg()[0]
-        reads = measure_reads(a.root)
-        OUT.write_text(json.dumps({"ingest": ingest, "city": city, "reads": reads, **loads,
-                                   "reads_load_1min": [reads_before, os.getloadavg()[0]], "cores": os.cpu_count()},
-                                  indent=1) + "\n")
+                result["city"] = measure_city(a.images, Path(tmp) / "city")
+            result["city_load_1min"] = [before, os.getloadavg()[0]]
+        if "reads" in parts:
+            before = os.getloadavg()[0]
+            result["reads"] = measure_reads(a.root)
+            result["reads_load_1min"] = [before, os.getloadavg()[0]]
+        if {"ingest", "city"} <= set(parts):
+            result.pop("load_1min_before", None), result.pop("load_1min_after", None)  # measured over both, once
+        result["cores"] = os.cpu_count()
+        OUT.write_text(json.dumps(result, indent=1) + "\n")
         print(f"wrote {OUT.relative_to(REPO)}")
     PAGE.write_text(replace_section(PAGE, BEGIN, END, render(json.loads(OUT.read_text()))))
     print(f"rendered {PAGE.relative_to(REPO)}")
