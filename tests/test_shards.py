@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import time
 from pathlib import Path
@@ -177,6 +178,14 @@ def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_dr
     located = run_cli("localize", csv_drive, "--db", city, "--steps", "4")
     assert located.returncode == 0, located.stderr
     assert f"tiles read: {n_tiles} of {n_tiles} (" in located.stdout  # the first query is compared with every image
+    squeezed = run_cli("localize", csv_drive, "--db", city, "--steps", "4", "--tile-cache-mb", "0.000001")
+    assert squeezed.returncode == 0, squeezed.stderr
+    tiles_line = re.compile(r"^(tiles read|Latency \(ms\)).*$", re.M)  # all but the budget's effect and times
+    assert tiles_line.sub("", squeezed.stdout) == tiles_line.sub("", located.stdout)  # the same answers
+    assert int(re.search(r"(\d+) dropped to stay within the cache", squeezed.stdout).group(1)) > 0
+    for bad in ("0", "-1", "nan", "lots"):
+        refused = run_cli("localize", csv_drive, "--db", city, "--tile-cache-mb", bad)
+        assert refused.returncode == 2 and "--tile-cache-mb" in refused.stderr.splitlines()[-1], refused.stderr
 
     partial = tmp_path / "partial"  # a reading command never writes a sharded store: it says how to extend it
     assert _ingest(csv_drive, partial, "--tile-m", "4", "--workers", "1", "--limit", "6").returncode == 0
@@ -288,7 +297,7 @@ def _allocator_in_worker() -> tuple[str | None, bool]:
                     reason="glibc's allocator only")
 def test_a_task_runs_with_the_allocator_a_plain_process_has():
     """A Dask nanny starts its workers with MALLOC_TRIM_THRESHOLD_ set, which fixes glibc's mmap threshold:
-    structure and self-check tasks ran about a third slower in a worker than in a plain process. Every
+    structure and self-check tasks ran a fifth to a third slower in a worker than in a plain process. Every
     task runs after the worker's allocator is given glibc's usual thresholds back."""
     from visloc.store.cluster import open_cluster
 

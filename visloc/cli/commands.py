@@ -169,7 +169,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
     require_writable_output(a.json, "--json")
     require_exports(a)
     seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
-    ws = Workspace(a.db)  # reading: a missing store is an error, never created
+    ws = Workspace(a.db, tile_cache_mb=a.tile_cache_mb)  # reading: a missing store is an error, never created
     db = ws.load_database(*choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
                                            prefer=PAPER_DATABASE_CAMERA.get(seq.camera, ())), sift)
     times = seq.timestamps_s
@@ -273,7 +273,7 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         raise InputError(f"{query_seq.name}: too short for {a.steps} queries {filt.dt_s} s apart")
     wanted = start_indices(a, query_seq, schedule)
     with store_for_writing(a.db):
-        ws = Workspace(a.db, create=True)
+        ws = Workspace(a.db, create=True, tile_cache_mb=a.tile_cache_mb)
         db_key = None if db_seq else choose_database(ws, query_seq.source, db_source=a.db_source,
                                                      db_camera=a.db_camera)
         [result], db, queries = _evaluate_sources(a, ws, db_seq, query_seq, [method], sift, wanted=wanted,
@@ -371,7 +371,7 @@ def cmd_track(a: argparse.Namespace) -> int:
     if a.frames is not None:
         indices = indices[: a.frames]
     with store_for_writing(a.db):
-        ws = Workspace(a.db, create=True)
+        ws = Workspace(a.db, create=True, tile_cache_mb=a.tile_cache_mb)
         if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
             db_camera = kitti_only_camera(a.source, "--db-camera", a.db_camera, seq.camera)
             _ingest(ws, _open_source(a.source, drive=a.drive, camera=db_camera), sift, a)

@@ -8,6 +8,7 @@ exit status 2; nothing already stored is lost.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import sqlite3
@@ -21,6 +22,7 @@ from visloc.db import StoreError
 from visloc.errors import VislocError
 from visloc.cli.help_text import DEFAULT_DB, DEFAULT_FAST_DB, examples
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
+from visloc.store.tilecache import DEFAULT_TILE_CACHE_MB
 from visloc.tracking.methods import METHODS
 from visloc.cli.param_flags import add_param_flags
 from visloc.params import (FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, TRACK,
@@ -103,8 +105,22 @@ def _add_bad_frames(p: argparse.ArgumentParser) -> None:
                         "about 230 bytes per pixel in each worker (default %(default)s)")
 
 
-def _add_db(p: argparse.ArgumentParser) -> None:
+def _add_db(p: argparse.ArgumentParser, *, tile_cache: bool = False) -> None:
     p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
+    if tile_cache:
+        p.add_argument("--tile-cache-mb", type=_megabytes, default=DEFAULT_TILE_CACHE_MB, metavar="MB",
+                       help="sharded store: the most memory the open tiles' features may hold; the least recently "
+                            "used tile is dropped first (default %(default)g)")
+
+
+def _megabytes(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"{text!r}: give a number of megabytes above 0")
+    return value
 
 
 def _add_database_choice(p: argparse.ArgumentParser, camera_default: str) -> None:
@@ -170,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Run one series of queries (one every --dt-s seconds) against the database and "
                                    "print the paper's Tables 2 and 3 for it.")
     _add_source(p, "query camera", "image_00")
-    _add_db(p)
+    _add_db(p, tile_cache=True)
     _add_database_choice(p, "with several, image_01 for image_00 queries, as the paper")
     p.add_argument("--start-frame", type=int, default=0, help="query frame of the first step, t-5 (default %(default)s)")
     p.add_argument("--steps", type=int, default=6, help="number of queries (default %(default)s)")
@@ -189,7 +205,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("root", nargs="?", type=Path, default=None,
                    help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
     p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001")
-    _add_db(p)
+    _add_db(p, tile_cache=True)
     p.add_argument("--query-camera", default=None, help="KITTI camera of the queries (default image_00, left gray)")
     p.add_argument("--db-camera", default=None,
                    help="KITTI camera of the database (default image_01, right gray; the query camera on a drive "
@@ -299,7 +315,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "database camera into --db first when the store lacks it. Prints latency per "
                                    "frame, sustained rate and errors against the frames' geotags.")
     _add_source(p, "camera of the frames", "image_00")
-    _add_db(p)
+    _add_db(p, tile_cache=True)
     p.add_argument("--db-camera", default=None,
                    help="database camera (default: --camera; with --db-source, that source's only camera in the store)")
     p.add_argument("--db-source", default=None,

@@ -32,7 +32,7 @@ def restore_allocator() -> bool:
     A nanny starts each worker with ``MALLOC_TRIM_THRESHOLD_=65536`` (to give memory back to the system
     promptly), which also turns off glibc's growing mmap threshold: every array of more than 128 KiB is
     then mapped and unmapped afresh, and the structure and self-check tasks, which make many such
-    arrays, ran about a third slower in a worker than in a plain process. Setting the thresholds
+    arrays, ran a fifth to a third slower in a worker than in a plain process. Setting the thresholds
     glibc grows to by default makes a worker as fast as a process started without the variable; the
     memory a task frees is kept for its next task, as in a plain process. Once per process; False where
     the C library has no ``mallopt`` (not glibc)."""

@@ -10,6 +10,7 @@ budget; an image is always read from the tile that owns it, so a halo copy is ne
 
 from __future__ import annotations
 
+import math
 import sqlite3
 import threading
 from collections import OrderedDict
@@ -43,8 +44,8 @@ class TileCache:
     at most ``budget_mb`` of arrays (the tile being read is kept whatever its size). Thread-safe."""
 
     def __init__(self, folder: str | Path, budget_mb: float = DEFAULT_TILE_CACHE_MB):
-        if not budget_mb > 0:
-            raise InputError(f"tile cache budget must be > 0 MB, got {budget_mb}")
+        if not (math.isfinite(budget_mb) and budget_mb > 0):
+            raise InputError(f"tile cache budget must be a number of MB above 0, got {budget_mb}")
         self.folder = Path(folder)
         self.budget_bytes = int(budget_mb * 1e6)
         with Manifest(self.folder, read_only=True) as manifest:
