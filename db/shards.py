@@ -40,6 +40,7 @@ from visloc.db.connection import BUSY_TIMEOUT_S, Database, connect
 from visloc.db.records import NotAStoreError, StoreError
 from visloc.db.schema import SCHEMA_VERSION, create_manifest, now_iso
 from visloc.db.store import FeatureStore
+from visloc.db.structures import StructureTable
 
 MANIFEST_NAME = "manifest.sqlite"
 TILES_FOLDER = "tiles"
@@ -49,6 +50,8 @@ STAGING_NAME = "work/staging.sqlite"
 _IMAGE_KEYED = {"images": "id", "structures": "image_id", "global_vectors": "image_id", "self_checks": "image_id"}
 _WHOLE = ("settings", "cameras", "arrays", "skipped_frames")
 _FEATURE_BLOBS = {"keypoints_f32", "descriptors_u8"}
+# left out of a catalogue (NULL; their counts and checksums stay): read from the tile that owns the image
+_CATALOGUE_LEAVES_OUT = {"images": _FEATURE_BLOBS, "structures": {"points_f64", "cov_f64"}}
 # when a row was written, and how long making it took, are not what it says
 _DIGEST_SKIPS = {"created_at", "checked_at", "skipped_at", "sift_ms", "build_ms"}
 
@@ -287,8 +290,9 @@ def write_tile(staging: str | Path, folder: str | Path, key: str, image_ids: lis
 def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, features: bool = True) -> None:
     """One store at ``target`` holding every row of the tiles ``files`` (relative to ``folder``), each
     image once: written into a temporary file and renamed into place. ``features=False`` leaves the
-    images' keypoint and descriptor BLOBs out (NULL; their counts and checksums stay): a catalogue of
-    the store whose features are read from the tiles when a query needs them."""
+    images' keypoint and descriptor BLOBs and the structure's points and covariances out (NULL; their
+    counts and checksums stay): a catalogue of the store, whose features and points are read from the
+    tiles when a query needs them."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
@@ -303,7 +307,7 @@ def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, fea
                     for table in (*_WHOLE, *_IMAGE_KEYED):
                         columns = _columns(conn, "main", table)
                         names = ", ".join(f"[{c}]" for c in columns)
-                        picked = ", ".join("NULL" if not features and table == "images" and c in _FEATURE_BLOBS
+                        picked = ", ".join("NULL" if not features and c in _CATALOGUE_LEAVES_OUT.get(table, ())
                                            else f"[{c}]" for c in columns)
                         conn.execute(f"INSERT OR IGNORE INTO main.[{table}] ({names}) SELECT {picked} "
                                      f"FROM tile.[{table}] ORDER BY rowid")
@@ -321,6 +325,18 @@ def tile_features(path: str | Path, image_ids: list[int]) -> dict[int, tuple[np.
     against its CRC-32); ``StoreError`` naming the file when it cannot be read."""
     with FeatureStore(path, read_only=True) as store:
         return store.features(image_ids)
+
+
+def tile_structure_points(path: str | Path, image_ids: list[int], params_json: str
+                          ) -> dict[int, dict[str, tuple[np.ndarray, np.ndarray]]]:
+    """image id -> variant -> (points_f64 (M, 3), cov_f64 (M, 3, 3)) of the structure of ``image_ids`` made
+    with ``params_json``, from the tile at ``path`` (each checked against its CRC-32)."""
+    with FeatureStore(path, read_only=True) as store:
+        records = StructureTable(store).get(image_ids, params_json)
+    out: dict[int, dict[str, tuple[np.ndarray, np.ndarray]]] = {}
+    for (image_id, variant), r in records.items():
+        out.setdefault(image_id, {})[variant] = (r.points_f64, r.cov_f64)
+    return out
 
 
 def table_bytes(path: str | Path) -> dict[str, int]:

@@ -54,8 +54,11 @@ class StructureTable:
             with self.db.atomic():
                 self.db["structures"].insert_all(rows, replace=True)
 
-    def get(self, image_ids: Iterable[int], params_json: str) -> dict[tuple[int, str], StructureRecord]:
-        """(image id, variant) -> record, for ``image_ids`` with settings ``params_json``."""
+    def get(self, image_ids: Iterable[int], params_json: str, *, points: bool = True
+            ) -> dict[tuple[int, str], StructureRecord]:
+        """(image id, variant) -> record, for ``image_ids`` with settings ``params_json``. ``points=False``:
+        without the points and covariances (``None``; a sharded store's catalogue has none), which a
+        reader takes from the tile that owns the image."""
         ids = [int(i) for i in image_ids]
         out: dict[tuple[int, str], StructureRecord] = {}
         for start in range(0, len(ids), 500):
@@ -76,9 +79,9 @@ class StructureTable:
                     rows_i32=array_from_blob(r["rows_i32"], np.int32, (n,), what + " rows", r["rows_crc32"],
                                              self.label),
                     points_f64=array_from_blob(r["points_f64"], np.float64, (n, 3), what + " points",
-                                               r["points_crc32"], self.label),
+                                               r["points_crc32"], self.label) if points else None,
                     cov_f64=array_from_blob(r["cov_f64"], np.float64, (n, 3, 3), what + " covariances",
-                                            r["cov_crc32"], self.label),
+                                            r["cov_crc32"], self.label) if points else None,
                     reason=r["reason"], build_ms=r["build_ms"] or 0.0)
         return out
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import sqlite3
 import time
 from pathlib import Path
 
@@ -231,6 +232,42 @@ def test_refined_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_eval
         runs[name] = _errors(json.loads(out.read_text()))
     assert len(runs["file"]) == len(runs["tiles"]) > 10
     assert max(abs(a - b) for a, b in zip(runs["file"], runs["tiles"], strict=True)) <= 1e-6
+
+
+@pytest.mark.kitti
+@pytest.mark.slow
+def test_structure_is_read_from_the_tile_that_owns_each_view(city_0001, kitti_root, kitti_evaluation, tmp_path):
+    """A sharded store's catalogue holds no structure points: a view's points are read from the tile that
+    owns it when the engine asks for that view, the same arrays as one file's, and track (the camera-rate
+    path, which reads structure view by view) follows the same frames."""
+    folder, _, _ = kitti_evaluation
+    with sqlite3.connect(merged_store(city_0001, features=False)) as conn:
+        n_rows, n_with_points = conn.execute("SELECT count(*), count(points_f64) FROM structures").fetchone()
+    assert n_rows > 0 and n_with_points == 0
+    single, tiles = Workspace(folder / "kitti.sqlite", read_only=True), Workspace(city_0001)
+    dataset = next(d for d in tiles.datasets() if d.camera == "image_01")  # the one file's database camera
+    one = single.load_structure(single.load_database(dataset.source, dataset.camera))
+    lazy = tiles.load_structure(tiles.load_database(dataset.source, dataset.camera))
+    assert tiles.tile_cache_stats.tiles_read == 0  # no tile read before a view is asked for
+    assert list(lazy) == list(one) and len(lazy) == len(one) > 50
+    for k, variants in one.items():
+        assert list(lazy[k]) == list(variants)
+        for variant, s in variants.items():
+            t = lazy[k][variant]
+            assert (t.view, t.neighbours, t.reason) == (s.view, s.neighbours, s.reason)
+            for a, b in ((t.rows, s.rows), (t.points_world, s.points_world), (t.cov_world, s.cov_world)):
+                assert a.dtype == b.dtype and np.array_equal(a, b)
+    assert tiles.tile_cache_stats.tiles_read > 0
+    runs = []
+    for store in (folder / "kitti.sqlite", city_0001):
+        out = tmp_path / f"{store.name}.json"
+        result = run_cli("track", kitti_root, "--drive", KITTI_DRIVE, "--camera", "image_00", "--db", store,
+                         "--db-camera", "image_01", "--frames", "25", "--no-background-relocalization", "--json", out,
+                         timeout=1800)
+        assert result.returncode == 0, result.stderr
+        runs.append([f["estimate_m"] for f in json.loads(out.read_text())["per_frame"]])
+    assert len(runs[0]) == 25
+    assert np.allclose(runs[0], runs[1], rtol=0, atol=1e-6)
 
 
 def _errors(report: dict) -> list[float]:

@@ -64,9 +64,9 @@ def print_tiles_read(ws: Workspace) -> None:
     """For a sharded store, one line on the tiles the command read and the memory they held."""
     stats = ws.tile_cache_stats
     if stats is not None:
-        print(f"tiles read: {len(stats.distinct_tiles)} of {ws.tile_count()} ({stats.tiles_read} reads, "
-              f"{stats.tiles_evicted} dropped to stay within the cache, at most {stats.peak_bytes / 1e6:.1f} MB of "
-              "features held)")
+        print(f"tiles read: {len(stats.distinct_tiles)} of {ws.tile_count()} ({stats.tiles_read} reads of features "
+              f"or structure points, {stats.tiles_evicted} dropped to stay within the cache, at most "
+              f"{stats.peak_bytes / 1e6:.1f} MB held)")
 
 
 def require_stored(ws: Workspace, seq: Sequence) -> None:

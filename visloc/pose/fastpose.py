@@ -23,7 +23,7 @@ they differ in which candidates they look at and in the matches.
 from __future__ import annotations
 
 import time
-from collections.abc import Hashable, Sequence
+from collections.abc import Hashable, Mapping, Sequence
 
 import numpy as np
 
@@ -38,7 +38,8 @@ from visloc.retrieval.retrievers import Retrieval
 from visloc.pose.structure import ViewStructure, choose_variant
 from visloc.pose.viewpose import DatabaseGeometry, pose_from_views, require_calibrated
 
-StoredStructures = dict[int, dict[str, ViewStructure]]  # database index -> variant -> structure
+# database index -> variant -> structure (a sharded store's reads a view's points when it is asked for)
+StoredStructures = Mapping[int, dict[str, ViewStructure]]
 
 
 def structure_rows(structures: dict[str, ViewStructure]) -> np.ndarray:
@@ -89,7 +90,8 @@ class StructureMatcher:
             raise ParameterError(f"against={against!r}: must be structure or image")
         self.match = MatchParams(tau1=ratio, tau2=-1.0)
         self.against = against
-        self._rows = {i: structure_rows(s) for i, s in structures.items()}
+        self._structures = structures
+        self._rows: dict[int, np.ndarray | None] = {}  # a view's structured keypoint rows, when first counted
         self._db_descriptors = db_descriptors
         # a view's structured descriptors as floats, made when a retrieval first counts it: a database
         # read from a sharded store's tiles reads only the views its queries are compared with
@@ -99,9 +101,16 @@ class StructureMatcher:
         """(descriptors of view ``i``'s structured keypoints as float32, half their squared norms)."""
         view = self._views.get(i)
         if view is None:
-            d = np.ascontiguousarray(self._db_descriptors[i][self._rows[i]], np.float32)
+            d = np.ascontiguousarray(self._db_descriptors[i][self._rows_of(i)], np.float32)
             view = self._views[i] = (d, 0.5 * np.einsum("ij,ij->i", d, d))
         return view
+
+    def _rows_of(self, i: int) -> np.ndarray | None:
+        """Keypoint rows of view ``i`` that carry a point (None: no stored structure)."""
+        if i not in self._rows:
+            variants = self._structures.get(i)
+            self._rows[i] = None if variants is None else structure_rows(variants)
+        return self._rows[i]
 
     def __call__(self, query_u8: np.ndarray, key: Hashable = None) -> CountFn:
         q = np.asarray(query_u8, np.float32)
@@ -111,7 +120,7 @@ class StructureMatcher:
         def counts(candidates: np.ndarray) -> np.ndarray:
             out = np.zeros(len(candidates), np.int64)
             for j, i in enumerate(np.asarray(candidates, np.int64).tolist()):
-                rows = self._rows.get(i)
+                rows = self._rows_of(i)
                 if rows is None or not rows.size:
                     continue
                 if self.against == "image":  # the exact path's matches: every keypoint of the view

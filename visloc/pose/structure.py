@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -115,13 +116,25 @@ def choose_variant(structures: dict[str, ViewStructure], allowed: np.ndarray | N
     return None
 
 
-def seeded_structure_cache(structures: dict) -> StructureCache:
+def seeded_structure_cache(structures: Mapping[int, dict[str, ViewStructure]]) -> StructureCache:
     """A ``StructureCache`` holding stored structure under the keys the exact path looks up (view and
     its neighbours): where the exact path would triangulate the same view with the same neighbours,
-    it reads the stored points instead (the same numbers)."""
-    cache = StructureCache()
-    for variants in structures.values():
-        for s in variants.values():
-            if len(s):
-                cache.put((s.view, s.neighbours), s.lookup(), 0.0)
-    return cache
+    it reads the stored points instead (the same numbers). A view's stored structure is taken when
+    the exact path first looks it up (a sharded store's is read from its tile then)."""
+    return _SeededStructureCache(structures)
+
+
+class _SeededStructureCache(StructureCache):
+    def __init__(self, structures: Mapping[int, dict[str, ViewStructure]]):
+        super().__init__()
+        self._stored = structures
+        self._seeded: set[int] = set()
+
+    def get(self, key: tuple[int, tuple[int, ...]]) -> dict[int, np.ndarray] | None:
+        view = key[0]
+        if view not in self._seeded:
+            self._seeded.add(view)
+            for s in self._stored.get(view, {}).values():
+                if len(s) and (s.view, s.neighbours) not in self._views:
+                    self.put((s.view, s.neighbours), s.lookup(), 0.0)
+        return super().get(key)

@@ -212,7 +212,7 @@ def merged_store(folder: str | Path, *, features: bool = True) -> Path:
     if not tiles:
         raise InputError(f"{folder}: a sharded store without tiles yet (build it with 'visloc ingest --tile-m')")
     verify_tiles(folder, tiles)
-    kind = "store" if features else "catalogue"
+    kind = "store" if features else "catalogue without points"  # a catalogue once held the structure's points
     digest = hashlib.sha256((kind + "".join(f"{t.key}:{t.sha256};" for t in tiles)).encode()).hexdigest()[:24]
     target = _cache_folder() / f"{digest}.sqlite"
     if not target.is_file():

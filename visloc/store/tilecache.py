@@ -14,7 +14,7 @@ import math
 import sqlite3
 import threading
 from collections import OrderedDict
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,8 +22,9 @@ import numpy as np
 
 from visloc.db import StoreError
 from visloc.db.connection import sqlite_error_line
-from visloc.db.shards import Manifest, tile_features
+from visloc.db.shards import Manifest, tile_features, tile_structure_points
 from visloc.errors import InputError
+from visloc.pose.structure import ViewStructure
 
 DEFAULT_TILE_CACHE_MB = 512.0  # features of open tiles a query process keeps, MB
 
@@ -40,8 +41,10 @@ class TileCacheStats:
 
 
 class TileCache:
-    """Open tiles of the sharded store ``folder``: tile key -> image id -> (keypoints_f32, descriptors_u8),
-    at most ``budget_mb`` of arrays (the tile being read is kept whatever its size). Thread-safe."""
+    """Open tiles of the sharded store ``folder``: what a query read from each, at most ``budget_mb`` of
+    arrays (the part being read is kept whatever its size). Thread-safe. Per tile two parts: its
+    images' features (image id -> (keypoints_f32, descriptors_u8)) and, for each structure setting
+    asked, its images' structure points (image id -> variant -> (points_f64, cov_f64))."""
 
     def __init__(self, folder: str | Path, budget_mb: float = DEFAULT_TILE_CACHE_MB):
         if not (math.isfinite(budget_mb) and budget_mb > 0):
@@ -51,8 +54,8 @@ class TileCache:
         with Manifest(self.folder, read_only=True) as manifest:
             self._files = {t.key: t.file for t in manifest.tiles()}
         self._owned: dict[str, set[int]] = {}  # image ids a tile serves, as datasets were asked for
-        self._open: OrderedDict[str, dict[int, tuple[np.ndarray, np.ndarray]]] = OrderedDict()
-        self._bytes: dict[str, int] = {}
+        self._open: OrderedDict[tuple[str, str], dict] = OrderedDict()  # (tile, part) -> image id -> arrays
+        self._bytes: dict[tuple[str, str], int] = {}
         self._lock = threading.RLock()
         self.stats = TileCacheStats()
 
@@ -78,30 +81,44 @@ class TileCache:
         return TileFeatures(self, ids, keys, 0), TileFeatures(self, ids, keys, 1)
 
     def get(self, key: str, image_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """(keypoints_f32, descriptors_u8) of ``image_id`` from the tile ``key`` that owns it."""
+        return self._part(key, _FEATURES, image_id)
+
+    def structure_points(self, key: str, image_id: int, params_json: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """variant -> (points_f64, cov_f64) of the structure of ``image_id`` made with ``params_json``, from the
+        tile ``key`` that owns it."""
+        return self._part(key, params_json, image_id)
+
+    def _part(self, key: str, part: str, image_id: int):
         with self._lock:
-            tile = self._open.get(key)
+            tile = self._open.get((key, part))
             if tile is None or image_id not in tile:
-                tile = self._read(key)
-            self._open.move_to_end(key)
+                self._owned.setdefault(key, set()).add(int(image_id))
+                tile = self._read(key, part)
+            self._open.move_to_end((key, part))
+            if image_id not in tile:
+                raise InputError(f"{self.folder / self._files[key]}: tile {key} lacks image {image_id} that the "
+                                 "manifest says it owns; run 'visloc ingest' of its drive into the store again")
             return tile[image_id]
 
-    def _read(self, key: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    def _read(self, key: str, part: str) -> dict:
         if key not in self._files:
             raise InputError(f"{self.folder}: tile {key} is not in the manifest; run 'visloc ingest' into the store "
                              "again")
         path = self.folder / self._files[key]
+        ids = sorted(self._owned.get(key, ()))
         try:
-            tile = tile_features(path, sorted(self._owned.get(key, ())))
+            tile = tile_features(path, ids) if part == _FEATURES else tile_structure_points(path, ids, part)
         except StoreError as exc:
             raise InputError(str(exc)) from None
         except sqlite3.Error as exc:
             raise InputError(sqlite_error_line(str(path), exc)) from None
-        for array in (a for pair in tile.values() for a in pair):
+        arrays = [a for v in tile.values() for a in (v if part == _FEATURES else _flat(v))]
+        for array in arrays:
             array.setflags(write=False)  # shared by every caller
-        self._open.pop(key, None)
-        self._bytes.pop(key, None)
-        self._open[key] = tile
-        self._bytes[key] = sum(kp.nbytes + desc.nbytes for kp, desc in tile.values())
+        self._open.pop((key, part), None)
+        self._open[(key, part)] = tile
+        self._bytes[(key, part)] = sum(a.nbytes for a in arrays)
         self.stats.tiles_read += 1
         self.stats.distinct_tiles.add(key)
         self.stats.peak_bytes = max(self.stats.peak_bytes, self.held_bytes)
@@ -110,6 +127,13 @@ class TileCache:
             del self._open[oldest], self._bytes[oldest]
             self.stats.tiles_evicted += 1
         return tile
+
+
+_FEATURES = "features"  # the part of a tile holding its images' features (the others: structure, by settings)
+
+
+def _flat(variants: dict[str, tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+    return [a for pair in variants.values() for a in pair]
 
 
 class TileFeatures(Sequence):
@@ -136,3 +160,46 @@ class TileFeatures(Sequence):
     def tiles_of(self, indices) -> list[str]:
         """The distinct tiles the images at ``indices`` are read from, in first-use order."""
         return list(dict.fromkeys(self.tiles[int(k)] for k in indices))
+
+
+# what the catalogue says of one variant of a view's structure: (variant, neighbours as database indices,
+# keypoint rows carrying a point, why there are none, build ms)
+ViewEntry = tuple[str, tuple[int, ...], np.ndarray, "str | None", float]
+
+
+class TileStructures(Mapping):
+    """The stored structure of a database read from a sharded store: database index -> variant ->
+    ``ViewStructure``, as ``Workspace.load_structure`` gives it for a store file. What each view has
+    (variants, neighbours, keypoint rows) comes from the catalogue; its points and covariances are read
+    from the tile that owns the view, through the ``TileCache``, when the view is asked for."""
+
+    def __init__(self, cache: TileCache, params_json: str, views: dict[int, list[ViewEntry]],
+                 image_ids: dict[int, int], tiles: dict[int, str]):
+        self.cache, self.params_json = cache, params_json
+        self._views, self._image_ids, self._tiles = views, image_ids, tiles
+
+    def __len__(self) -> int:
+        return len(self._views)
+
+    def __iter__(self):
+        return iter(self._views)
+
+    def __contains__(self, view: object) -> bool:
+        return view in self._views
+
+    def __getitem__(self, view: int) -> dict[str, ViewStructure]:
+        entries = self._views[view]
+        points: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+        out = {}
+        for variant, neighbours, rows, reason, build_ms in entries:
+            if len(rows):
+                if points is None:
+                    points = self.cache.structure_points(self._tiles[view], self._image_ids[view], self.params_json)
+                if variant not in points:
+                    raise InputError(f"{self.cache.folder}: tile {self._tiles[view]} lacks the {variant} structure of "
+                                     f"image {self._image_ids[view]}; run 'visloc ingest' of its drive again")
+                X, S = points[variant]
+            else:
+                X, S = np.zeros((0, 3)), np.zeros((0, 3, 3))
+            out[variant] = ViewStructure(view, variant, neighbours, rows, X, S, reason, build_ms)
+        return out

@@ -9,7 +9,7 @@ errors come out as ``InputError`` naming the file.
 from __future__ import annotations
 
 import sqlite3
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -27,7 +27,7 @@ from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.store.sharded import merged_store, owner_tiles
-from visloc.store.tilecache import DEFAULT_TILE_CACHE_MB, TileCache, TileCacheStats
+from visloc.store.tilecache import DEFAULT_TILE_CACHE_MB, TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
@@ -211,22 +211,30 @@ class Workspace:
         return lever_gain_from(poses, source=f"self-check of {db.source}/{db.camera} ({len(poses)} images)")
 
     def load_structure(self, db: GeoDatabase, params: RefinedParams = REFINED,
-                       views: list[int] | None = None) -> dict[int, dict[str, ViewStructure]]:
+                       views: list[int] | None = None) -> Mapping[int, dict[str, ViewStructure]]:
         """Stored structure of ``db``'s images (or of the database indices ``views``): database index ->
-        variant -> structure, neighbours as database indices. Images without stored structure are absent."""
+        variant -> structure, neighbours as database indices. Images without stored structure are absent.
+        A sharded store's is a mapping that reads a view's points from its tile when it is asked for."""
         index_of = {im.image_id: k for k, im in enumerate(db.images)}
         wanted = range(len(db.images)) if views is None else views
+        settings = structure_settings_json(params)
         with self._store() as store:
-            records = StructureTable(store).get([db.images[k].image_id for k in wanted], structure_settings_json(params))
-        out: dict[int, dict[str, ViewStructure]] = {}
+            records = StructureTable(store).get([db.images[k].image_id for k in wanted], settings,
+                                                points=self._tiles is None)
+        entries: dict[int, list] = {}
         for (image_id, variant), r in records.items():
             if any(j not in index_of for j in r.neighbour_ids):
                 continue
-            k = index_of[image_id]
-            out.setdefault(k, {})[variant] = ViewStructure(
-                k, variant, tuple(index_of[j] for j in r.neighbour_ids), r.rows_i32.astype(np.int64), r.points_f64,
-                r.cov_f64, r.reason, r.build_ms)
-        return out
+            entries.setdefault(index_of[image_id], []).append(
+                (variant, tuple(index_of[j] for j in r.neighbour_ids), r.rows_i32.astype(np.int64), r.reason,
+                 r.build_ms, r))
+        if self._tiles is not None:
+            owners = owner_tiles(self.path, db.source, db.camera)
+            return TileStructures(self._tiles, settings, {k: [e[:5] for e in v] for k, v in entries.items()},
+                                  {k: db.images[k].image_id for k in entries},
+                                  {k: owners[db.images[k].image_id] for k in entries})
+        return {k: {variant: ViewStructure(k, variant, neighbours, rows, r.points_f64, r.cov_f64, reason, build_ms)
+                    for variant, neighbours, rows, reason, build_ms, r in v} for k, v in entries.items()}
 
     def save_structure(self, records: list[StructureRecord]) -> None:
         """Keep structure made elsewhere (e.g. a synthetic database), in one transaction."""
