@@ -16,7 +16,7 @@
    inner product, and their tiles), and this process's peak memory.
 3. Reading, on every drive of the data root: image_00 whole in tiles of 25 m (two workers), then the
    paper's ``visloc localize`` (one series from the middle of the drive) and ``visloc track`` (every frame,
-   then the first third of the frames) on it: the tiles each read (of how many), how often, and the most memory their features held, against
+   then the first third of the frames) on it: the tiles each read (of how many), how often, and the most memory their features and structure points held, against
    the features of every tile and the catalogue every command reads whole.
 
 Writes docs/results/shard_scale.json; ``--page`` renders its section of docs/sharding.md from it.
@@ -194,7 +194,7 @@ def read_city(folder: Path, n_images: int) -> dict:
 
 
 READ_TILE_M = 25.0
-TILES_LINE = re.compile(r"tiles read: (\d+) of (\d+) \((\d+) reads, (\d+) dropped .* at most ([\d.]+) MB")
+TILES_LINE = re.compile(r"tiles read: (\d+) of (\d+) \((\d+) reads.*?, (\d+) dropped .* at most ([\d.]+) MB")
 
 
 def _tiles_read(cmd: list[str]) -> dict:
@@ -238,7 +238,8 @@ def measure_reads(root: Path) -> list[dict]:
 def _render_reads(reads: list[dict]) -> list[str]:
     lines = ["", f"Reading, image_00 of each drive whole in tiles of {reads[0]['tile_m']:g} m: the tiles a command "
              "read (of the store's), how many reads (a tile dropped from the cache and read again counts again) "
-             "and the most memory the open tiles' features held; the catalogue is read whole by every command.", "",
+             "and the most memory the open tiles' features and structure points held; the catalogue is read whole by "
+             "every command.", "",
              "| drive | images | tile files | catalogue (its structure, its global vectors) | localize, paper mode, one series | track, every frame | "
              "track, first third of the frames |", "|---|---|---|---|---|---|---|"]
     for d in reads:
