@@ -109,8 +109,8 @@ def _add_db(p: argparse.ArgumentParser, *, tile_cache: bool = False) -> None:
     p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
     if tile_cache:
         p.add_argument("--tile-cache-mb", type=_megabytes, default=DEFAULT_TILE_CACHE_MB, metavar="MB",
-                       help="sharded store: the most memory the open tiles' features may hold; the least recently "
-                            "used tile is dropped first (default %(default)g)")
+                       help="sharded store: the most memory the open tiles' features and structure points may hold; "
+                            "the least recently used tile is dropped first (default %(default)g)")
 
 
 def _megabytes(text: str) -> float:

@@ -15,7 +15,7 @@ import sqlite3
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +26,7 @@ from visloc.db.shards import Manifest, tile_features, tile_structure_points
 from visloc.errors import InputError
 from visloc.pose.structure import ViewStructure
 
-DEFAULT_TILE_CACHE_MB = 512.0  # features of open tiles a query process keeps, MB
+DEFAULT_TILE_CACHE_MB = 512.0  # features and structure points of open tiles a query process keeps, MB
 
 
 @dataclass
@@ -162,18 +162,14 @@ class TileFeatures(Sequence):
         return list(dict.fromkeys(self.tiles[int(k)] for k in indices))
 
 
-# what the catalogue says of one variant of a view's structure: (variant, neighbours as database indices,
-# keypoint rows carrying a point, why there are none, build ms)
-ViewEntry = tuple[str, tuple[int, ...], np.ndarray, "str | None", float]
-
-
 class TileStructures(Mapping):
     """The stored structure of a database read from a sharded store: database index -> variant ->
     ``ViewStructure``, as ``Workspace.load_structure`` gives it for a store file. What each view has
-    (variants, neighbours, keypoint rows) comes from the catalogue; its points and covariances are read
-    from the tile that owns the view, through the ``TileCache``, when the view is asked for."""
+    (variants, neighbours, keypoint rows) comes from the catalogue (``views``: structures without their
+    points); its points and covariances are read from the tile that owns the view, through the
+    ``TileCache``, when the view is asked for."""
 
-    def __init__(self, cache: TileCache, params_json: str, views: dict[int, list[ViewEntry]],
+    def __init__(self, cache: TileCache, params_json: str, views: dict[int, dict[str, ViewStructure]],
                  image_ids: dict[int, int], tiles: dict[int, str]):
         self.cache, self.params_json = cache, params_json
         self._views, self._image_ids, self._tiles = views, image_ids, tiles
@@ -188,18 +184,14 @@ class TileStructures(Mapping):
         return view in self._views
 
     def __getitem__(self, view: int) -> dict[str, ViewStructure]:
-        entries = self._views[view]
-        points: dict[str, tuple[np.ndarray, np.ndarray]] | None = None
+        variants = self._views[view]
+        points = (self.cache.structure_points(self._tiles[view], self._image_ids[view], self.params_json)
+                  if any(len(s) for s in variants.values()) else {})
         out = {}
-        for variant, neighbours, rows, reason, build_ms in entries:
-            if len(rows):
-                if points is None:
-                    points = self.cache.structure_points(self._tiles[view], self._image_ids[view], self.params_json)
-                if variant not in points:
-                    raise InputError(f"{self.cache.folder}: tile {self._tiles[view]} lacks the {variant} structure of "
-                                     f"image {self._image_ids[view]}; run 'visloc ingest' of its drive again")
-                X, S = points[variant]
-            else:
-                X, S = np.zeros((0, 3)), np.zeros((0, 3, 3))
-            out[variant] = ViewStructure(view, variant, neighbours, rows, X, S, reason, build_ms)
+        for variant, s in variants.items():
+            if len(s) and variant not in points:
+                raise InputError(f"{self.cache.folder}: tile {self._tiles[view]} lacks the {variant} structure of "
+                                 f"image {self._image_ids[view]}; run 'visloc ingest' of its drive again")
+            X, S = points[variant] if len(s) else (np.zeros((0, 3)), np.zeros((0, 3, 3)))
+            out[variant] = replace(s, points_world=X, cov_world=S)
         return out

@@ -221,20 +221,19 @@ class Workspace:
         with self._store() as store:
             records = StructureTable(store).get([db.images[k].image_id for k in wanted], settings,
                                                 points=self._tiles is None)
-        entries: dict[int, list] = {}
+        out: dict[int, dict[str, ViewStructure]] = {}  # a sharded store's without points: its tiles have them
         for (image_id, variant), r in records.items():
             if any(j not in index_of for j in r.neighbour_ids):
                 continue
-            entries.setdefault(index_of[image_id], []).append(
-                (variant, tuple(index_of[j] for j in r.neighbour_ids), r.rows_i32.astype(np.int64), r.reason,
-                 r.build_ms, r))
-        if self._tiles is not None:
-            owners = owner_tiles(self.path, db.source, db.camera)
-            return TileStructures(self._tiles, settings, {k: [e[:5] for e in v] for k, v in entries.items()},
-                                  {k: db.images[k].image_id for k in entries},
-                                  {k: owners[db.images[k].image_id] for k in entries})
-        return {k: {variant: ViewStructure(k, variant, neighbours, rows, r.points_f64, r.cov_f64, reason, build_ms)
-                    for variant, neighbours, rows, reason, build_ms, r in v} for k, v in entries.items()}
+            k = index_of[image_id]
+            out.setdefault(k, {})[variant] = ViewStructure(
+                k, variant, tuple(index_of[j] for j in r.neighbour_ids), r.rows_i32.astype(np.int64), r.points_f64,
+                r.cov_f64, r.reason, r.build_ms)
+        if self._tiles is None:
+            return out
+        owners = owner_tiles(self.path, db.source, db.camera)
+        return TileStructures(self._tiles, settings, out, {k: db.images[k].image_id for k in out},
+                              {k: owners[db.images[k].image_id] for k in out})
 
     def save_structure(self, records: list[StructureRecord]) -> None:
         """Keep structure made elsewhere (e.g. a synthetic database), in one transaction."""
