@@ -342,3 +342,34 @@ def test_a_task_runs_with_the_allocator_a_plain_process_has():
         [(_, (trim_setting, restored))] = list(engine.run_all(_allocator_in_worker, [()]))
     assert trim_setting is not None  # what the nanny sets, and the reason for the restoring
     assert restored
+
+
+def _opencv_threads_in_worker() -> int:
+    import cv2
+    return cv2.getNumThreads()
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_a_local_cluster_shares_the_cores_among_its_workers_opencv(workers):
+    """One worker on a machine of several cores gives its SIFT and matching the cores, as a one-file ingest
+    does; a worker per core runs OpenCV on one thread, with no contention between workers."""
+    import os
+
+    from visloc.store.cluster import open_cluster
+
+    with open_cluster(workers) as engine:
+        threads = [n for _, n in engine.run_all(_opencv_threads_in_worker, [()] * (2 * workers))]
+    assert threads == [max(1, (os.cpu_count() or 1) // workers)] * (2 * workers)
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(0, 5000), st.integers(1, 64), st.integers(1, 32))
+def test_tasks_take_every_item_once_and_shrink_to_one_at_the_end(n_items, n_workers, most):
+    from visloc.store.build import task_sizes
+
+    sizes = task_sizes(n_items, n_workers, most)
+    assert sum(sizes) == n_items
+    assert all(1 <= s <= most for s in sizes)
+    assert sizes == sorted(sizes, reverse=True)  # the long tasks first, the short ones last
+    if n_items >= n_workers:  # every worker's last task is a single item
+        assert sizes[-n_workers:] == [1] * n_workers

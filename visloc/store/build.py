@@ -108,13 +108,14 @@ def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, se
 
 def _on_cluster(cluster, task, keep, ws: Workspace, source: str, camera: str, params: RefinedParams,
                 todo: list[int], per_task: int, progress: Progress) -> int:
-    """Run ``task`` on ``per_task`` database indices of ``todo`` at a time on the distributed engine, keeping
-    each chunk's records (``keep``) as it comes back: an interrupted step resumes. Fewer per task when
-    that gives every worker fewer than four tasks, so that no worker is left with the last long task
-    while the others idle. Returns len(todo)."""
+    """Run ``task`` on chunks of the database indices ``todo`` on the distributed engine (at most
+    ``per_task`` each, ``task_sizes``), keeping each chunk's records (``keep``) as it comes back: an
+    interrupted step resumes. Returns len(todo)."""
     run = uuid.uuid4().hex  # workers of a cluster outlive a run: what they loaded for another is not used
-    per_task = max(1, min(per_task, math.ceil(len(todo) / (4 * max(cluster.n_workers, 1)))))
-    chunks = [(str(ws.path), source, camera, params, run, todo[i : i + per_task]) for i in range(0, len(todo), per_task)]
+    chunks, start = [], 0
+    for size in task_sizes(len(todo), cluster.n_workers, per_task):
+        chunks.append((str(ws.path), source, camera, params, run, todo[start : start + size]))
+        start += size
     n = 0
     for args, records in cluster.run_all(task, chunks):
         keep(records)
@@ -122,6 +123,19 @@ def _on_cluster(cluster, task, keep, ws: Workspace, source: str, camera: str, pa
         if progress:
             progress(n, len(todo))
     return len(todo)
+
+
+def task_sizes(n_items: int, n_workers: int, most: int) -> list[int]:
+    """How many items each task takes, in the order the tasks are handed out: a third of what is left per
+    worker, at most ``most``, shrinking to one item at the end (guided scheduling). The step after this
+    one waits for the last task, so the last tasks are short: no worker is left with a long one while
+    the others idle, and the first tasks are long enough that the engine's cost per task stays small."""
+    sizes, left = [], n_items
+    while left > 0:
+        size = max(1, min(most, math.ceil(left / (3 * max(n_workers, 1)))))
+        sizes.append(size)
+        left -= size
+    return sizes
 
 
 _loaded: dict[tuple, tuple] = {}  # in a worker: the last database a task loaded, for the next task of its stage

@@ -3,14 +3,16 @@
 Why Dask and not Ray: it is a pure-Python install of a few megabytes (Ray brings its own object
 store and control plane, hundreds of megabytes); its nannies restart a worker process that dies
 and its scheduler runs the dead worker's tasks again elsewhere (a task is given up only after it
-killed three workers); a worker per core with one thread each runs CPU-bound OpenCV work without
-contention; a real cluster is ``dask scheduler`` on one node and ``dask worker ADDRESS`` on each
+killed three workers); a worker process per core with one task at a time runs CPU-bound OpenCV work
+without contention (a local cluster of fewer workers than cores gives each worker's OpenCV the cores
+left over); a real cluster is ``dask scheduler`` on one node and ``dask worker ADDRESS`` on each
 other. It is an optional extra (``pip install 'visloc[cluster]'``): a single-file store never needs it.
 """
 
 from __future__ import annotations
 
 import logging
+import os
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -53,9 +55,27 @@ def restore_allocator() -> bool:
     return _allocator_restored
 
 
-def _in_worker(fn: Callable, *args):
-    """``fn(*args)`` in a worker process, its allocator restored first (``restore_allocator``)."""
+_opencv_threads: int | None = None
+
+
+def opencv_threads(n: int) -> int:
+    """Let OpenCV use ``n`` threads in this worker process (set once per change); returns what OpenCV
+    then reports. The same features and structure either way: OpenCV's SIFT and matching give the
+    same bits with any number of threads."""
+    global _opencv_threads
+    import cv2
+
+    if _opencv_threads != n:
+        cv2.setNumThreads(n)
+        _opencv_threads = n
+    return cv2.getNumThreads()
+
+
+def _in_worker(threads: int, fn: Callable, *args):
+    """``fn(*args)`` in a worker process, its allocator restored first (``restore_allocator``) and
+    OpenCV given ``threads`` threads (``opencv_threads``)."""
     restore_allocator()
+    opencv_threads(threads)
     return fn(*args)
 
 
@@ -69,16 +89,17 @@ def _require_dask():
 
 
 class Cluster:
-    """A client of a Dask cluster: a local one this process started, or one it joined."""
+    """A client of a Dask cluster: a local one this process started, or one it joined. ``threads``: the
+    OpenCV threads of each worker (one on a joined cluster: a worker per core)."""
 
-    def __init__(self, client, n_workers: int, address: str | None):
+    def __init__(self, client, n_workers: int, address: str | None, threads: int = 1):
         self.client = client
         self.n_workers = n_workers
         self.address = address
+        self.threads = threads
 
     def worker_pids(self) -> dict[str, int]:
         """Worker address -> its process id (for a test that kills one)."""
-        import os
         return self.client.run(os.getpid)
 
     def extracted(self, fn: Callable, items: list, name: str) -> Iterator[tuple[object, object]]:
@@ -91,7 +112,7 @@ class Cluster:
         width = 2 * max(self.n_workers, 1)
         while True:
             while len(in_flight) < width and (item := next(pending, None)) is not None:
-                in_flight.append((item, self.client.submit(_in_worker, fn, item, pure=False)))
+                in_flight.append((item, self.client.submit(_in_worker, self.threads, fn, item, pure=False)))
             if not in_flight:
                 return
             item, future = in_flight.popleft()
@@ -107,7 +128,7 @@ class Cluster:
     def run_all(self, fn: Callable, args: list[tuple]) -> Iterator[tuple[tuple, object]]:
         """(args, ``fn(*args)``) for every tuple of ``args``, as each finishes; an error is raised as it comes."""
         distributed = _require_dask()
-        futures = {self.client.submit(_in_worker, fn, *a, pure=False): a for a in args}
+        futures = {self.client.submit(_in_worker, self.threads, fn, *a, pure=False): a for a in args}
         for future in distributed.as_completed(futures):
             yield futures[future], future.result()
 
@@ -115,7 +136,8 @@ class Cluster:
 @contextmanager
 def open_cluster(workers: int = 2, address: str | None = None) -> Iterator[Cluster]:
     """A cluster for the ``with`` block: with ``address``, the Dask scheduler there; otherwise a local
-    cluster of ``workers`` processes of one thread each, shut down at the end."""
+    cluster of ``workers`` processes of one task at a time each, shut down at the end; their OpenCV
+    shares this machine's cores among them (one thread each with a worker per core)."""
     distributed = _require_dask()
     if address:
         try:
@@ -138,7 +160,7 @@ def open_cluster(workers: int = 2, address: str | None = None) -> Iterator[Clust
                                        dashboard_address=":0", silence_logs=logging.ERROR)
     client = distributed.Client(cluster)
     try:
-        yield Cluster(client, workers, None)
+        yield Cluster(client, workers, None, threads=max(1, (os.cpu_count() or 1) // workers))
     finally:
         client.close()
         cluster.close()

@@ -108,11 +108,10 @@ def _init_worker(params: SiftParams, single_thread: bool = True) -> None:
 
 def _extract_on_cluster(item: "WorkItem") -> "Extracted | InputError":
     """``_extract_frame`` in a worker of a distributed engine: the detector is made at its first task
-    (and again if the settings change); one OpenCV thread, the engine runs one task per core. A frame
+    (and again if the settings change), with the OpenCV threads the engine gave the worker. A frame
     that cannot be described gives back the ``InputError`` saying why (a result, not a failed task)."""
     global _worker_sift, _worker_sift_params
     if _worker_sift is None or _worker_sift_params != item[1]:
-        cv2.setNumThreads(1)
         _worker_sift, _worker_sift_params = make_sift(item[1]), item[1]
     try:
         return _extract_frame(item)
