@@ -30,6 +30,7 @@ import json
 import os
 import sqlite3
 import uuid
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -287,12 +288,14 @@ def write_tile(staging: str | Path, folder: str | Path, key: str, image_ids: lis
     return relative, sha, digest
 
 
-def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, features: bool = True) -> None:
+def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, features: bool = True,
+                datasets: Collection[tuple[str, str]] | None = None) -> None:
     """One store at ``target`` holding every row of the tiles ``files`` (relative to ``folder``), each
     image once: written into a temporary file and renamed into place. ``features=False`` leaves the
     images' keypoint and descriptor BLOBs and the structure's points and covariances out (NULL; their
     counts and checksums stay): a catalogue of the store, whose features and points are read from the
-    tiles when a query needs them."""
+    tiles when a query needs them. ``datasets``: only the rows of these (source, camera)s (their images
+    and what is tied to them, their cameras, skipped frames and global-vector encoders) and the settings."""
     target = Path(target)
     target.parent.mkdir(parents=True, exist_ok=True)
     temporary = target.with_name(f".{target.name}.{uuid.uuid4().hex}.tmp")
@@ -303,14 +306,20 @@ def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, fea
             conn.execute("PRAGMA journal_mode=DELETE")
             for file in files:
                 conn.execute("ATTACH DATABASE ? AS tile", [(Path(folder) / file).absolute().as_uri() + "?mode=ro"])
+                if datasets is not None:
+                    _want_datasets(conn, datasets, "tile")
                 with conn:
                     for table in (*_WHOLE, *_IMAGE_KEYED):
                         columns = _columns(conn, "main", table)
                         names = ", ".join(f"[{c}]" for c in columns)
                         picked = ", ".join("NULL" if not features and c in _CATALOGUE_LEAVES_OUT.get(table, ())
                                            else f"[{c}]" for c in columns)
+                        where = "" if datasets is None else _tile_rows(table)
                         conn.execute(f"INSERT OR IGNORE INTO main.[{table}] ({names}) SELECT {picked} "
-                                     f"FROM tile.[{table}] ORDER BY rowid")
+                                     f"FROM tile.[{table}]{where} ORDER BY rowid")
+                if datasets is not None:
+                    conn.execute("DROP TABLE temp.wanted")
+                    conn.execute("DROP TABLE temp.wanted_datasets")
                 conn.execute("DETACH DATABASE tile")
         finally:
             conn.close()
@@ -318,6 +327,16 @@ def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, fea
     except BaseException:
         temporary.unlink(missing_ok=True)
         raise
+
+
+def _want_datasets(conn: sqlite3.Connection, datasets: Collection[tuple[str, str]], schema: str) -> None:
+    """``_want``'s temporary tables for the images of ``datasets`` in ``schema``."""
+    conn.execute("CREATE TEMP TABLE wanted (id INTEGER PRIMARY KEY)")
+    conn.execute("CREATE TEMP TABLE wanted_datasets (source TEXT, camera TEXT, prefix TEXT)")
+    conn.executemany("INSERT INTO wanted_datasets VALUES (?, ?, 'vlad:' || ? || '/' || ? || ':')",
+                     [(s, c, s, c) for s, c in sorted(datasets)])
+    conn.execute(f"INSERT INTO wanted SELECT id FROM [{schema}].images WHERE (source, camera) IN "
+                 "(SELECT source, camera FROM wanted_datasets)")
 
 
 def tile_features(path: str | Path, image_ids: list[int]) -> dict[int, tuple[np.ndarray, np.ndarray]]:

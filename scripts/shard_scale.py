@@ -17,7 +17,7 @@
 3. Reading, on every drive of the data root: image_00 whole in tiles of 25 m (two workers), then the
    paper's ``visloc localize`` (one series from the middle of the drive) and ``visloc track`` (every frame,
    then the first third of the frames) on it: the tiles each read (of how many), how often, and the most memory their features and structure points held, against
-   the features of every tile and the catalogue every command reads whole.
+   the features of every tile and the catalogue a command reads (of the drives it uses: the store's one).
 
 Writes docs/results/shard_scale.json; ``--page`` renders its section of docs/sharding.md from it.
 """
@@ -238,8 +238,8 @@ def measure_reads(root: Path) -> list[dict]:
 def _render_reads(reads: list[dict]) -> list[str]:
     lines = ["", f"Reading, image_00 of each drive whole in tiles of {reads[0]['tile_m']:g} m: the tiles a command "
              "read (of the store's), how many reads (a tile dropped from the cache and read again counts again) "
-             "and the most memory the open tiles' features and structure points held; the catalogue is read whole by "
-             "every command.", "",
+             "and the most memory the open tiles' features and structure points held; the catalogue a command reads "
+             "(of the drives it uses: here the store's one drive).", "",
              "| drive | images | tile files | catalogue (its structure, its global vectors) | localize, paper mode, one series | track, every frame | "
              "track, first third of the frames |", "|---|---|---|---|---|---|---|"]
     for d in reads:

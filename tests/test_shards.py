@@ -140,6 +140,65 @@ def test_a_drive_added_elsewhere_leaves_every_tile_there_as_it_was(tmp_path, csv
     assert info.returncode == 0 and "24 images" in info.stdout, info.stdout + info.stderr
 
 
+def _moved_north(csv_drive, folder) -> Path:
+    """A copy of the synthetic drive 1 km north of it: its geotags.csv."""
+    shutil.copytree(csv_drive.parent, folder)
+    lines = (folder / "geotags.csv").read_text().splitlines()
+    moved = [lines[0]] + [",".join([f, t, f"{float(lat) + 0.009:.9f}", lon, h])
+                          for f, t, lat, lon, h in (line.split(",") for line in lines[1:])]
+    (folder / "geotags.csv").write_text("\n".join(moved) + "\n")
+    return folder / "geotags.csv"
+
+
+def test_a_command_reads_the_catalogue_of_the_drives_it_uses_only(tmp_path, csv_drive):
+    """A city holds many drives; a command that localizes on one reads the rows of that one only, merged
+    from the tiles that own its images, and answers as a store of that drive alone does."""
+    north = _moved_north(csv_drive, tmp_path / "north")
+    city, alone = tmp_path / "city", tmp_path / "north.sqlite"
+    assert _ingest(csv_drive, city, "--tile-m", "4", "--workers", "2").returncode == 0
+    assert _ingest(north, city, "--workers", "2").returncode == 0
+    assert _ingest(north, alone, "--workers", "1").returncode == 0
+    ws = Workspace(city)
+    assert len(ws.dataset_keys()) == 2 and ws.catalogue_datasets == frozenset()  # the manifest says what it holds
+    settings_only = ws._file
+    assert _all_ids(settings_only) == [] and len(_all_ids(merged_store(city, features=False))) == 24
+    assert settings_only.is_file()  # catalogues of other drives, or of all, are kept beside each other
+    (north_key,) = Workspace(alone).dataset_keys()
+    db = ws.load_database(*north_key)
+    assert ws.catalogue_datasets == {north_key}
+    assert _all_ids(ws._file) == [im.image_id for im in db.images]  # its 12 images, none of the other drive
+    with Manifest(city, read_only=True) as manifest:
+        assert set(manifest.owner_tiles(*north_key).values()) < {t.key for t in manifest.tiles()}
+    expected = Workspace(alone).load_database(*north_key)
+    assert np.array_equal(db.east_north_m, expected.east_north_m) and len(db) == 12
+    assert ws.image_count() == 24 and {d.name for d in ws.datasets()} == {f"{s}/{c}" for s, c in ws.dataset_keys()}
+    assert len(ws.catalogue_datasets) == 2  # a summary of every drive reads them all
+
+    here = run_cli("localize", north, "--db", city, "--steps", "4")
+    there = run_cli("localize", north, "--db", alone, "--steps", "4")
+    assert here.returncode == 0 and there.returncode == 0, here.stderr + there.stderr
+    varying = re.compile(r"^(tiles read|Latency \(ms\)).*\n", re.M)  # the same answers; times vary
+    assert varying.sub("", here.stdout) == varying.sub("", there.stdout)
+    assert "tiles read: " in here.stdout
+
+
+def test_a_changed_store_replaces_the_catalogue_made_of_it_before(tmp_path, csv_drive):
+    """The catalogue a command reads is merged from the tiles once and kept while they stay as they are:
+    extending the store makes a new one and removes the old one, so the temporary folder does not fill
+    up with a catalogue per version of a growing city."""
+    city = tmp_path / "city"
+    assert _ingest(csv_drive, city, "--tile-m", "4", "--workers", "2").returncode == 0
+    first = merged_store(city, features=False)
+    assert merged_store(city, features=False) == first  # kept while the tiles stay as they are
+    assert len(_all_ids(first)) == 12
+    whole = merged_store(city)  # the other kind, with the features: kept beside it
+    shutil.copytree(csv_drive.parent, tmp_path / "later")
+    assert _ingest(tmp_path / "later" / "geotags.csv", city, "--workers", "2").returncode == 0
+    second = merged_store(city, features=False)
+    assert second != first and second.is_file() and not first.exists() and whole.is_file()
+    assert len(_all_ids(second)) == 24
+
+
 def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_drive):
     """A sharded store's database holds every image's metadata at once; the features of an image are
     read from the tile that owns it when the engine asks for them, within the cache's budget."""

@@ -68,12 +68,12 @@ def choose_database(ws: Workspace, query_source: str, *, db_source: str | None =
     ``db_camera``, when given, win; else the query's own source if the store holds it (with
     ``db_camera``), or the only source that fits; the source's only camera, or the first of ``prefer``
     it holds. Anything else is ambiguous: an ``InputError`` listing what the store holds."""
-    datasets = ws.datasets()
-    held = ", ".join(d.name for d in datasets) or "nothing"
+    datasets = ws.dataset_keys()  # (source, camera) pairs: a sharded store's catalogue is not read for them
+    held = ", ".join(f"{s}/{c}" for s, c in datasets) or "nothing"
     if not datasets:
         raise InputError(f"{ws.path}: holds no images yet (build it with 'visloc ingest')")
     if db_source is None:
-        sources = sorted({d.source for d in datasets if db_camera is None or d.camera == db_camera})
+        sources = sorted({s for s, c in datasets if db_camera is None or c == db_camera})
         if query_source in sources:
             db_source = query_source
         elif len(sources) == 1:
@@ -84,7 +84,7 @@ def choose_database(ws: Workspace, query_source: str, *, db_source: str | None =
         else:
             raise InputError(f"{ws.path}: choose the database with --db-source (it holds {held})")
     if db_camera is None:
-        cameras = sorted(d.camera for d in datasets if d.source == db_source)
+        cameras = sorted(c for s, c in datasets if s == db_source)
         if not cameras:
             raise InputError(f"{ws.path}: no images of --db-source {db_source} (it holds {held})")
         if len(cameras) == 1:
@@ -100,11 +100,11 @@ def choose_database(ws: Workspace, query_source: str, *, db_source: str | None =
 def only_camera(path: Path | str) -> str | None:
     """The camera of a store holding exactly one (source, camera); None otherwise or if unreadable."""
     try:
-        datasets = (Workspace(path, read_only=True).datasets()
+        datasets = (Workspace(path, read_only=True).dataset_keys()
                     if Path(path).is_file() or Workspace.is_sharded(path) else [])
     except InputError:
         return None
-    return datasets[0].camera if len(datasets) == 1 else None
+    return datasets[0][1] if len(datasets) == 1 else None
 
 
 # -- the store file around a writing command ---------------------------------------------------------

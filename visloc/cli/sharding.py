@@ -72,7 +72,7 @@ def print_tiles_read(ws: Workspace) -> None:
 def require_stored(ws: Workspace, seq: Sequence) -> None:
     """A reading command's drive must be in the sharded store whole (its frames stored, or skipped as
     unreadable at ingest): a sharded store is extended by 'visloc ingest --db FOLDER' only."""
-    skipped = sum(1 for f in ws.skipped_frames() if (f.source, f.camera) == (seq.source, seq.camera))
+    skipped = len(ws.skipped_frames(seq.source, seq.camera))
     n = ws.stored_frame_count(seq.source, seq.camera)
     if n + skipped < len(seq):
         raise InputError(f"--db {ws.path}: the sharded store holds {n} of the {len(seq)} frames of {seq.name}; add "

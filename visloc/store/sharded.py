@@ -20,7 +20,7 @@ import hashlib
 import json
 import os
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -200,12 +200,15 @@ def verify_tiles(folder: str | Path, tiles: list[TileRecord]) -> None:
         os.replace(temporary, stamps_path)
 
 
-def merged_store(folder: str | Path, *, features: bool = True) -> Path:
+def merged_store(folder: str | Path, *, features: bool = True,
+                 datasets: Collection[tuple[str, str]] | None = None) -> Path:
     """One store file holding every tile of the sharded store ``folder`` (each image once), made at the
     first read and kept in the temporary folder under the digest of the tiles' checksums: a store that
-    changes gets a new one. ``features=False``: its catalogue, every row but the images' keypoints and
-    descriptors, which ``visloc.store.tilecache`` reads from the tiles a query needs. Refuses a store
-    with a tile that is missing or fails its checksum (``verify_tiles``)."""
+    changes gets a new one, which replaces the one made before for the same folder. ``features=False``:
+    its catalogue, every row but the images' keypoints and descriptors, which ``visloc.store.tilecache``
+    reads from the tiles a query needs. ``datasets``: of these (source, camera)s only, merged from the
+    tiles that own their images (none: the store's settings, from one tile). Refuses a store with a tile
+    that is missing or fails its checksum (``verify_tiles``)."""
     folder = Path(folder)
     with Manifest(folder, read_only=True) as manifest:
         tiles = manifest.tiles()
@@ -213,11 +216,51 @@ def merged_store(folder: str | Path, *, features: bool = True) -> Path:
         raise InputError(f"{folder}: a sharded store without tiles yet (build it with 'visloc ingest --tile-m')")
     verify_tiles(folder, tiles)
     kind = "store" if features else "catalogue without points"  # a catalogue once held the structure's points
+    if datasets is not None:
+        wanted = sorted(set(datasets))
+        kind += " of " + "".join(f"{s}/{c};" for s, c in wanted)  # "of " alone: the settings only
+        tiles = [t for t in tiles if any((d[0], d[1]) in set(wanted) for d in t.datasets)] or tiles[:1]
     digest = hashlib.sha256((kind + "".join(f"{t.key}:{t.sha256};" for t in tiles)).encode()).hexdigest()[:24]
-    target = _cache_folder() / f"{digest}.sqlite"
+    place = hashlib.sha256(f"{kind}:{folder.resolve()}".encode()).hexdigest()[:12]
+    target = _cache_folder() / f"{place}-{digest}.sqlite"
     if not target.is_file():
-        merge_tiles(folder, [t.file for t in tiles], target, features=features)
+        merge_tiles(folder, [t.file for t in tiles], target, features=features, datasets=datasets)
+        for older in target.parent.glob(f"{place}-*.sqlite"):  # what this folder held before it changed
+            if older != target:
+                older.unlink(missing_ok=True)  # a reader that has it open reads on; the next one merges anew
     return target
+
+
+def held_datasets(folder: str | Path) -> list[tuple[str, str]]:
+    """The (source, camera)s the sharded store ``folder`` holds images of, from its manifest."""
+    with Manifest(folder, read_only=True) as manifest:
+        return sorted({(d[0], d[1]) for t in manifest.tiles() for d in t.datasets})
+
+
+class Catalogue:
+    """The catalogue a ``Workspace`` reads a sharded store's rows from (``merged_store`` without features):
+    of the datasets it was asked for so far, merged again when a command asks for another one. A
+    command reads the tiles of the drives it uses, however many the city holds."""
+
+    def __init__(self, folder: str | Path):
+        self.folder = Path(folder)
+        self.covered: frozenset[tuple[str, str]] = frozenset()
+        self.path = merged_store(self.folder, features=False, datasets=self.covered)
+
+    def cover(self, datasets: Collection[tuple[str, str]]) -> Path:
+        """The catalogue holding ``datasets`` too; returns its file."""
+        wanted = self.covered | {(str(s), str(c)) for s, c in datasets}
+        if wanted != self.covered:
+            self.path = merged_store(self.folder, features=False, datasets=wanted)
+            self.covered = frozenset(wanted)
+        return self.path
+
+    def cover_all(self) -> Path:
+        return self.cover(held_datasets(self.folder))
+
+    def image_count(self) -> int:
+        with Manifest(self.folder, read_only=True) as manifest:
+            return sum(t.n_owned for t in manifest.tiles())
 
 
 def owner_tiles(folder: str | Path, source: str, camera: str) -> dict[int, str]:

@@ -21,21 +21,21 @@ from visloc.db.connection import sqlite_error_line
 from visloc.db.integrity import clear_pair_counts
 from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecord, SelfCheckRecord, SelfCheckTable,
                        SkippedFrame,
-                       StoredImage, StoreError, StructureRecord, StructureTable, VectorTable)
+                       StoredImage, StoreError, StructureRecord, StructureTable)
 from visloc.errors import InputError
 from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
-from visloc.store.sharded import merged_store, owner_tiles
+from visloc.store.sharded import Catalogue, held_datasets, owner_tiles
 from visloc.store.tilecache import DEFAULT_TILE_CACHE_MB, TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
-from visloc.params import FAST, REFINED, FastParams, MatchParams, RefinedParams, SiftParams
+from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
 from visloc.pose.selfcheck import lever_gain_from, record_pose, self_check_settings_json
 from visloc.sources.drives import Sequence
 from visloc.pose.structure import (ViewStructure, structure_settings_json)
 from visloc.pose.uncertainty import LeverGain
-from visloc.features.vlad import GlobalEncoder, GlobalIndex
+from visloc.store.globalvectors import GlobalVectors, global_vectors_name  # noqa: F401 (named here too)
 
 STORE_SCHEMA_VERSION = SCHEMA_VERSION  # the store schema this visloc reads and writes
 
@@ -58,7 +58,7 @@ class Dataset:
         return f"{self.source}/{self.camera}"
 
 
-class Workspace:
+class Workspace(GlobalVectors):
     """A store file. ``create=True`` makes a new store when the file does not exist yet;
     ``read_only=True`` never changes the file (no migration, no cached counts saved, works on a
     read-only medium): every method that would write raises ``InputError`` instead."""
@@ -68,10 +68,10 @@ class Workspace:
         self.path = Path(path)
         self.read_only = read_only
         # a sharded store (a folder of tiles, ``visloc.store.sharded``) is read from its catalogue (every
-        # row but the features) and its features from the tiles a query touches, ``tile_cache_mb`` of
-        # them kept open (``visloc.store.tilecache``); it is extended by 'visloc ingest --tile-m' only
+        # row but the features, of the datasets asked for) and its features from the tiles a query touches,
+        # ``tile_cache_mb`` of them kept open (``visloc.store.tilecache``); extended by 'visloc ingest' only
         self.sharded = is_sharded(self.path)
-        self._file = merged_store(self.path, features=False) if self.sharded else self.path
+        self._catalogue = Catalogue(self.path) if self.sharded else None
         self._tiles = TileCache(self.path, tile_cache_mb) if self.sharded else None
         if self.sharded:
             self.read_only, create = True, False
@@ -80,6 +80,20 @@ class Workspace:
             # opening for writing migrates a store of an older schema version in place: from which, if it did
             self.migrated_from: int | None = store.migrated_from
             self.checksums_filled: int = store.checksums_filled  # arrays whose checksums that migration computed
+
+    @property
+    def _file(self) -> Path:
+        return self.path if self._catalogue is None else self._catalogue.path
+
+    def _cover(self, source: str, camera: str) -> None:
+        """A sharded store's catalogue holds (source, camera) from here on (no-op for a store file)."""
+        if self._catalogue is not None:
+            self._catalogue.cover([(source, camera)])
+
+    @property
+    def catalogue_datasets(self) -> frozenset[tuple[str, str]] | None:
+        """The (source, camera)s a sharded store's catalogue was merged for so far (None for a store file)."""
+        return None if self._catalogue is None else self._catalogue.covered
 
     @property
     def tile_cache_stats(self) -> TileCacheStats | None:
@@ -135,10 +149,22 @@ class Workspace:
         return self._sift
 
     def image_count(self) -> int:
+        if self._catalogue is not None:
+            return self._catalogue.image_count()
         with self._store() as store:
             return store.image_count()
 
+    def dataset_keys(self) -> list[tuple[str, str]]:
+        """(source, camera) of every dataset the store holds, without reading their images."""
+        if self._catalogue is not None:
+            return held_datasets(self.path)
+        with self._store() as store:
+            return sorted((r["source"], r["camera"]) for r in store.sources())
+
     def datasets(self) -> list[Dataset]:
+        """Every dataset the store holds, summed up (for a sharded store, its whole catalogue is read)."""
+        if self._catalogue is not None:
+            self._catalogue.cover_all()
         with self._store() as store:
             rows = store.sources()
             cameras = {(c.source, c.camera): c for c in store.cameras()}
@@ -157,12 +183,15 @@ class Workspace:
 
     # -- building it ---------------------------------------------------------------------------
 
-    def skipped_frames(self) -> list[SkippedFrame]:
-        """The frames ingest skipped because they could not be described, with the reason."""
+    def skipped_frames(self, source: str | None = None, camera: str | None = None) -> list[SkippedFrame]:
+        """The frames ingest skipped because they could not be described, with the reason (of one dataset)."""
+        if self._catalogue is not None:
+            self._catalogue.cover_all() if source is None else self._cover(source, camera)
         with self._store() as store:
-            return store.skipped_frames()
+            return [f for f in store.skipped_frames() if source is None or (f.source, f.camera) == (source, camera)]
 
     def stored_frame_count(self, source: str, camera: str) -> int:
+        self._cover(source, camera)
         with self._store() as store:
             return len(store.stored_frames(source, camera))
 
@@ -194,11 +223,6 @@ class Workspace:
         with self._store() as store:
             SelfCheckTable(store).add(records)
 
-    def stored_vector_ids(self, name: str) -> set[int]:
-        """The images that have a global vector called ``name``."""
-        with self._store() as store:
-            return set(VectorTable(store).stored_vector_ids(name))
-
     def lever_gain(self, db: GeoDatabase, params: RefinedParams = REFINED) -> LeverGain | None:
         """The lever gain ``db``'s stored self-check calls for (``visloc.pose.selfcheck.lever_gain_from``);
         None when the store holds no self-check of it with ``params``' settings."""
@@ -215,6 +239,7 @@ class Workspace:
         """Stored structure of ``db``'s images (or of the database indices ``views``): database index ->
         variant -> structure, neighbours as database indices. Images without stored structure are absent.
         A sharded store's is a mapping that reads a view's points from its tile when it is asked for."""
+        self._cover(db.source, db.camera)
         index_of = {im.image_id: k for k, im in enumerate(db.images)}
         wanted = range(len(db.images)) if views is None else views
         settings = structure_settings_json(params)
@@ -245,18 +270,6 @@ class Workspace:
         with self._store() as store:
             return StructureTable(store).get(image_ids, settings_json)
 
-    def load_database_index(self, db: GeoDatabase, params: FastParams = FAST) -> GlobalIndex | None:
-        """The stored global vectors of ``db``'s images in its order, or None when any image lacks one."""
-        name = global_vectors_name(db.source, db.camera, params)
-        if not self.has_global_index(name):
-            return None
-        ids, index = self.load_global_index(name)
-        row_of = {int(i): r for r, i in enumerate(ids)}
-        rows = [row_of.get(im.image_id) for im in db.images]
-        if any(r is None for r in rows):
-            return None
-        return GlobalIndex(index.encoder, index.vectors_f32[rows])
-
     # -- loading it ----------------------------------------------------------------------------
 
     def _require_features(self, sift: SiftParams | None) -> SiftParams:
@@ -271,7 +284,7 @@ class Workspace:
         check_sift_settings(store, sift)
         images = tuple(store.images(source, camera))
         if not images:
-            have = ", ".join(f"{s['source']}/{s['camera']}" for s in store.sources()) or "nothing"
+            have = ", ".join(f"{s}/{c}" for s, c in self.dataset_keys()) or "nothing"
             raise EmptyStoreError(f"{store.label}: no images of {source}/{camera} (it holds {have})")
         if self._tiles is not None:
             return (images, *self._tiles.features([im.image_id for im in images],
@@ -286,6 +299,7 @@ class Workspace:
         """(source, camera) as a geotagged database; its local frame is centred on its first image
         unless ``frame`` is given. ``sift`` (default: the store's) must equal the store's settings."""
         sift = self._require_features(sift)
+        self._cover(source, camera)
         with self._store() as store:
             images, keypoints, descriptors = self._images(store, source, camera, sift)
             calibration = store.get_camera(source, camera)
@@ -308,6 +322,7 @@ class Workspace:
     def load_queries(self, source: str, camera: str, sift: SiftParams | None = None) -> QuerySet:
         """(source, camera) as queries, with their geotags as ground truth."""
         sift = self._require_features(sift)
+        self._cover(source, camera)
         with self._store() as store:
             images, keypoints, descriptors = self._images(store, source, camera, sift)
             calibration = store.get_camera(source, camera)
@@ -365,6 +380,7 @@ class Workspace:
 
     def image_ids(self, source: str, camera: str) -> np.ndarray:
         """(N,) store ids of (source, camera)'s images in time order, without loading anything else."""
+        self._cover(source, camera)
         with self._store() as store:
             return store.image_ids(source, camera)
 
@@ -374,62 +390,12 @@ class Workspace:
         if self._tiles is not None:
             ids = [int(i) for i in image_ids]
             owners: dict[int, str] = {}
-            for d in self.datasets():
-                owners.update(owner_tiles(self.path, d.source, d.camera))
+            for source, camera in self.dataset_keys():
+                owners.update(owner_tiles(self.path, source, camera))
             yield from zip(ids, self._tiles.features(ids, owners)[1])
             return
         with self._store() as store:
             yield from store.iter_descriptors(image_ids, chunk_size)
-
-    def save_global_encoder(self, name: str, encoder: GlobalEncoder) -> None:
-        """Keep the encoder of the global vectors called ``name`` (its codebook and PCA)."""
-        with self._store() as store:
-            VectorTable(store).put_array(f"{name}_codebook", encoder.codebook_f32)
-            if encoder.pca_basis_f32 is not None:
-                VectorTable(store).put_array(f"{name}_pca_mean", encoder.pca_mean_f32)
-                VectorTable(store).put_array(f"{name}_pca_basis", encoder.pca_basis_f32)
-
-    def add_global_vectors(self, name: str, image_ids, vectors_f32: np.ndarray) -> None:
-        """Keep one global vector per image under ``name`` (replacing what was there)."""
-        with self._store() as store:
-            VectorTable(store).add_global_vectors(name, list(image_ids), vectors_f32)
-
-    def global_vectors_by_image(self, params: FastParams = FAST) -> tuple[str, dict[int, np.ndarray]]:
-        """(the names joined, image id -> global vector) of every dataset's global vectors made with ``params``."""
-        names, vectors = [], {}
-        for d in self.datasets():
-            name = global_vectors_name(d.source, d.camera, params)
-            if self.has_global_index(name):
-                image_ids, index = self.load_global_index(name)
-                vectors.update(zip(image_ids.tolist(), index.vectors_f32))
-                names.append(name)
-        return ";".join(names), vectors
-
-    def has_global_index(self, name: str) -> bool:
-        with self._store() as store:
-            return VectorTable(store).get_array(f"{name}_codebook") is not None
-
-    def load_global_encoder(self, name: str) -> GlobalEncoder:
-        with self._store() as store:
-            return GlobalEncoder(VectorTable(store).get_array(f"{name}_codebook"), VectorTable(store).get_array(f"{name}_pca_mean"),
-                                 VectorTable(store).get_array(f"{name}_pca_basis"))
-
-    def load_global_index(self, name: str) -> tuple[np.ndarray, GlobalIndex]:
-        """(image ids (N,), the index) of the global vectors called ``name``, in image id order."""
-        with self._store() as store:
-            codebook = VectorTable(store).get_array(f"{name}_codebook")
-            if codebook is None:
-                raise InputError(f"{self.path}: no global vectors named {name!r}")
-            encoder = GlobalEncoder(codebook, VectorTable(store).get_array(f"{name}_pca_mean"), VectorTable(store).get_array(f"{name}_pca_basis"))
-            ids, vectors = VectorTable(store).global_vectors(name)
-        return ids, GlobalIndex(encoder, vectors)
-
-
-def global_vectors_name(source: str, camera: str, params: FastParams) -> str:
-    """The name a store keeps (source, camera)'s global vectors under, for the encoder ``params`` describe."""
-    return (f"vlad:{source}/{camera}:words={params.n_words},pca={params.pca_dim},"
-            f"train={params.train_descriptors},seed={params.seed}")
-
 
 def _sigmas(images: tuple[StoredImage, ...]) -> np.ndarray:
     """(N,) stated geotag accuracy of each image, sigma per axis in metres, NaN where unknown."""
