@@ -8,7 +8,8 @@
    structure, self-check), one command after the other on this machine, each into a new store:
    ``file_1``: today's single file, ``visloc ingest --workers 1`` (OpenCV's and BLAS's threads use every
    core); ``file_1_one_core``: the same with one thread each; ``tiles_1`` and ``tiles_2``:
-   ``visloc ingest --tile-m 250 --workers 1`` and ``--workers 2`` (a local cluster). Wall time, images per
+   ``visloc ingest --tile-m 250 --workers 1`` and ``--workers 2`` (a local cluster, whose workers share the
+   cores' OpenCV threads: one worker uses both, as ``file_1`` does; two use one each). Wall time, images per
    second, and the largest resident memory of one worker process (sampled every 0.2 s).
 2. A synthetic city: ``--images`` images in tiles of 250 m over a square city (metadata and a 64-float global
    vector per image in the manifest; no features). Timed in this process: picking the tiles of a gated
@@ -87,8 +88,9 @@ def _ingest(root: Path, drive: str, frames: int, store: Path, flags: list[str], 
 
 def measure_ingest(root: Path, frames: int, repeats: int) -> list[dict]:
     """Every configuration of ``RUNS`` on every drive, ``repeats`` rounds, each round running every
-    configuration once (so that a change of load meets all of them); per configuration the median time,
-    and each ratio as the median of the rounds' ratios (paths compared within the same round)."""
+    configuration once (so that a change of load meets all of them), in an order rotated by one from
+    round to round (so that no configuration always runs first); per configuration the median time, and
+    each ratio as the median of the rounds' ratios (paths compared within the same round)."""
     from visloc.sources.drives import open_source
 
     drives = sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync"))
@@ -98,7 +100,9 @@ def measure_ingest(root: Path, frames: int, repeats: int) -> list[dict]:
         for drive in drives:
             runs = {}
             with tempfile.TemporaryDirectory() as tmp:
-                for name, flags in RUNS.items():
+                names = list(RUNS)
+                for name in names[k % len(names):] + names[: k % len(names)]:
+                    flags = RUNS[name]
                     store = Path(tmp) / (name + (".sqlite" if name.startswith("file") else ""))
                     runs[name] = _ingest(root, drive, counts[drive], store, flags,
                                          ONE_CORE if name.endswith("one_core") else None)
@@ -256,7 +260,7 @@ def render(result: dict) -> str:
     repeats = result["ingest"][0].get("repeats", 1)
     lines = [BEGIN, "", "Ingest, first frames of image_00 of each drive (wall time, images per second, the largest "
              "worker process's resident memory; " + (f"the median of {repeats} rounds, each running every "
-             "configuration once, and each ratio the median of the rounds' ratios" if repeats > 1 else "one run")
+             "configuration once, in an order rotated from round to round, and each ratio the median of the rounds' ratios" if repeats > 1 else "one run")
              + "):", "",
              "| drive | images | one file, 1 process | one file, 1 process, 1 thread | tiles, 1 worker | "
              "tiles, 2 workers | 2 workers / 1 | tiles 1 worker / one file (1 thread) |",
