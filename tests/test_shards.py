@@ -198,6 +198,16 @@ def test_a_changed_store_replaces_the_catalogue_made_of_it_before(tmp_path, csv_
     assert second != first and second.is_file() and not first.exists() and whole.is_file()
     assert len(_all_ids(second)) == 24
 
+    reader = Workspace(city)  # a reader open while the store is extended again reads on
+    key = reader.dataset_keys()[0]
+    assert reader.image_count() == 24 and len(reader.load_database(*key)) == 12
+    before = reader._file
+    shutil.copytree(csv_drive.parent, tmp_path / "latest")  # the same place: the same tiles change
+    assert _ingest(tmp_path / "latest" / "geotags.csv", city, "--workers", "2").returncode == 0
+    Workspace(city).load_database(*key)  # another command's catalogue of that drive replaces the reader's
+    assert not before.exists()
+    assert len(reader.load_database(*key)) == 12 and len(reader.datasets()) == 3
+
 
 def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_drive):
     """A sharded store's database holds every image's metadata at once; the features of an image are

@@ -245,13 +245,20 @@ class Catalogue:
     def __init__(self, folder: str | Path):
         self.folder = Path(folder)
         self.covered: frozenset[tuple[str, str]] = frozenset()
-        self.path = merged_store(self.folder, features=False, datasets=self.covered)
+        self._path = merged_store(self.folder, features=False, datasets=self.covered)
+
+    @property
+    def path(self) -> Path:
+        """Its file; merged again if it is gone (another process extended the store, and replaced it)."""
+        if not self._path.is_file():
+            self._path = merged_store(self.folder, features=False, datasets=self.covered)
+        return self._path
 
     def cover(self, datasets: Collection[tuple[str, str]]) -> Path:
         """The catalogue holding ``datasets`` too; returns its file."""
         wanted = self.covered | {(str(s), str(c)) for s, c in datasets}
         if wanted != self.covered:
-            self.path = merged_store(self.folder, features=False, datasets=wanted)
+            self._path = merged_store(self.folder, features=False, datasets=wanted)
             self.covered = frozenset(wanted)
         return self.path
 
