@@ -317,9 +317,6 @@ def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, fea
                         where = "" if datasets is None else _tile_rows(table)
                         conn.execute(f"INSERT OR IGNORE INTO main.[{table}] ({names}) SELECT {picked} "
                                      f"FROM tile.[{table}]{where} ORDER BY rowid")
-                if datasets is not None:
-                    conn.execute("DROP TABLE temp.wanted")
-                    conn.execute("DROP TABLE temp.wanted_datasets")
                 conn.execute("DETACH DATABASE tile")
         finally:
             conn.close()
@@ -330,9 +327,12 @@ def merge_tiles(folder: str | Path, files: list[str], target: str | Path, *, fea
 
 
 def _want_datasets(conn: sqlite3.Connection, datasets: Collection[tuple[str, str]], schema: str) -> None:
-    """``_want``'s temporary tables for the images of ``datasets`` in ``schema``."""
-    conn.execute("CREATE TEMP TABLE wanted (id INTEGER PRIMARY KEY)")
-    conn.execute("CREATE TEMP TABLE wanted_datasets (source TEXT, camera TEXT, prefix TEXT)")
+    """``_want``'s temporary tables for the images of ``datasets`` in ``schema`` (emptied first: one tile
+    after another is attached as ``schema``)."""
+    conn.execute("CREATE TEMP TABLE IF NOT EXISTS wanted (id INTEGER PRIMARY KEY)")
+    conn.execute("CREATE TEMP TABLE IF NOT EXISTS wanted_datasets (source TEXT, camera TEXT, prefix TEXT)")
+    conn.execute("DELETE FROM temp.wanted")
+    conn.execute("DELETE FROM temp.wanted_datasets")
     conn.executemany("INSERT INTO wanted_datasets VALUES (?, ?, 'vlad:' || ? || '/' || ? || ':')",
                      [(s, c, s, c) for s, c in sorted(datasets)])
     conn.execute(f"INSERT INTO wanted SELECT id FROM [{schema}].images WHERE (source, camera) IN "
