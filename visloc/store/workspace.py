@@ -186,7 +186,7 @@ class Workspace(GlobalVectors):
     def skipped_frames(self, source: str | None = None, camera: str | None = None) -> list[SkippedFrame]:
         """The frames ingest skipped because they could not be described, with the reason (of one dataset)."""
         if self._catalogue is not None:
-            self._catalogue.cover_all() if source is None else self._cover(source, camera)
+            self._catalogue.cover(held_datasets(self.path) if source is None else [(source, camera)])
         with self._store() as store:
             return [f for f in store.skipped_frames() if source is None or (f.source, f.camera) == (source, camera)]
 
