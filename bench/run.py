@@ -41,7 +41,8 @@ from visloc.features.sift import extract_sift, make_sift
 from visloc.errors import InputError, ParameterError
 from visloc.geo import geodesic_distance_m
 from visloc.retrieval.matching import backend_counter
-from visloc.tracking.methods import PAPER_METHOD, build_localizer
+from visloc.params.methods import PAPER_METHOD
+from visloc.tracking.methods import build_localizer
 from visloc.progress import progress_reporter
 from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_SIFT, FastParams, SiftParams
 from visloc.sources.queries import extract_queries

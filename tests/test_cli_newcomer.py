@@ -49,6 +49,61 @@ def test_version_is_the_installed_package_version():
     assert result.returncode == 0 and result.stdout.strip() == f"visloc {version('visloc')}"
 
 
+# what a command line that starts at once must not load before a command runs
+HEAVY_MODULES = ("cv2", "numpy", "faiss", "viser", "pyproj", "sqlite_utils", "matplotlib", "distributed", "dask",
+                 "PIL", "scipy", "filterpy")
+STARTUP_PROBE = """
+import sys
+from visloc.cli.parser import main
+try:
+    status = main(sys.argv[1:])
+except SystemExit as exc:
+    status = exc.code
+print("loaded:", ",".join(m for m in HEAVY if m in sys.modules), file=sys.stderr)
+sys.exit(status)
+"""
+
+
+@pytest.mark.parametrize("args, status", [
+    ((), 2), (("--help",), 0), (("--version",), 0), (("localize", "--help"), 0), (("dashboard", "--help"), 0),
+    (("localize", "x.csv", "--tau1", "1.5"), 2), (("track", "x.csv", "--init-var", "-1"), 2),
+    (("evaluate", "--steps", "0"), 2), (("ingest", "x.csv", "--max-image-mp", "0"), 2),
+    (("evaluate", "--sampling", "often"), 2), (("nonsense",), 2),
+])
+def test_help_version_and_refusals_load_nothing_heavy(args, status):
+    """``visloc --help``, a command's help, ``--version`` and a refused argument answer without importing OpenCV,
+    numpy, faiss, viser or the store: they answer at once."""
+    import subprocess
+    import sys
+
+    result = subprocess.run([sys.executable, "-c", f"HEAVY = {HEAVY_MODULES!r}" + STARTUP_PROBE, *args],
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == status, result.stderr
+    assert result.stderr.splitlines()[-1] == "loaded: ", result.stderr
+    if status == 2 and args and args[0] != "nonsense" and len(args) > 1:
+        assert result.stderr.splitlines()[0].startswith(("visloc: error: ", "usage: ")), result.stderr
+
+
+def test_importing_the_command_line_parser_leaves_opencv_out():
+    import subprocess
+    import sys
+
+    code = "import sys, visloc, visloc.cli.parser; print(sorted(m for m in %r if m in sys.modules))" % (HEAVY_MODULES,)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0 and result.stdout.strip() == "[]", result.stdout + result.stderr
+
+
+def test_the_public_api_is_still_reached_through_visloc():
+    """``import visloc`` loads its names when first used: every name ``__all__`` lists is there."""
+    import visloc
+
+    missing = [name for name in visloc.__all__ if getattr(visloc, name, None) is None]
+    assert missing == []
+    assert set(visloc.__all__) <= set(dir(visloc))
+    with pytest.raises(AttributeError):
+        visloc.no_such_name  # noqa: B018
+
+
 def test_mode_lists_its_choices_and_refuses_others_in_one_line(tmp_path):
     assert "{paper,refined,refined-fast}" in run_cli("localize", "--help").stdout
     one_line_error(run_cli("localize", write_csv_drive(tmp_path / "d", 4), "--db", tmp_path / "s.sqlite",

@@ -16,38 +16,61 @@ Public API: the names below, what the README's Python section, the dashboard and
 Everything else is importable from its stage's module.
 """
 
-from visloc.errors import InputError, ParameterError, VislocError
-from visloc.features.sift import Query
-from visloc.features.vlad import GlobalIndex
-from visloc.geo import LocalFrame, geodesic_distance_m
-from visloc.params import (FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED,
-                           TRACK, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams,
-                           TrackParams, dashboard_controls)
-from visloc.pose.measurement import GEOMETRY, GEOTAG
-from visloc.pose.refined import StructureCache, pose_measurement
-from visloc.protocols.drive import DriveMatches, drive_query_indices, drive_summary, match_drive, track_drive
-from visloc.protocols.evaluation import evaluate
-from visloc.protocols.records import RecordGeotags, StepRecord, record_geotags
-from visloc.protocols.track import TrackFrame, TrackRun, run_track, track_filter, track_localizer
-from visloc.results.export import trajectory_csv, trajectory_geojson, trajectory_text, write_trajectory
-from visloc.results.figures import correspondence_figure
-from visloc.results.saved import (LiveSettings, SavedRun, SavedStep, flat_params, live_settings, load_run,
-                                  params_that_differ, run_figures, run_files, steps_of_records, worst_steps)
-from visloc.retrieval.matching import MatchCancelled, PairCountCache, correspondences, nearest_two
-from visloc.retrieval.retrievers import Retrieval, retrieve
-from visloc.sources.drives import Sequence, default_data_root, load_gray, open_csv, open_kitti, open_source
-from visloc.sources.queries import extract_queries
-from visloc.store.build import ingest_sequence
-from visloc.store.database import GeoDatabase, QuerySet
-from visloc.store.ingest import IngestReport
-from visloc.store.workspace import Dataset, Workspace
-from visloc.tracking.kalman import covariance_ellipse_m, run_filter
-from visloc.tracking.localizer import Localizer, StepResult
-from visloc.tracking.methods import (METHODS, PAPER_METHOD, REFINED_FAST_METHOD, REFINED_METHOD, Method,
-                                     build_localizer, method_named)
-from visloc.tracking.runs import run_queries
+import importlib
 
 __version__ = "0.1.0"
+
+# Each public name and the module it comes from. They are imported when first used (PEP 562), so that
+# ``import visloc`` and the command line's parsing, help and refusals load none of OpenCV, faiss, pyproj
+# or SQLite's wrappers; ``from visloc import X`` and ``visloc.X`` work as with plain imports.
+_EXPORTS = {
+    "visloc.errors": ("InputError", "ParameterError", "VislocError"),
+    "visloc.features.sift": ("Query",),
+    "visloc.features.vlad": ("GlobalIndex",),
+    "visloc.geo": ("LocalFrame", "geodesic_distance_m"),
+    "visloc.params": ("FAST", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT",
+                      "REFINED", "TRACK", "FastParams", "FilterParams", "MatchParams", "RefinedParams",
+                      "RetrievalParams", "SiftParams", "TrackParams", "dashboard_controls"),
+    "visloc.params.methods": ("METHODS", "PAPER_METHOD", "REFINED_FAST_METHOD", "REFINED_METHOD", "Method",
+                              "method_named"),
+    "visloc.pose.measurement": ("GEOMETRY", "GEOTAG"),
+    "visloc.pose.refined": ("StructureCache", "pose_measurement"),
+    "visloc.protocols.drive": ("DriveMatches", "drive_query_indices", "drive_summary", "match_drive", "track_drive"),
+    "visloc.protocols.evaluation": ("evaluate",),
+    "visloc.protocols.records": ("RecordGeotags", "StepRecord", "record_geotags"),
+    "visloc.protocols.track": ("TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer"),
+    "visloc.results.export": ("trajectory_csv", "trajectory_geojson", "trajectory_text", "write_trajectory"),
+    "visloc.results.figures": ("correspondence_figure",),
+    "visloc.results.saved": ("LiveSettings", "SavedRun", "SavedStep", "flat_params", "live_settings", "load_run",
+                             "params_that_differ", "run_figures", "run_files", "steps_of_records", "worst_steps"),
+    "visloc.retrieval.matching": ("MatchCancelled", "PairCountCache", "correspondences", "nearest_two"),
+    "visloc.retrieval.retrievers": ("Retrieval", "retrieve"),
+    "visloc.sources.drives": ("Sequence", "default_data_root", "load_gray", "open_csv", "open_kitti", "open_source"),
+    "visloc.sources.queries": ("extract_queries",),
+    "visloc.store.build": ("ingest_sequence",),
+    "visloc.store.database": ("GeoDatabase", "QuerySet"),
+    "visloc.store.ingest": ("IngestReport",),
+    "visloc.store.workspace": ("Dataset", "Workspace"),
+    "visloc.tracking.kalman": ("covariance_ellipse_m", "run_filter"),
+    "visloc.tracking.localizer": ("Localizer", "StepResult"),
+    "visloc.tracking.methods": ("build_localizer",),
+    "visloc.tracking.runs": ("run_queries",),
+}
+_MODULE_OF = {name: module for module, names in _EXPORTS.items() for name in names}
+
+
+def __getattr__(name: str):
+    module = _MODULE_OF.get(name)
+    if module is None:
+        raise AttributeError(f"module 'visloc' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value  # imported once
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_MODULE_OF])
+
 
 __all__ = [
     # drives and the store

@@ -15,7 +15,8 @@ from visloc.cli.choices import (PAPER_DATABASE_CAMERA, require_exports, write_ex
                             make_folder_of, refuse_camera_for_csv, require_output, start_indices, store_for_writing)
 from visloc.errors import InputError, ParameterError
 from visloc.protocols.evaluation import evaluate, series_schedule
-from visloc.tracking.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer, method_named
+from visloc.params.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, method_named
+from visloc.tracking.methods import build_localizer
 from visloc.cli.outputs import require_output_folder, require_writable_output
 from visloc.cli.param_flags import params_from_flags
 from visloc.params import (FAST, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, FilterParams,

@@ -13,11 +13,13 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 
 from visloc.errors import ParameterError
-from visloc.params import PARAMETER_CLASSES, Spec, declared, flag_of, value_text
+from visloc.params import PARAMETER_CLASSES, Spec, declared, flag_of, refusal, value_text
 
 # flag of every declared parameter, by field name (a name two classes share has one flag)
 FLAGS = {name: flag for cls in PARAMETER_CLASSES for name, spec, _ in declared(cls)
          if (flag := flag_of(name, spec)) is not None}
+# the declarations of each flagged field name, in every class that has it
+SPECS = {name: [spec for cls in PARAMETER_CLASSES for n, spec, _ in declared(cls) if n == name] for name in FLAGS}
 
 
 def dest_of(flag: str) -> str:
@@ -104,3 +106,14 @@ def params_from_flags(a: argparse.Namespace, base, exclude: Iterable[str] = ()):
     """``base`` with the values the user gave by flag; a refused value names its flag."""
     with flags_named():
         return base.replace(**changes_from_flags(a, type(base), exclude))
+
+
+def check_flag_values(a: argparse.Namespace) -> None:
+    """Refuse a flag's value that its declaration refuses on its own (out of range, say), naming the flag, as
+    the command would once it has built its parameters: the command line says so before it loads any of
+    the pipeline. A field two classes declare is refused here only when every declaration refuses it."""
+    with flags_named():
+        for name, flag in FLAGS.items():
+            value = getattr(a, dest_of(flag), None)
+            if value is not None and not any(spec.accepts(value) for spec in SPECS[name]):
+                raise refusal(name, SPECS[name][0], value)

@@ -8,27 +8,26 @@ exit status 2; nothing already stored is lost.
 from __future__ import annotations
 
 import argparse
+import importlib
 import math
 import os
 import signal
-import sqlite3
 import sys
 from pathlib import Path
 
-from visloc.cli import commands, serving
-from visloc.cli.stopping import interrupted_status, interrupted_text, stop_on_signal
-from visloc.db.connection import sqlite_error_line
-from visloc.db import StoreError
-from visloc.errors import VislocError
 from visloc.cli.help_text import DEFAULT_DB, DEFAULT_FAST_DB, examples
-from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
-from visloc.store.tilecache import DEFAULT_TILE_CACHE_MB
-from visloc.tracking.methods import METHODS
-from visloc.cli.param_flags import add_param_flags
+from visloc.cli.param_flags import add_param_flags, check_flag_values
+from visloc.cli.stopping import interrupted_status, interrupted_text, stop_on_signal
+from visloc.errors import VislocError
 from visloc.params import (FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, TRACK,
                            FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams,
                            TrackParams)
+from visloc.params.methods import METHODS
+from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
+from visloc.store.defaults import DEFAULT_TILE_CACHE_MB
 
+# Parsing, --help, --version and refusing a bad argument load nothing heavy: what a command does
+# (``visloc.cli.commands``, OpenCV, the store) is imported once the arguments are accepted.
 
 
 def _version() -> str:
@@ -38,6 +37,26 @@ def _version() -> str:
         return version("visloc")
     except PackageNotFoundError:
         return "unknown (not installed)"
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: the installed package's version, read only when asked for."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"visloc {_version()}")
+        parser.exit()
+
+
+def _runs(module: str, function: str):
+    """What a command does: ``visloc.cli.<module>.<function>``, imported when the command runs."""
+    def run(args: argparse.Namespace) -> int:
+        return getattr(importlib.import_module(f"visloc.cli.{module}"), function)(args)
+
+    run.__qualname__ = run.__name__ = function
+    return run
 
 
 # -- argument groups --------------------------------------------------------------
@@ -159,7 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="visloc",
         description="Localize a vehicle from one camera against a database of geotagged images (SIFT + Kalman filter).",
         epilog=examples(), formatter_class=_HelpFormatter)
-    parser.add_argument("--version", action="version", version=f"visloc {_version()}")
+    parser.add_argument("--version", action=_VersionAction, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     p = _command(sub, "ingest", help="build or extend a store: SIFT features and geotags of every image",
@@ -167,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "Re-running skips what is stored; an interruption loses nothing committed.")
     _add_source(p, "KITTI camera to store", "image_01, or image_00 on a drive without it", multiple=True)
     _add_db(p)
-    p.add_argument("--workers", type=int, default=None, help="SIFT processes (default: number of cores)")
+    p.add_argument("--workers", type=int, default=None, help="processes for SIFT, structure and self-check (default: number of cores)")
     p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
     p.add_argument("--tile-m", type=float, default=None, metavar="M",
                    help="write a sharded store: --db is a folder of square tiles this many metres wide, one store "
@@ -180,7 +199,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "of --workers processes)")
     _add_bad_frames(p)
     _add_sift(p)
-    p.set_defaults(func=commands.cmd_ingest)
+    p.set_defaults(func=_runs("commands", "cmd_ingest"))
 
     p = _command(sub, "localize", help="localize one query series against a store; print the paper's Tables 2 and 3",
                        description="Run one series of queries (one every --dt-s seconds) against the database and "
@@ -196,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_method(p, PAPER_RETRIEVAL, auto_exclusion=True)
     _add_mode(p)
     _add_sift(p)
-    p.set_defaults(func=commands.cmd_localize)
+    p.set_defaults(func=_runs("commands", "cmd_localize"))
 
     p = _command(sub, "evaluate", help="the paper's evaluation protocol on a drive (KITTI or CSV)",
                        description="Every series of --steps queries one --dt-s apart that fits in the drive; "
@@ -219,7 +238,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
     _add_exports(p)
-    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--workers", type=int, default=None, help="processes for ingest: SIFT, structure and self-check (default: number of cores)")
     p.add_argument("--smooth", action="store_true",
                    help="also run the RTS smoother over each series and report its per-step errors")
     p.add_argument("--fast", action="store_true",
@@ -229,7 +248,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mode(p)
     _add_sift(p)
     _add_bad_frames(p)
-    p.set_defaults(func=commands.cmd_evaluate)
+    p.set_defaults(func=_runs("commands", "cmd_evaluate"))
 
     p = _command(sub, "evaluate-drives", help="the evaluation on every drive of a data root, every protocol and mode",
                        description="Every KITTI drive under ROOT (a drive dropped into the folder is picked up), "
@@ -244,13 +263,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--modes", default="paper,refined", help="comma-separated methods (default %(default)s)")
     p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
     _add_sampling(p)
-    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--workers", type=int, default=None, help="processes for ingest: SIFT, structure and self-check (default: number of cores)")
     p.add_argument("--smooth", action="store_true", help="also run the RTS smoother over each series")
     _add_method(p, PAPER_EVAL_RETRIEVAL)
     _add_mode(p, choose_mode=False)
     _add_sift(p)
     _add_bad_frames(p)
-    p.set_defaults(func=commands.cmd_evaluate_drives)
+    p.set_defaults(func=_runs("commands", "cmd_evaluate_drives"))
 
     p = _command(sub, "dashboard", help="browser dashboard: scrub through a drive, tune the method live",
                        description="Serve the viser dashboard for a store built by 'visloc ingest' or 'visloc "
@@ -277,7 +296,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--query-source", default=None,
                    help="query drive/dataset to show first (default: the database's drive, or another drive "
                         "when the store holds several and the cameras do not tell)")
-    p.set_defaults(func=serving.cmd_dashboard)
+    p.set_defaults(func=_runs("serving", "cmd_dashboard"))
 
     p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",
                        description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "
@@ -305,7 +324,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="refined paths: time every stride-th frame of the drive with each (default %(default)s)")
     p.add_argument("--skip-refined", action="store_true", help="leave out the exact and camera-rate refined paths")
     p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
-    p.set_defaults(func=commands.cmd_bench)
+    p.set_defaults(func=_runs("commands", "cmd_bench"))
 
     p = _command(sub, "track", help="localize every frame of a drive in order, at the camera's rate",
                        description="Localize every frame of a drive in order, as a vehicle would: SIFT, retrieval, "
@@ -324,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="the exact refined path (the paper's retrieval, every candidate verified; seconds per frame)")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: the whole drive)")
     add_param_flags(p.add_argument_group("the run"), TrackParams, TRACK, automatic={"exclusion_s": EXCLUSION_AUTO_HELP})
-    p.add_argument("--workers", type=int, default=None, help="SIFT processes for ingest (default: number of cores)")
+    p.add_argument("--workers", type=int, default=None, help="processes for ingest: SIFT, structure and self-check (default: number of cores)")
     p.add_argument("--json", type=Path, default=None, help="write the summary and every frame as JSON")
     _add_exports(p)
     add_param_flags(p.add_argument_group("filter (its time step: the frame interval)"), FilterParams, PAPER_FILTER,
@@ -332,18 +351,18 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mode(p, choose_mode=False)
     _add_sift(p)
     _add_bad_frames(p)
-    p.set_defaults(func=commands.cmd_track)
+    p.set_defaults(func=_runs("commands", "cmd_track"))
 
     p = _command(sub, "upgrade", help="migrate a store of an older schema version in place",
                        description="Bring a store written by an older visloc to this version's schema, keeping every "
                                    "image and cached count. Reading commands (info, dashboard) never migrate; ingest "
                                    "and the other commands that write do it on their own.")
     _add_db(p)
-    p.set_defaults(func=commands.cmd_upgrade)
+    p.set_defaults(func=_runs("commands", "cmd_upgrade"))
 
     p = _command(sub, "info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)
-    p.set_defaults(func=commands.cmd_info)
+    p.set_defaults(func=_runs("commands", "cmd_info"))
 
     p = _command(sub, "check", help="is a store whole? (exit 0 when it is, 2 when not)",
                  description="Check a store without changing it: SQLite's own integrity check, every table and column "
@@ -352,7 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "damaged image (drive, camera, frame, what is wrong) and a summary. Re-running 'visloc "
                              "ingest' of a drive repairs its damaged images.")
     _add_db(p)
-    p.set_defaults(func=commands.cmd_check)
+    p.set_defaults(func=_runs("commands", "cmd_check"))
     return parser
 
 
@@ -368,9 +387,23 @@ def main(argv: list[str] | None = None) -> int:
         if value is not None and value < 1:
             print(f"visloc: error: --{name} {value}: must be >= 1", file=sys.stderr)
             return 2
-    try:
+    try:  # values refused on their own, before any command is loaded or creates a file
+        check_flag_values(args)
         if getattr(args, "max_image_mp", None) is not None:
-            require_max_image_mp(args.max_image_mp)  # before a command creates any file
+            require_max_image_mp(args.max_image_mp)
+    except VislocError as exc:
+        print(f"visloc: error: {exc}", file=sys.stderr)
+        return 2
+    return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
+    import sqlite3
+
+    from visloc.db import StoreError
+    from visloc.db.connection import sqlite_error_line
+
+    try:
         status = args.func(args)
         sys.stdout.flush()  # here, so that a reader gone away (| head) is met below, not at exit
         return status
@@ -387,7 +420,6 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         print(f"visloc: {interrupted_text(exc)}", file=sys.stderr)
         return interrupted_status(exc)
-
 
 
 if __name__ == "__main__":

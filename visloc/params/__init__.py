@@ -13,7 +13,7 @@ The command line's flags, the dashboard's controls, ``--help`` and ``docs/parame
 from __future__ import annotations
 
 from visloc.params.declare import (AUTO, MAX_C_INT, MAX_VARIANCE, METHODS_ALL, MIN_VARIANCE, Control, Params, Spec,
-                                   check, declared, flag_of, param, refuse, spec_of, value_text)
+                                   check, declared, flag_of, param, refusal, refuse, spec_of, value_text)
 from visloc.params.paper import (MAX_DT_S, MAX_GEOTAG_SIGMA_M, MAX_SECONDS, METRES_PER_DEGREE, MIN_DT_S,
                                  PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT,
                                  FilterParams, MatchParams, RetrievalParams, SiftParams)
@@ -35,7 +35,7 @@ __all__ = [
     "METRES_PER_DEGREE", "MIN_DT_S", "MIN_VARIANCE", "NN_BACKENDS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER",
     "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PARAMETER_CLASSES", "REFINED", "TRACK", "Control", "FastParams",
     "FilterParams", "MatchParams", "Params", "RefinedParams", "RetrievalParams", "SiftParams", "Spec", "TrackParams",
-    "check", "dashboard_controls", "declared", "flag_of", "param", "parameter_table_markdown", "refuse", "spec_of",
+    "check", "dashboard_controls", "declared", "flag_of", "param", "parameter_table_markdown", "refusal", "refuse", "spec_of",
     "value_text",
 ]
 

@@ -162,13 +162,18 @@ def spec_of(cls_or_obj, name: str) -> Spec:
     raise KeyError(name)
 
 
+def refusal(name: str, spec: Spec, value) -> ParameterError:
+    """The ``ParameterError`` that refuses ``value`` for the declared field ``name``, saying what is valid."""
+    shown = f"{name} ({spec.symbol})" if spec.symbol else name
+    return refuse(f"{shown}={value!r}: must be {spec.rule()}", name)
+
+
 def check(obj) -> None:
     """Validate every declared field of ``obj``: the first that is out of range is refused, naming it."""
     for name, spec, _ in declared(obj):
         value = getattr(obj, name)
         if not spec.accepts(value):
-            shown = f"{name} ({spec.symbol})" if spec.symbol else name
-            raise refuse(f"{shown}={value!r}: must be {spec.rule()}", name)
+            raise refusal(name, spec, value)
 
 
 def flag_of(name: str, spec: Spec) -> str | None:

@@ -24,7 +24,8 @@ from visloc.errors import ParameterError
 from visloc.tracking.localizer import StepResult, StepTimings
 from visloc.retrieval.matching import PairCountCache, cancellable
 from visloc.pose.measurement import GEOMETRY, Measurement
-from visloc.tracking.methods import PAPER_METHOD, Method, build_localizer
+from visloc.params.methods import PAPER_METHOD, Method
+from visloc.tracking.methods import build_localizer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
 from visloc.pose.refined import StructureCache
 from visloc.protocols.records import QueryTruth, StepRecord, records_of

@@ -22,7 +22,8 @@ from visloc.errors import ParameterError
 from visloc.geo import LocalFrame
 from visloc.retrieval.matching import PairCountCache
 from visloc.pose.measurement import GEOMETRY, GEOTAG
-from visloc.tracking.methods import PAPER_METHOD, Method, build_localizer
+from visloc.params.methods import PAPER_METHOD, Method
+from visloc.tracking.methods import build_localizer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
 from visloc.pose.refined import StructureCache
 from visloc.pose.structure import seeded_structure_cache

@@ -26,7 +26,8 @@ from visloc.geo import geodesic_distance_m
 from visloc.geometry.projective import CameraModel
 from visloc.tracking.localizer import Localizer, StepResult
 from visloc.pose.measurement import GEOMETRY
-from visloc.tracking.methods import REFINED_FAST_METHOD, REFINED_METHOD, Method, build_localizer
+from visloc.params.methods import REFINED_FAST_METHOD, REFINED_METHOD, Method
+from visloc.tracking.methods import build_localizer
 from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK, FilterParams, RefinedParams,
                            RetrievalParams, SiftParams, TrackParams)
 from visloc.sources.queries import extract_queries

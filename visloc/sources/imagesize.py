@@ -11,8 +11,6 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from PIL import Image, UnidentifiedImageError
-
 from visloc.errors import InputError, ParameterError
 
 DEFAULT_MAX_IMAGE_MP = 20.0  # megapixels (10^6 pixels) per image
@@ -27,6 +25,8 @@ def require_max_image_mp(max_image_mp: float) -> float:
 def header_size_px(path: Path) -> tuple[int, int] | None:
     """(width, height) from the image file's header without decoding it; None when the header cannot be
     read here (the decoder will then say what is wrong with the file)."""
+    from PIL import Image, UnidentifiedImageError  # here: the command line reads this module's limit at start
+
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # Pillow's own size warning: this module applies its own limit

@@ -25,8 +25,7 @@ from visloc.db.connection import sqlite_error_line
 from visloc.db.shards import Manifest, tile_features, tile_structure_points
 from visloc.errors import InputError
 from visloc.pose.structure import ViewStructure
-
-DEFAULT_TILE_CACHE_MB = 512.0  # features and structure points of open tiles a query process keeps, MB
+from visloc.store.defaults import DEFAULT_TILE_CACHE_MB
 
 
 @dataclass

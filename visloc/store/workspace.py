@@ -27,7 +27,8 @@ from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.store.sharded import Catalogue, held_datasets, owner_tiles
-from visloc.store.tilecache import DEFAULT_TILE_CACHE_MB, TileCache, TileCacheStats, TileStructures
+from visloc.store.defaults import DEFAULT_TILE_CACHE_MB
+from visloc.store.tilecache import TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams

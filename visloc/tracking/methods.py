@@ -21,90 +21,18 @@ a global-vector shortlist, exact counts on the shortlist only.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
-
 from visloc.store.database import GeoDatabase
-from visloc.errors import ParameterError
 from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.geometry.projective import CameraModel
 from visloc.tracking.localizer import Localizer
 from visloc.retrieval.matching import Counter, PairCountCache, backend_counter, brute_force_counter
 from visloc.pose.measurement import GeotagMeasurer, MemoisedMeasurer
-from visloc.params import FAST, REFINED, FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams
+from visloc.params import FilterParams, MatchParams, RetrievalParams
+from visloc.params.methods import Method
 from visloc.pose.refined import PoseMeasurer, StructureCache
 from visloc.retrieval.retrievers import ShortlistRetriever, WindowRetriever, build_global_index
 from visloc.pose.structure import seeded_structure_cache
 from visloc.features.vlad import GlobalIndex
-
-
-@dataclass(frozen=True)
-class Method:
-    """A named composition of retriever, measurer and filter gate.
-
-    name:       what reports and the command line call it
-    pose:       None: the paper's measurement, the best match's geotag. ``RefinedParams``: a metric
-                pose from the database's own geometry (falling back to the geotag with a reason),
-                and the filter skips measurements beyond ``pose.gate_chi2``.
-    shortlist:  None: the paper's retrieval. ``FastParams``: the fast retrieval (filter gate,
-                global-vector shortlist, exact counts on the shortlist).
-    camera_rate: the camera-rate refined path (needs ``pose`` and ``shortlist``): candidates counted
-                by their matches to the database's stored structure, posed on it
-                (``visloc.pose.fastpose``); ``min_matches`` a candidate needs to be posed against.
-    """
-
-    name: str
-    pose: RefinedParams | None = None
-    shortlist: FastParams | None = None
-    camera_rate: bool = False
-    min_matches: int = 20
-
-    def __post_init__(self) -> None:
-        if not (isinstance(self.name, str) and self.name):
-            raise ParameterError(f"name={self.name!r}: a method needs a name")
-        if self.camera_rate and (self.pose is None or self.shortlist is None):
-            raise ParameterError(f"{self.name}: the camera-rate path needs refined and shortlist parameters")
-
-    @property
-    def measures_pose(self) -> bool:
-        return self.pose is not None
-
-    @property
-    def gate_chi2(self) -> float:
-        """The filter's Mahalanobis gate (2 dof); 0: every measurement is applied."""
-        return self.pose.gate_chi2 if self.pose is not None else 0.0
-
-    @property
-    def reinit_after_gated(self) -> int:
-        """Gated measurements in a row that restart the track; 0: never."""
-        return self.pose.reinit_after_gated if self.pose is not None else 0
-
-    def replace(self, **changes) -> "Method":
-        unknown = set(changes) - {f.name for f in fields(self)}
-        if unknown:
-            raise ParameterError(f"unknown parameter {sorted(unknown)[0]!r} for Method")
-        return replace(self, **changes)
-
-    def as_dict(self) -> dict:
-        return {"name": self.name, "pose": None if self.pose is None else self.pose.as_dict(),
-                "shortlist": None if self.shortlist is None else self.shortlist.as_dict(),
-                "camera_rate": self.camera_rate, "min_matches": self.min_matches}
-
-
-PAPER_METHOD = Method("paper")
-REFINED_METHOD = Method("refined", pose=REFINED)
-# the camera-rate path: keypoints found at a reduced scale are less precise (PnP at 3 px); few candidates
-# per frame inside the gate, more for a frame without one
-REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=3.0),
-                             shortlist=FAST.replace(shortlist_size=3, lost_shortlist_size=16), camera_rate=True,
-                             min_matches=20)
-METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD, REFINED_FAST_METHOD)}
-
-
-def method_named(name: str) -> Method:
-    """The method called ``name``; ``ParameterError`` naming the choices otherwise."""
-    if name not in METHODS:
-        raise ParameterError(f"mode={name!r}: must be one of {', '.join(METHODS)}")
-    return METHODS[name]
 
 
 def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retrieval: RetrievalParams,
