@@ -6,8 +6,10 @@ what these make; every step is resumable and skips what the store already holds.
 from __future__ import annotations
 
 import math
+import os
 import uuid
 from collections.abc import Callable
+from contextlib import contextmanager
 
 import numpy as np
 
@@ -20,6 +22,7 @@ from visloc.pose.structure import VARIANTS, seeded_structure_cache, structure_se
 from visloc.sources.drives import Sequence
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport
+from visloc.store.processes import local_processes
 from visloc.store.workspace import Workspace, global_vectors_name
 
 Progress = Callable[[int, int], None] | None
@@ -32,16 +35,31 @@ def ingest_sequence(ws: Workspace, sequence: Sequence, sift: SiftParams, *, work
                     repair: bool = False, cluster=None) -> IngestReport:
     """SIFT every frame of ``sequence`` the store lacks (``Workspace.add_features``; ``repair``: and those
     whose features are damaged), then its global vectors, its structure and its self-check
-    (``structure=False``: SIFT only); resumable. ``cluster``: describe the frames on a distributed engine's
-    workers (``visloc.store.cluster``)."""
+    (``structure=False``: SIFT only); resumable. ``workers``: processes of this machine for SIFT, structure
+    and the self-check (default: one per core; 1: all in this process). ``cluster``: run those steps on a
+    distributed engine's workers instead (``visloc.store.cluster``)."""
     report = ws.add_features(sequence, sift, workers=workers, limit=limit, progress=progress,
                              skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair,
                              cluster=cluster)
     if structure and ws.stored_frame_count(sequence.source, sequence.camera):
         build_global_vectors(ws, sequence.source, sequence.camera, progress=vectors_progress)
-        build_structure(ws, sequence.source, sequence.camera, progress=structure_progress, cluster=cluster)
-        build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress, cluster=cluster)
+        with _build_processes(ws, workers, cluster) as engine:
+            build_structure(ws, sequence.source, sequence.camera, progress=structure_progress, cluster=engine)
+            build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress, cluster=engine)
     return report
+
+
+@contextmanager
+def _build_processes(ws: Workspace, workers: int | None, cluster):
+    """What structure and the self-check run on: ``cluster`` when given; else, with more than one worker
+    (default: one per core), worker processes of this machine (``visloc.store.processes``: the same
+    tasks, the same rows), started only if a step has enough images to spread."""
+    n = workers or min(os.cpu_count() or 1, 8)
+    if cluster is not None or n <= 1:
+        yield cluster
+        return
+    with local_processes(n, str(ws.path)) as processes:
+        yield processes
 
 
 def build_global_vectors(ws: Workspace, source: str, camera: str, params: FastParams = FAST,
@@ -76,8 +94,9 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
     """Triangulate every image of (source, camera) the store holds no structure for (made with
     ``params``' structure settings), each variant of ``visloc.pose.structure``, committing image by
     image: an interrupted build resumes. Nothing to do without calibration and attitudes.
-    ``cluster``: triangulate on a distributed engine's workers, a few images per task, each
-    committed as it comes back. Returns the images built."""
+    ``cluster``: triangulate on a distributed engine's workers or this machine's processes
+    (``visloc.store.processes``), a few images per task, each committed as it comes back (the same rows as
+    in this process). Returns the images built."""
     settings = structure_settings_json(params)
     ids = ws.image_ids(source, camera)
     done = ws.structure_complete_ids(ids.tolist(), settings, len(VARIANTS))
@@ -91,7 +110,7 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
     todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
     if progress:
         progress(0, len(todo))
-    if cluster is not None:
+    if cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, structure_records, ws.save_structure, ws, source, camera, params, todo, 4, progress)
     for n, k in enumerate(todo, 1):
         ws.save_structure(_view_records(geometry, ids_of, k, params, settings))
@@ -180,7 +199,7 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
     if progress:
         progress(0, len(todo))
-    if cluster is not None:
+    if cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, self_check_records, ws.add_self_checks, ws, source, camera, params, todo, 16,
                            progress)
     cache = seeded_structure_cache(ws.load_structure(db, params))  # the views' stored structure, read

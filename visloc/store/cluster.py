@@ -98,6 +98,10 @@ class Cluster:
         self.address = address
         self.threads = threads
 
+    def worth_spreading(self, n_items: int) -> bool:
+        """A step of ``n_items`` runs on the cluster whatever its size (its workers hold what it needs)."""
+        return n_items > 0
+
     def worker_pids(self) -> dict[str, int]:
         """Worker address -> its process id (for a test that kills one)."""
         return self.client.run(os.getpid)
