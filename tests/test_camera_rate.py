@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 import pytest
 
-from conftest import REPO, require_drive, run_cli, write_csv_drive
+from helpers import REPO, require_drive, run_cli, write_csv_drive
 from helpers import error_lines
 from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED

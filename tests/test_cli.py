@@ -10,7 +10,7 @@ import pytest
 
 from visloc.cli.parser import build_parser
 
-from conftest import run_cli, write_csv_drive
+from helpers import run_cli, write_csv_drive
 from helpers import one_line_error
 
 
@@ -187,7 +187,7 @@ def test_missing_data_root_is_named(tmp_path):
 
 
 def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):
-    from conftest import make_fake_kitti
+    from helpers import make_fake_kitti
 
     make_fake_kitti(tmp_path / "kitti", n_frames=24)
     out = tmp_path / "e.json"
@@ -223,7 +223,7 @@ def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):
     ("unequal", "5 images in image_01 but 4 OXTS records"),
 ])
 def test_broken_kitti_drive_through_the_cli(tmp_path, breakage, message):
-    from conftest import make_fake_kitti
+    from helpers import make_fake_kitti
 
     drive = make_fake_kitti(tmp_path / "kitti", n_frames=5, with_oxts=breakage != "no_oxts")
     if breakage == "unequal":
@@ -270,7 +270,7 @@ def test_refined_mode_without_calibration_is_refused_naming_what_is_missing(synt
 
 
 def test_both_modes_report_the_same_keys(tmp_path):
-    from conftest import make_fake_kitti
+    from helpers import make_fake_kitti
 
     make_fake_kitti(tmp_path / "kitti", n_frames=24)
     reports = {}
@@ -306,7 +306,7 @@ def test_bench_refuses_bad_parameters_in_one_line(args, named):
 def test_evaluate_drives_runs_every_drive_with_the_protocols_it_supports(tmp_path):
     import shutil
 
-    from conftest import make_fake_kitti
+    from helpers import make_fake_kitti
 
     stereo = make_fake_kitti(tmp_path / "kitti", n_frames=24)
     one_camera = stereo.parent / "2011_09_26_drive_0002_sync"  # a drive dropped into the folder is picked up

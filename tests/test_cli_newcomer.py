@@ -16,7 +16,7 @@ from visloc.cli.parser import build_parser
 from visloc.cli.help_text import DEFAULT_DB
 from visloc.progress import duration_text, progress_reporter
 
-from conftest import make_fake_kitti, run_cli, write_csv_drive
+from helpers import make_fake_kitti, run_cli, write_csv_drive
 from helpers import PROGRESS_LINE, error_lines, one_line_error
 
 COMMANDS = ("ingest", "localize", "evaluate", "evaluate-drives", "track", "dashboard", "bench", "upgrade", "info")

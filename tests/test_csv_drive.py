@@ -26,7 +26,7 @@ from visloc.features.sift import extract_sift, undistort_keypoints
 from visloc.store.ingest import ingest
 from visloc.sources.drives import load_gray, open_csv
 
-from conftest import REPO, require_drive, run_cli, write_csv_drive
+from helpers import REPO, require_drive, run_cli, write_csv_drive
 
 DRIVE = "2011_09_26_drive_0005"
 KITTI_SOURCE = DRIVE + "_sync"

@@ -17,7 +17,7 @@ import re
 import numpy as np
 import pytest
 
-from conftest import run_cli
+from helpers import run_cli
 from helpers import (
     RUN_S,
     SERVER_WORK_S,

@@ -74,7 +74,7 @@ def map_src(page) -> str:
 def two_csv_drives(tmp_path):
     """A store of two synthetic drives: (database, queries, the queries at 1 Hz)."""
     import visloc
-    from conftest import write_csv_drive
+    from helpers import write_csv_drive
 
     ws = visloc.Workspace(tmp_path / "s.sqlite", create=True)
     for name, offset in (("dbdrive", 0), ("querydrive", 30)):

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 import sqlite_utils
 
-from conftest import REPO
+from helpers import REPO
 
 _spec = importlib.util.spec_from_file_location("min_versions", REPO / "scripts" / "min_versions.py")
 min_versions = importlib.util.module_from_spec(_spec)

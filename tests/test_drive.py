@@ -30,7 +30,7 @@ from visloc import (
     track_drive,
 )
 
-from conftest import write_csv_drive
+from helpers import write_csv_drive
 
 
 @pytest.fixture(scope="module")

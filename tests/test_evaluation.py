@@ -10,7 +10,7 @@ from visloc import (PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, 
 from visloc.results.report import (PAPER_DATABASE, PAPER_QUERIES, evaluation_json, save_error_plot, series_tables, summary_text,
                            write_json)
 
-from conftest import write_csv_drive
+from helpers import write_csv_drive
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,7 @@ from visloc.retrieval.retrievers import (ShortlistRetriever, WindowRetriever, bu
                               retrieve, shortlist_retrieve)
 from visloc.features.vlad import shortlist
 
-from conftest import panorama
+from helpers import panorama
 
 SPEC = SyntheticSpec(n_images=300, descriptors_per_image=64, seed=3)
 

@@ -37,7 +37,7 @@ from helpers import (
     wait_for,
 )
 
-from conftest import REPO, run_cli, write_csv_drive
+from helpers import REPO, run_cli, write_csv_drive
 
 pytestmark = [pytest.mark.browser, pytest.mark.slow]
 

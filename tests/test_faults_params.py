@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import make_fake_kitti, run_cli, write_csv_drive
+from helpers import make_fake_kitti, run_cli, write_csv_drive
 from fault_table import Fault, params
 
 P, O = "parameters", "output files"

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from fault_table import Fault, params
-from conftest import REPO, run_cli, write_csv_drive
+from helpers import REPO, run_cli, write_csv_drive
 from helpers import assert_no_half_images, error_lines, one_line_error, snapshot, wait_for_rows
 
 FAULTS = [

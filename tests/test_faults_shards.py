@@ -16,7 +16,7 @@ import pytest
 from visloc.db.shards import Manifest, rows_digest, staging_images
 from visloc.store.sharded import merged_store, prepare_store, publish_tiles, staging_path
 
-from conftest import KITTI_DRIVE, run_cli
+from helpers import KITTI_DRIVE, run_cli
 from fault_table import Fault, params
 from helpers import one_line_error
 
@@ -91,7 +91,7 @@ def test_bad_sharded_arguments_are_refused_in_one_line(fault, tmp_path, csv_driv
 
 @pytest.mark.parametrize("fault", params([CASES["shards-unreadable-image"]]))
 def test_an_unreadable_image_is_named_and_the_tiles_stay_complete(fault, tmp_path):
-    from conftest import write_csv_drive
+    from helpers import write_csv_drive
 
     drive = write_csv_drive(tmp_path / "drive")
     (drive.parent / "frame_0007.png").write_bytes(b"not a png")

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from fault_table import Fault, params
-from conftest import REPO, run_cli, write_csv_drive
+from helpers import REPO, run_cli, write_csv_drive
 from helpers import make_version_1_store, one_line_error
 
 FAULTS = [

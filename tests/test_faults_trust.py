@@ -17,7 +17,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from conftest import KITTI_DRIVE, REPO, run_cli
+from helpers import KITTI_DRIVE, REPO, run_cli
 from fault_table import Fault, params
 from helpers import SERVER_WORK_S, DashboardProcess, new_page, one_line_error, screenshot
 

@@ -14,7 +14,7 @@ from visloc.store.ingest import ingest
 from visloc.params import SiftParams
 from visloc.sources.drives import open_csv
 
-from conftest import REPO, write_csv_drive
+from helpers import REPO, write_csv_drive
 from helpers import assert_no_half_images, snapshot, wait_for_rows
 
 
@@ -111,7 +111,7 @@ def test_other_sift_settings_are_refused_before_any_work(tmp_path, csv_drive):
 
 
 def test_reingest_fills_attitudes_and_extrinsics_a_version_1_store_lacks(tmp_path):
-    from conftest import make_fake_kitti
+    from helpers import make_fake_kitti
     from visloc.sources.drives import open_kitti
 
     make_fake_kitti(tmp_path / "kitti", n_frames=3)
@@ -135,7 +135,7 @@ def test_reingest_fills_attitudes_and_extrinsics_a_version_1_store_lacks(tmp_pat
 
 
 def test_reingest_fills_the_geotag_accuracy_a_version_2_store_lacks(tmp_path):
-    from conftest import make_fake_kitti
+    from helpers import make_fake_kitti
     from visloc.sources.drives import open_kitti
 
     drive = make_fake_kitti(tmp_path / "kitti", n_frames=3)

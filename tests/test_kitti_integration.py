@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import KITTI_DRIVE, run_cli
+from helpers import KITTI_DRIVE, run_cli
 
 pytestmark = [pytest.mark.kitti, pytest.mark.slow]
 
@@ -90,7 +90,7 @@ def test_same_camera_without_exclusion_finds_the_query_image_itself(evaluation, 
 
 def readme_python_block(k: int) -> str:
     """The k-th Python block of the README's "Python API" section."""
-    from conftest import REPO
+    from helpers import REPO
 
     section = (REPO / "README.md").read_text().split("## Python API", 1)[1].split("\n## ", 1)[0]
     return section.split("```python\n")[k + 1].split("```", 1)[0]

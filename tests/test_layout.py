@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO
+from helpers import REPO
 
 # folder -> the package it installs as (pyproject.toml's package-dir)
 PACKAGES = {"visloc": "visloc", "db": "visloc.db", "dashboard": "visloc.dashboard", "bench": "visloc.bench"}

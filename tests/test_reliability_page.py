@@ -6,7 +6,7 @@ import subprocess
 import sys
 
 from fault_table import FAULT_MODULES, all_faults
-from conftest import REPO
+from helpers import REPO
 
 sys.path.insert(0, str(REPO / "scripts"))
 import reliability  # noqa: E402

@@ -11,7 +11,7 @@ import pytest
 import visloc
 from visloc.dashboard import runpanels as rp
 
-from conftest import run_cli
+from helpers import run_cli
 from helpers import one_line_error
 
 pytestmark = [pytest.mark.kitti]

@@ -10,7 +10,7 @@ import sqlite3
 import numpy as np
 import pytest
 
-from conftest import REPO
+from helpers import REPO
 from helpers import features, make_version_1_store
 from visloc.db import (CameraRecord, DamagedStoreError, FeatureStore, ImageRecord, SelfCheckRecord, SelfCheckTable, SkippedFrame,
                        StructureRecord, StructureTable, VectorTable)

@@ -19,7 +19,7 @@ from visloc.store.sharded import GlobalSearch, TileIndex, merged_store
 from visloc.store.workspace import Workspace
 from visloc.store.tiles import cells_within, owner_cells, tiles_of_images
 
-from conftest import KITTI_DRIVE, run_cli
+from helpers import KITTI_DRIVE, run_cli
 from helpers import one_line_error
 
 pytest.importorskip("distributed")

@@ -9,7 +9,7 @@ import pytest
 from visloc.errors import InputError
 from visloc.sources.drives import load_gray, open_csv, open_kitti, open_source
 
-from conftest import make_fake_kitti, write_csv_drive
+from helpers import make_fake_kitti, write_csv_drive
 
 
 def test_fake_kitti_reads_geotags_timestamps_and_calibration(tmp_path):

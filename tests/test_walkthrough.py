@@ -22,7 +22,7 @@ import geojson
 import pytest
 from helpers import control, dismiss_webgl_notice, new_page, run_number, wait_for
 
-from conftest import REPO
+from helpers import REPO
 
 pytestmark = [pytest.mark.kitti, pytest.mark.slow, pytest.mark.browser]
 
