@@ -1,15 +1,32 @@
-"""Shared fixtures: stores, a synthetic drive with a known answer, and the real KITTI drive."""
+"""Shared fixtures: stores, a synthetic drive with a known answer, and the real KITTI drive.
+
+Every expensive artifact (a store of a real drive, an evaluation of it, a pair of synthetic drives in a
+store) is made once per test run, whichever pytest-xdist worker asks first, behind a file lock in a
+folder all workers share (``helpers.built_once``); a test that writes into one works on its own copy.
+The markers tell the truth (``pytest_collection_modifyitems``): a test that reads the real drives is
+marked ``kitti``, one that drives the browser ``browser``, and no other test carries those marks."""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
 from pathlib import Path
 
 import pytest
 
-from helpers import KITTI_DRIVE, require_drive, run_cli, write_csv_drive
+from helpers import KITTI_DRIVE, built_once, copy_store, require_drive, run_cli, write_csv_drive
 from visloc.db import FeatureStore
 from visloc.sources.drives import default_data_root
+
+
+# -- artifacts made once per run, shared by the workers ------------------------------------------------------
+
+@pytest.fixture(scope="session")
+def shared_tmp(tmp_path_factory, worker_id) -> Path:
+    """A folder every pytest-xdist worker of this run shares (without xdist: the run's own temporary folder)."""
+    base = tmp_path_factory.getbasetemp()
+    return base.parent if worker_id != "master" else base
 
 
 @pytest.fixture
@@ -34,30 +51,54 @@ def kitti_root() -> Path:
 
 
 @pytest.fixture(scope="session")
-def kitti_evaluation(kitti_root, tmp_path_factory):
+def kitti_evaluation(kitti_root, shared_tmp):
     """``visloc evaluate`` on three series (start frames 0, 25, 50) of the real drive, as a user
     runs it: (folder holding kitti.sqlite and eval.json, the JSON report, stdout). The store then
-    holds both cameras' features and the counts of every query frame 0, 10, ..., 100."""
-    import json
+    holds both cameras' features and the counts of every query frame 0, 10, ..., 100. Shared: a test
+    that writes into the store copies it first (``copy_store``)."""
+    def build(folder: Path) -> dict:
+        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", folder / "kitti.sqlite",
+                         "--start-frames", "0,25,50", "--json", folder / "eval.json", timeout=1800)
+        assert result.returncode == 0, result.stderr
+        return {"stdout": result.stdout}
 
-    tmp = tmp_path_factory.mktemp("kitti")
-    out = tmp / "eval.json"
-    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
-                     "--start-frames", "0,25,50", "--json", out, timeout=1800)
-    assert result.returncode == 0, result.stderr
-    return tmp, json.loads(out.read_text()), result.stdout
+    folder, made = built_once(shared_tmp, "kitti_0001", build)
+    return folder, json.loads((folder / "eval.json").read_text()), made["stdout"]
 
 
 @pytest.fixture(scope="session")
-def kitti_two_runs(kitti_evaluation, kitti_root):
+def kitti_refined(kitti_evaluation, kitti_root, shared_tmp):
+    """The same three series in the refined mode, with the smoother, on a copy of the session's store:
+    (the JSON report, stdout)."""
+    evaluated, _, _ = kitti_evaluation
+
+    def build(folder: Path) -> dict:
+        store = copy_store(evaluated / "kitti.sqlite", folder)
+        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", store, "--start-frames", "0,25,50",
+                         "--mode", "refined", "--smooth", "--json", folder / "refined.json", timeout=1800)
+        assert result.returncode == 0, result.stderr
+        return {"stdout": result.stdout}
+
+    folder, made = built_once(shared_tmp, "kitti_0001_refined", build)
+    return json.loads((folder / "refined.json").read_text()), made["stdout"]
+
+
+@pytest.fixture(scope="session")
+def kitti_two_runs(kitti_evaluation, kitti_root, shared_tmp):
     """Two saved runs of the same series, as ``evaluate`` wrote them: the session's evaluation (the paper's
-    parameters) and the same at τ1 0.7, matched on the same store."""
-    tmp, _, _ = kitti_evaluation
-    other = tmp / "eval_tau1_0.7.json"
-    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
-                     "--start-frames", "0,25,50", "--tau1", "0.7", "--json", other, timeout=1800)
-    assert result.returncode == 0, result.stderr
-    return tmp / "eval.json", other
+    parameters) and the same at τ1 0.7, matched on a copy of the same store."""
+    evaluated, _, _ = kitti_evaluation
+
+    def build(folder: Path) -> dict:
+        shutil.copy(evaluated / "eval.json", folder / "eval.json")  # the two runs side by side
+        store = copy_store(evaluated / "kitti.sqlite", folder)
+        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", store, "--start-frames", "0,25,50",
+                         "--tau1", "0.7", "--json", folder / "eval_tau1_0.7.json", timeout=1800)
+        assert result.returncode == 0, result.stderr
+        return {}
+
+    folder, _ = built_once(shared_tmp, "kitti_0001_tau1_0.7", build)
+    return folder / "eval.json", folder / "eval_tau1_0.7.json"
 
 
 @pytest.fixture

@@ -7,19 +7,24 @@ imports these as ``from helpers import ...``."""
 
 from __future__ import annotations
 
+import json
 import os
 import re
+import shutil
 import signal
 import sqlite3
 import subprocess
 import sys
 import threading
 import time
+import traceback
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from filelock import FileLock
 
 # -- the checkout, the data and synthetic drives -----------------------------------------------------------
 
@@ -101,6 +106,38 @@ def make_fake_kitti(root: Path, n_frames: int = 3, *, cameras=("image_00", "imag
         (root / "2011_09_26" / "calib_velo_to_cam.txt").write_text(
             "calib_time: 15-Mar-2012 11:37:16\nR: 0 -1 0 0 0 -1 1 0 0\nT: 0 -0.08 -0.27\n")
     return drive
+
+
+# -- artifacts made once per test run ---------------------------------------------------------------------
+
+def built_once(shared_tmp: Path, name: str, build: Callable[[Path], dict]) -> tuple[Path, dict]:
+    """``build(folder)`` once per test run, in ``shared_tmp/name``, by whichever worker asks first; the others
+    wait for it and get the same (folder, what ``build`` returned, JSON-serializable). A build that fails is
+    not tried again by the next worker: it fails with the first one's message."""
+    folder = shared_tmp / name
+    done, failed = shared_tmp / f"{name}.done.json", shared_tmp / f"{name}.failed.txt"
+    with FileLock(str(shared_tmp / f"{name}.lock")):
+        if failed.exists():
+            pytest.fail(f"{name} could not be built (by another worker):\n{failed.read_text()}", pytrace=False)
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir(parents=True)
+            try:
+                made = build(folder)
+            except BaseException:
+                failed.write_text(traceback.format_exc())
+                raise
+            done.write_text(json.dumps(made))
+    return folder, json.loads(done.read_text())
+
+
+def copy_store(store: Path, folder: Path) -> Path:
+    """A copy of a shared store in ``folder``, for a test that writes into it."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for side in ("", "-wal"):  # what a writer has not yet checkpointed is in the -wal file
+        if Path(f"{store}{side}").exists():
+            shutil.copy(f"{store}{side}", folder / f"{store.name}{side}")
+    return folder / store.name
 
 
 # -- the command line --------------------------------------------------------------------------------------

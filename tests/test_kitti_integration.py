@@ -64,26 +64,26 @@ def test_errors_are_physically_sane(evaluation):
     assert report["latency_ms"]["p50"] > 0
 
 
-def test_localize_prints_the_tables_for_one_series(evaluation, kitti_root):
+def test_localize_prints_the_tables_for_one_series(evaluation, kitti_root, tmp_path):
     tmp, _, _ = evaluation
     result = run_cli("localize", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
-                     "--start-frame", "25", "--exclusion-s", "1", "--json", tmp / "series.json")
+                     "--start-frame", "25", "--exclusion-s", "1", "--json", tmp_path / "series.json")
     assert result.returncode == 0, result.stderr
     assert "Table 2" in result.stdout and "Table 3" in result.stdout
-    steps = json.loads((tmp / "series.json").read_text())["steps"]
+    steps = json.loads((tmp_path / "series.json").read_text())["steps"]
     _, report, _ = evaluation
     # the same series through localize (fresh SIFT) and evaluate (stored SIFT) agree
     assert [s["best_db_frame"] for s in steps] == [s["best_db_frame"] for s in report["series"][1]]
 
 
-def test_same_camera_without_exclusion_finds_the_query_image_itself(evaluation, kitti_root):
+def test_same_camera_without_exclusion_finds_the_query_image_itself(evaluation, kitti_root, tmp_path):
     tmp, _, _ = evaluation
     result = run_cli("localize", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
                      "--camera", "image_01", "--db-camera", "image_01", "--start-frame", "30", "--steps", "2",
-                     "--exclusion-s", "0", "--json", tmp / "self.json")
+                     "--exclusion-s", "0", "--json", tmp_path / "self.json")
     assert result.returncode == 0, result.stderr
     assert "warning: --exclusion-s 0 with a database (2011_09_26_drive_0001_sync/image_01)" in result.stdout
-    steps = json.loads((tmp / "self.json").read_text())["steps"]
+    steps = json.loads((tmp_path / "self.json").read_text())["steps"]
     assert [s["best_db_frame"] for s in steps] == [s["query_frame"] for s in steps]
     assert all(s["measurement_error_m"] == 0.0 for s in steps)
 
@@ -123,14 +123,9 @@ def test_readme_drive_example_runs(evaluation, capsys):
 
 # -- the refined mode on the same series ----------------------------------------------------
 
-@pytest.fixture(scope="module")
-def refined(evaluation, kitti_root):
-    tmp, _, _ = evaluation
-    out = tmp / "refined.json"
-    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
-                     "--start-frames", "0,25,50", "--mode", "refined", "--smooth", "--json", out, timeout=1800)
-    assert result.returncode == 0, result.stderr
-    return json.loads(out.read_text()), result.stdout
+@pytest.fixture(scope="session")
+def refined(kitti_refined):
+    return kitti_refined
 
 
 def test_refined_mode_reports_the_same_keys_as_the_paper(evaluation, refined):
@@ -175,13 +170,13 @@ def test_refined_mode_keeps_the_exclusion_window_and_says_why_it_falls_back(refi
                 assert s["fallback_reason"]  # a geotag in the refined mode always says why
 
 
-def test_localize_in_refined_mode_agrees_with_evaluate(evaluation, refined, kitti_root):
+def test_localize_in_refined_mode_agrees_with_evaluate(evaluation, refined, kitti_root, tmp_path):
     tmp, _, _ = evaluation
     report, _ = refined
     result = run_cli("localize", kitti_root, "--drive", KITTI_DRIVE, "--db", tmp / "kitti.sqlite",
-                     "--start-frame", "25", "--exclusion-s", "1", "--mode", "refined", "--json", tmp / "r25.json")
+                     "--start-frame", "25", "--exclusion-s", "1", "--mode", "refined", "--json", tmp_path / "r25.json")
     assert result.returncode == 0, result.stderr
-    steps = json.loads((tmp / "r25.json").read_text())["steps"]
+    steps = json.loads((tmp_path / "r25.json").read_text())["steps"]
     series = report["series"][1]
     assert [s["measurement_source"] for s in steps] == [s["measurement_source"] for s in series]
     # fresh SIFT in localize, stored SIFT in evaluate: the same keypoints, so the same poses

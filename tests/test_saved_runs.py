@@ -4,6 +4,8 @@ opens it (``visloc.load_run``), compared with a second run, and what the viewer 
 from __future__ import annotations
 
 import json
+import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -49,16 +51,15 @@ def test_kitti_two_runs_compare_in_one_frame_and_say_which_parameters_differ(kit
 
 
 def test_drives_json_lists_the_runs_beside_it(kitti_two_runs, tmp_path):
-    folder = kitti_two_runs[0].parent
-    index = folder / "drives.json"
+    runs = [Path(shutil.copy(run, tmp_path / run.name)) for run in kitti_two_runs]  # the shared runs stay as made
+    index = tmp_path / "drives.json"
     index.write_text(json.dumps({"root": "x", "drives": {"d": [
-        {"mode": "paper", "protocol_label": "left queries, right database", "file": kitti_two_runs[0].name},
-        {"mode": "paper", "protocol_label": "τ1 0.7", "file": kitti_two_runs[1].name},
+        {"mode": "paper", "protocol_label": "left queries, right database", "file": runs[0].name},
+        {"mode": "paper", "protocol_label": "τ1 0.7", "file": runs[1].name},
         {"mode": "refined", "file": "not_there.json"}]}}))
     files = visloc.run_files(index)
-    assert [p for _, p in files] == [kitti_two_runs[0], kitti_two_runs[1]]  # a file that is not beside it is left out
+    assert [p for _, p in files] == runs  # a file that is not beside it is left out
     assert files[0][0] == "d, left queries, right database, paper"
-    index.unlink()
 
 
 @pytest.mark.parametrize("content, says", [

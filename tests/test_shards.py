@@ -19,7 +19,7 @@ from visloc.store.sharded import GlobalSearch, TileIndex, merged_store
 from visloc.store.workspace import Workspace
 from visloc.store.tiles import cells_within, owner_cells, tiles_of_images
 
-from helpers import KITTI_DRIVE, run_cli
+from helpers import KITTI_DRIVE, built_once, run_cli
 from helpers import one_line_error
 
 pytest.importorskip("distributed")
@@ -265,13 +265,19 @@ def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_dr
 
 # -- the same answers as one file (drive 0001 in 25 m tiles, two workers) -------------------------------
 
-@pytest.fixture(scope="module")
-def city_0001(kitti_root, tmp_path_factory):
-    city = tmp_path_factory.mktemp("city") / "city"
-    made = run_cli("ingest", kitti_root, "--drive", KITTI_DRIVE, "--camera", "image_00", "--camera", "image_01",
-                   "--db", city, "--tile-m", "25", "--workers", "2", timeout=3600)
-    assert made.returncode == 0, made.stderr
-    return city
+@pytest.fixture(scope="session")
+def city_0001(kitti_root, shared_tmp):
+    """Drive 0001 in 25 m tiles, made once per run: its right camera as the database (features, global vectors,
+    structure, self-check), its left camera as queries (features only, as ``evaluate`` stores them in a file)."""
+    def build(folder: Path) -> dict:
+        for camera, extra in (("image_01", ()), ("image_00", ("--features-only",))):
+            made = run_cli("ingest", kitti_root, "--drive", KITTI_DRIVE, "--camera", camera, "--db", folder / "city",
+                           "--tile-m", "25", "--workers", "2", *extra, timeout=3600)
+            assert made.returncode == 0, made.stderr
+        return {}
+
+    folder, _ = built_once(shared_tmp, "city_0001", build)
+    return folder / "city"
 
 
 @pytest.mark.kitti
@@ -290,15 +296,13 @@ def test_paper_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_evalua
 
 @pytest.mark.kitti
 @pytest.mark.slow
-def test_refined_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_evaluation, tmp_path):
-    folder, _, _ = kitti_evaluation
-    runs = {}
-    for name, store in (("file", folder / "kitti.sqlite"), ("tiles", city_0001)):
-        out = tmp_path / f"{name}.json"
-        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--mode", "refined", "--db", store,
-                         "--start-frames", "0,50", "--json", out, timeout=1800)
-        assert result.returncode == 0, result.stderr
-        runs[name] = _errors(json.loads(out.read_text()))
+def test_refined_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_refined, tmp_path):
+    runs = {"file": _errors(kitti_refined[0])}  # the same series, evaluated on one file
+    out = tmp_path / "tiles.json"
+    result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--mode", "refined", "--smooth", "--db", city_0001,
+                     "--start-frames", "0,25,50", "--json", out, timeout=1800)
+    assert result.returncode == 0, result.stderr
+    runs["tiles"] = _errors(json.loads(out.read_text()))
     assert len(runs["file"]) == len(runs["tiles"]) > 10
     assert max(abs(a - b) for a, b in zip(runs["file"], runs["tiles"], strict=True)) <= 1e-6
 

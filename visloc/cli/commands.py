@@ -128,7 +128,7 @@ def cmd_ingest(a: argparse.Namespace) -> int:
     sequences = [_open_source(a.source, drive=a.drive, camera=camera) for camera in cameras]
     if a.tile_m is not None or is_sharded(a.db):
         return ingest_sharded(a, sequences, lambda ws, seq, cluster: _print_ingest(
-            a, seq, _ingest(ws, seq, sift, a, a.limit, repair=True, cluster=cluster)))
+            a, seq, _ingest(ws, seq, sift, a, a.limit, structure=not a.features_only, repair=True, cluster=cluster)))
     if a.halo_m is not None or a.address is not None:
         raise InputError(f"{'--halo-m' if a.halo_m is not None else '--address'}: only for a sharded store "
                          "(give --tile-m)")
@@ -139,7 +139,7 @@ def cmd_ingest(a: argparse.Namespace) -> int:
         with store_for_writing(a.db):
             ws = Workspace(a.db, create=True)
             for seq in sequences:
-                _print_ingest(a, seq, _ingest(ws, seq, sift, a, a.limit, repair=True))
+                _print_ingest(a, seq, _ingest(ws, seq, sift, a, a.limit, structure=not a.features_only, repair=True))
     except KeyboardInterrupt as exc:
         n = ws.stored_frame_count(seq.source, seq.camera) if ws is not None and Path(a.db).exists() else 0
         print(f"visloc: {interrupted_text(exc)}; {a.db} keeps {n} images of {seq.name} (run the same command again "

@@ -188,6 +188,10 @@ def build_parser() -> argparse.ArgumentParser:
     _add_db(p)
     p.add_argument("--workers", type=int, default=None, help="processes for SIFT, structure and self-check (default: number of cores)")
     p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
+    p.add_argument("--features-only", action="store_true",
+                   help="store SIFT features and geotags only, for a camera used only for queries: no global "
+                        "vectors, structure or self-check, which a database camera needs (a later ingest without "
+                        "this flag adds them)")
     p.add_argument("--tile-m", type=float, default=None, metavar="M",
                    help="write a sharded store: --db is a folder of square tiles this many metres wide, one store "
                         "each, ingested on a Dask cluster (pip install 'visloc[cluster]'); every command reads it "
