@@ -12,10 +12,11 @@ import json
 import os
 import shutil
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
-from helpers import KITTI_DRIVE, built_once, copy_store, require_drive, run_cli, write_csv_drive
+from helpers import CSV_PAIR_FRAMES, KITTI_DRIVE, built_once, copy_store, require_drive, run_cli, write_csv_drive
 from visloc.db import FeatureStore
 from visloc.sources.drives import default_data_root
 
@@ -99,6 +100,27 @@ def kitti_two_runs(kitti_evaluation, kitti_root, shared_tmp):
 
     folder, _ = built_once(shared_tmp, "kitti_0001_tau1_0.7", build)
     return folder / "eval.json", folder / "eval_tau1_0.7.json"
+
+
+@pytest.fixture(scope="session")
+def csv_pair(shared_tmp) -> SimpleNamespace:
+    """Two synthetic CSV drives of the same strip, ``CSV_PAIR_FRAMES`` frames each at 2 Hz: a database drive
+    (folder ``dbdrive``) and a query drive shifted by a quarter frame (``querydrive``, the same times and
+    places), and a store of the database drive made by ``visloc ingest`` as a user makes it. Made once per
+    run: ``folder``, ``db_csv``, ``query_csv``, ``store``, ``n_frames``; a test that writes into the store
+    copies it (``copy_store``)."""
+    def build(folder: Path) -> dict:
+        db_csv = write_csv_drive(folder / "dbdrive", n_frames=CSV_PAIR_FRAMES)
+        write_csv_drive(folder / "querydrive", n_frames=CSV_PAIR_FRAMES, offset_px=30)
+        result = run_cli("ingest", db_csv, "--db", folder / "store.sqlite", "--workers", "1")
+        assert result.returncode == 0, result.stderr
+        assert f"dbdrive/camera: {CSV_PAIR_FRAMES} added, 0 already stored" in result.stdout
+        return {}
+
+    folder, _ = built_once(shared_tmp, "csv_pair", build)
+    return SimpleNamespace(folder=folder, db_csv=folder / "dbdrive" / "geotags.csv",
+                           query_csv=folder / "querydrive" / "geotags.csv", store=folder / "store.sqlite",
+                           n_frames=CSV_PAIR_FRAMES)
 
 
 @pytest.fixture

@@ -31,6 +31,7 @@ from filelock import FileLock
 REPO = Path(__file__).resolve().parent.parent
 KITTI_DRIVE = "2011_09_26_drive_0001"
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 49.015003823272, 8.4342971002335  # first OXTS record of drive 0001
+CSV_PAIR_FRAMES = 14  # frames of each drive of the shared synthetic pair (conftest.csv_pair)
 
 
 def require_drive(drive: Path) -> None:
@@ -132,12 +133,21 @@ def built_once(shared_tmp: Path, name: str, build: Callable[[Path], dict]) -> tu
 
 
 def copy_store(store: Path, folder: Path) -> Path:
-    """A copy of a shared store in ``folder``, for a test that writes into it."""
+    """A copy of a shared store in ``folder`` (same file name), for a test that writes into it: a consistent
+    snapshot even while another test's command writes into the store (SQLite's backup), in the same journal
+    mode, one file with no side files, as ingest leaves a store."""
     folder.mkdir(parents=True, exist_ok=True)
-    for side in ("", "-wal"):  # what a writer has not yet checkpointed is in the -wal file
-        if Path(f"{store}{side}").exists():
-            shutil.copy(f"{store}{side}", folder / f"{store.name}{side}")
-    return folder / store.name
+    copy = folder / store.name
+    source = sqlite3.connect(f"file:{store}?mode=ro", uri=True, timeout=60)
+    target = sqlite3.connect(copy)
+    try:
+        mode = source.execute("PRAGMA journal_mode").fetchone()[0]
+        source.backup(target)
+        target.execute(f"PRAGMA journal_mode={mode}")
+    finally:
+        source.close()
+        target.close()
+    return copy
 
 
 # -- the command line --------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ import pytest
 
 from visloc.cli.parser import build_parser
 
-from helpers import run_cli, write_csv_drive
+from helpers import CSV_PAIR_FRAMES, copy_store, run_cli, write_csv_drive
 from helpers import one_line_error
 
 
@@ -29,22 +29,16 @@ def test_every_command_and_option_has_help_text():
 
 
 @pytest.fixture(scope="module")
-def synthetic(tmp_path_factory):
-    """A database drive and a query drive of the same strip, queries shifted by a quarter frame."""
-    tmp = tmp_path_factory.mktemp("cli")
-    db_csv = write_csv_drive(tmp / "dbdrive", n_frames=10)
-    query_csv = write_csv_drive(tmp / "querydrive", n_frames=10, offset_px=30)
-    store = tmp / "store.sqlite"
-    result = run_cli("ingest", db_csv, "--db", store, "--workers", "1")
-    assert result.returncode == 0, result.stderr
-    assert "dbdrive/camera: 10 added, 0 already stored, 10 frames" in result.stdout
-    return tmp, db_csv, query_csv, store
+def synthetic(csv_pair):
+    """The shared synthetic pair (conftest.csv_pair): a database drive in a store, and a query drive of the same
+    strip shifted by a quarter frame, 14 frames each at 2 Hz."""
+    return csv_pair.folder, csv_pair.db_csv, csv_pair.query_csv, csv_pair.store
 
 
-def test_reingest_reports_everything_skipped(synthetic):
+def test_reingest_reports_everything_skipped(synthetic, tmp_path):
     _, db_csv, _, store = synthetic
-    result = run_cli("ingest", db_csv, "--db", store)
-    assert result.returncode == 0 and "0 added, 10 already stored" in result.stdout
+    result = run_cli("ingest", db_csv, "--db", copy_store(store, tmp_path))
+    assert result.returncode == 0 and f"0 added, {CSV_PAIR_FRAMES} already stored" in result.stdout
 
 
 def test_localize_prints_tables_2_and_3_and_finds_the_right_images(synthetic, tmp_path):
@@ -94,7 +88,7 @@ def test_info_describes_the_store(synthetic):
     _, _, _, store = synthetic
     result = run_cli("info", "--db", store)
     assert result.returncode == 0
-    assert "10 images" in result.stdout and "dbdrive/camera: 10 images" in result.stdout
+    assert f"{CSV_PAIR_FRAMES} images" in result.stdout and f"dbdrive/camera: {CSV_PAIR_FRAMES} images" in result.stdout
     assert "'n_features': 0" in result.stdout
 
 
@@ -166,7 +160,7 @@ def test_series_that_does_not_fit_is_refused(synthetic):
     one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--start-frame", "8"),
                    "--start-frame 8: 6 queries 1.0 s apart do not fit")
     one_line_error(run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--start-frame", "99"),
-                   "--start-frame 99: querydrive/camera has frames 0..9")
+                   f"--start-frame 99: querydrive/camera has frames 0..{CSV_PAIR_FRAMES - 1}")
 
 
 def test_ingest_of_a_broken_drive_keeps_what_was_stored(tmp_path):

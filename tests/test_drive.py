@@ -30,15 +30,14 @@ from visloc import (
     track_drive,
 )
 
-from helpers import write_csv_drive
+from helpers import copy_store
 
 
 @pytest.fixture(scope="module")
-def workspace(tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("drive")
-    ws = Workspace(tmp / "s.sqlite", create=True)
-    for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-        ingest_sequence(ws, open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
+def workspace(csv_pair, tmp_path_factory):
+    """The shared synthetic pair (14 frames each), both drives in a store of this module's own."""
+    ws = Workspace(copy_store(csv_pair.store, tmp_path_factory.mktemp("drive")))
+    ingest_sequence(ws, open_csv(csv_pair.query_csv), SiftParams(), workers=1)
     return ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
 
 

@@ -10,15 +10,15 @@ from visloc import (PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, 
 from visloc.results.report import (PAPER_DATABASE, PAPER_QUERIES, evaluation_json, save_error_plot, series_tables, summary_text,
                            write_json)
 
-from helpers import write_csv_drive
+from helpers import copy_store
 
 
 @pytest.fixture(scope="module")
-def drives(tmp_path_factory):
+def drives(csv_pair, tmp_path_factory):
+    """The shared synthetic pair (14 frames each), both drives in a store of this module's own."""
     tmp = tmp_path_factory.mktemp("eval")
-    ws = Workspace(tmp / "s.sqlite", create=True)
-    for name, offset in (("dbdrive", 0), ("querydrive", 30)):
-        ingest_sequence(ws, open_csv(write_csv_drive(tmp / name, n_frames=14, offset_px=offset)), SiftParams(), workers=1)
+    ws = Workspace(copy_store(csv_pair.store, tmp))
+    ingest_sequence(ws, open_csv(csv_pair.query_csv), SiftParams(), workers=1)
     return tmp, ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera", SiftParams())
 
 

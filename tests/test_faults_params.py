@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from helpers import make_fake_kitti, run_cli, write_csv_drive
+from helpers import copy_store, make_fake_kitti, run_cli
 from fault_table import Fault, params
 
 P, O = "parameters", "output files"
@@ -53,16 +53,13 @@ FAULTS = [
 
 
 @pytest.fixture(scope="module")
-def drives(tmp_path_factory):
-    """A CSV database drive stored in a store, a CSV query drive, and a small KITTI layout."""
+def drives(csv_pair, tmp_path_factory):
+    """The shared synthetic pair (a CSV database drive stored in a store, a CSV query drive), the store copied
+    here (each case checks that it is left untouched), and a small KITTI layout."""
     tmp = tmp_path_factory.mktemp("faults_params")
-    db_csv = write_csv_drive(tmp / "dbdrive", n_frames=8)
-    query_csv = write_csv_drive(tmp / "querydrive", n_frames=8, offset_px=30)
-    store = tmp / "store.sqlite"
-    result = run_cli("ingest", db_csv, "--db", store, "--workers", "1")
-    assert result.returncode == 0, result.stderr
+    store = copy_store(csv_pair.store, tmp)
     make_fake_kitti(tmp / "kitti", n_frames=24)
-    return tmp, db_csv, query_csv, store
+    return tmp, csv_pair.db_csv, csv_pair.query_csv, store
 
 
 def _case(fault_id: str, tmp: Path, db_csv: Path, query_csv: Path, store: Path):

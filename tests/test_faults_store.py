@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import multiprocessing as mp
-import shutil
 import sqlite3
 import subprocess
 import sys
@@ -15,7 +14,7 @@ import numpy as np
 import pytest
 
 from fault_table import Fault, params
-from helpers import REPO, run_cli, write_csv_drive
+from helpers import CSV_PAIR_FRAMES, REPO, copy_store, run_cli
 from helpers import make_version_1_store, one_line_error
 
 FAULTS = [
@@ -47,21 +46,15 @@ def digest(path: Path) -> str:
 
 
 @pytest.fixture(scope="module")
-def built(tmp_path_factory):
-    """A small store of a CSV drive (as ingest leaves it: WAL mode, checkpointed) and the drive's CSV."""
-    tmp = tmp_path_factory.mktemp("faults_store")
-    csv = write_csv_drive(tmp / "dbdrive", n_frames=6)
-    store = tmp / "store.sqlite"
-    result = run_cli("ingest", csv, "--db", store, "--workers", "1")
-    assert result.returncode == 0, result.stderr
-    return csv, store
+def built(csv_pair):
+    """The shared synthetic store (a CSV drive, as ingest leaves it: WAL mode, checkpointed) and the drive's CSV;
+    every case works on a copy of the store."""
+    return csv_pair.db_csv, csv_pair.store
 
 
 def copy_of(store: Path, folder: Path) -> Path:
-    folder.mkdir(parents=True, exist_ok=True)
-    out = folder / "store.sqlite"
-    shutil.copy(store, out)
-    return out
+    """A copy of the shared store in ``folder``, named store.sqlite."""
+    return copy_store(store, folder)
 
 
 def read_only_mount(folder: Path) -> list[str]:
@@ -84,7 +77,7 @@ def test_a_store_on_a_read_only_medium_can_be_read(built, tmp_path, fault):
     result = subprocess.run([*prefix, sys.executable, "-m", "visloc", "info", "--db", str(path)],
                             capture_output=True, text=True, cwd=REPO, timeout=300)
     assert result.returncode == 0, result.stderr
-    assert "6 images" in result.stdout and "dbdrive/camera: 6 images" in result.stdout
+    assert f"{CSV_PAIR_FRAMES} images" in result.stdout and f"dbdrive/camera: {CSV_PAIR_FRAMES} images" in result.stdout
     assert digest(path) == before and sorted(p.name for p in path.parent.iterdir()) == ["store.sqlite"]
 
 
