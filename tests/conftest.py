@@ -16,7 +16,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from helpers import CSV_PAIR_FRAMES, KITTI_DRIVE, built_once, copy_store, require_drive, run_cli, write_csv_drive
+from helpers import CSV_PAIR_FRAMES, DRIVE_0005, DRIVE_0005_FRAMES, KITTI_DRIVE, built_once, copy_store, require_drive, run_cli, write_csv_drive
 from visloc.db import FeatureStore
 from visloc.sources.drives import default_data_root
 
@@ -49,6 +49,23 @@ def kitti_root() -> Path:
     root = default_data_root()
     require_drive(root / "2011_09_26" / (KITTI_DRIVE + "_sync"))
     return root
+
+
+@pytest.fixture(scope="session")
+def store_0005(kitti_root, shared_tmp) -> Path:
+    """The first ``DRIVE_0005_FRAMES`` frames of drive 0005's left camera in a store, made once per run by
+    ``visloc ingest --limit`` (features, global vectors, structure, self-check). A test that writes into it
+    copies it (``copy_store``)."""
+    require_drive(kitti_root / "2011_09_26" / f"{DRIVE_0005}_sync")
+
+    def build(folder: Path) -> dict:
+        result = run_cli("ingest", kitti_root, "--drive", DRIVE_0005, "--camera", "image_00", "--db",
+                         folder / "store.sqlite", "--limit", DRIVE_0005_FRAMES, "--workers", "2", timeout=1800)
+        assert result.returncode == 0, result.stderr
+        return {}
+
+    folder, _ = built_once(shared_tmp, "drive_0005", build)
+    return folder / "store.sqlite"
 
 
 @pytest.fixture(scope="session")

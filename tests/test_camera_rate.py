@@ -4,7 +4,6 @@ the store migration, and ``visloc track`` run as a user runs it (on the first fr
 from __future__ import annotations
 
 import json
-import shutil
 import sqlite3
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers import REPO, require_drive, run_cli, write_csv_drive
+from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, run_cli, write_csv_drive
 from helpers import error_lines
 from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED
@@ -26,20 +25,16 @@ from visloc.retrieval.matching import count_correspondences
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
 from visloc.results.saved import load_run
 
-DRIVE = "2011_09_26_drive_0005"
+DRIVE = DRIVE_0005
 SOURCE = DRIVE + "_sync"
-N_FRAMES = 40
+N_FRAMES = DRIVE_0005_FRAMES
 
 
 @pytest.fixture(scope="module")
-def store(kitti_root, tmp_path_factory) -> Path:
-    """The first 40 frames of drive 0005's image_00, ingested with the CLI (features, global vectors, structure)."""
-    require_drive(kitti_root / "2011_09_26" / SOURCE)
-    path = tmp_path_factory.mktemp("camera_rate") / "store.sqlite"
-    result = run_cli("ingest", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", path,
-                     "--limit", N_FRAMES, "--workers", "2", timeout=900)
-    assert result.returncode == 0, result.stderr
-    return path
+def store(store_0005) -> Path:
+    """The first 40 frames of drive 0005's image_00, ingested with the CLI (features, global vectors, structure),
+    shared by the run: the tests that change a store copy it."""
+    return store_0005
 
 
 def test_stored_structure_equals_structure_computed_afresh(store):
@@ -128,8 +123,7 @@ def test_variants_keep_the_excluded_images_out_of_the_structure():
 
 
 def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_structure(store, tmp_path):
-    path = tmp_path / "v3.sqlite"
-    shutil.copy(store, path)
+    path = copy_store(store, tmp_path / "v3")
     conn = sqlite3.connect(path)
     conn.execute("INSERT INTO pair_counts VALUES (1, 2, 0.8, 0.97, 42, 3.5)")
     for table in ("structures", "global_vectors", "arrays"):  # what schema version 3 had not
@@ -160,8 +154,7 @@ def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_struc
 
 
 def test_an_interrupted_structure_build_resumes_where_it_stopped(store, tmp_path):
-    path = tmp_path / "partial.sqlite"
-    shutil.copy(store, path)
+    path = copy_store(store, tmp_path / "partial")
     conn = sqlite3.connect(path)
     conn.execute("DELETE FROM structures WHERE image_id > 25")  # as if stopped after image 25
     conn.commit()

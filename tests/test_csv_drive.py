@@ -26,11 +26,11 @@ from visloc.features.sift import extract_sift, undistort_keypoints
 from visloc.store.ingest import ingest
 from visloc.sources.drives import load_gray, open_csv
 
-from helpers import REPO, require_drive, run_cli, write_csv_drive
+from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, run_cli, write_csv_drive
 
-DRIVE = "2011_09_26_drive_0005"
+DRIVE = DRIVE_0005
 KITTI_SOURCE = DRIVE + "_sync"
-N_FRAMES = 30
+N_FRAMES = DRIVE_0005_FRAMES  # the shared store's (conftest.store_0005)
 CSV_SOURCE = "drive_0005_csv"  # the export folder's name: the CSV drive's source
 COLUMNS = ["file", "timestamp", "lat", "lon", "alt", "heading", "roll_deg", "pitch_deg", "accuracy_m"]
 # the refined poses of the two stores agree to this (see test_refined_measurements_agree_between_both_stores)
@@ -43,27 +43,18 @@ def export(root: Path, out_dir: Path, *args: str) -> subprocess.CompletedProcess
 
 
 @pytest.fixture(scope="module")
-def drive_0005(kitti_root) -> Path:
-    require_drive(kitti_root / "2011_09_26" / KITTI_SOURCE)
-    return kitti_root
-
-
-@pytest.fixture(scope="module")
-def both(drive_0005, tmp_path_factory) -> SimpleNamespace:
-    """The first 30 frames of drive 0005's image_00 exported as a CSV drive, and each ingested with
-    the CLI into its own store: the KITTI drive (--limit 30) and the CSV drive."""
+def both(kitti_root, store_0005, tmp_path_factory) -> SimpleNamespace:
+    """The first 40 frames of drive 0005's image_00 exported as a CSV drive and ingested with the CLI, beside
+    the shared store of the same frames ingested from the KITTI drive (--limit 40), copied here."""
     tmp = tmp_path_factory.mktemp("csv_drive")
     csv_dir = tmp / CSV_SOURCE
-    result = export(drive_0005, csv_dir, "--frames", str(N_FRAMES))
+    result = export(kitti_root, csv_dir, "--frames", str(N_FRAMES))
     assert result.returncode == 0, result.stderr
-    kitti_db, csv_db = tmp / "kitti.sqlite", tmp / "csv.sqlite"
-    result = run_cli("ingest", drive_0005, "--drive", DRIVE, "--camera", "image_00", "--db", kitti_db,
-                     "--limit", N_FRAMES, "--workers", "2")
-    assert result.returncode == 0, result.stderr
+    kitti_db, csv_db = copy_store(store_0005, tmp / "kitti"), tmp / "csv.sqlite"
     result = run_cli("ingest", csv_dir / "geotags.csv", "--db", csv_db, "--workers", "2")
     assert result.returncode == 0, result.stderr
     assert f"{CSV_SOURCE}/camera: {N_FRAMES} added" in result.stdout
-    return SimpleNamespace(root=drive_0005, csv_dir=csv_dir, kitti_db=kitti_db, csv_db=csv_db, tmp=tmp)
+    return SimpleNamespace(root=kitti_root, csv_dir=csv_dir, kitti_db=kitti_db, csv_db=csv_db, tmp=tmp)
 
 
 def load(path: Path, source: str, camera: str):
