@@ -3,8 +3,9 @@
 Every expensive artifact (a store of a real drive, an evaluation of it, a pair of synthetic drives in a
 store) is made once per test run, whichever pytest-xdist worker asks first, behind a file lock in a
 folder all workers share (``helpers.built_once``); a test that writes into one works on its own copy.
-The markers tell the truth (``pytest_collection_modifyitems``): a test that reads the real drives is
-marked ``kitti``, one that drives the browser ``browser``, and no other test carries those marks."""
+The markers tell the truth (``pytest_collection_modifyitems``): a test that reads the real drives (the
+``kitti_root`` fixture) is marked ``kitti``, one that drives the browser (``browser``) is marked ``browser``,
+both given here from the fixtures, and no other test carries those marks."""
 
 from __future__ import annotations
 
@@ -167,3 +168,35 @@ def browser():
         b.close()
 
 
+
+
+# -- markers that tell the truth ------------------------------------------------------------------------------
+
+# a marker and the fixture that makes it true: a test is marked exactly when it uses the fixture, directly or
+# through another fixture. The marks are given here, from the fixtures, so they cannot lie; a test module
+# marks only ``slow`` itself.
+MARKED_BY_FIXTURE = {"kitti": "kitti_root", "browser": "browser"}
+SLOW_S = 5.0  # a test whose call takes longer is slow; the summary names those not marked so
+
+
+@pytest.hookimpl(tryfirst=True)  # before ``-m`` selects by the marks
+def pytest_collection_modifyitems(config, items):
+    wrong = []
+    for item in items:
+        marks = {m.name for m in item.iter_markers()}
+        for mark, fixture in MARKED_BY_FIXTURE.items():
+            if fixture in item.fixturenames:
+                item.add_marker(mark)
+            elif mark in marks:
+                wrong.append(f"{item.nodeid}: marked {mark} but does not use the fixture {fixture}")
+    if wrong:
+        raise pytest.UsageError("markers that do not tell the truth:\n" + "\n".join(wrong))
+
+
+def pytest_terminal_summary(terminalreporter):
+    unmarked = sorted((report.duration, report.nodeid) for report in terminalreporter.stats.get("passed", [])
+                      if report.when == "call" and report.duration > SLOW_S and "slow" not in report.keywords)
+    if unmarked:
+        terminalreporter.section("tests over 5 s that are not marked slow")
+        for duration, nodeid in reversed(unmarked):
+            terminalreporter.write_line(f"{duration:6.1f} s  {nodeid}")

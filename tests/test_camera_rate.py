@@ -241,8 +241,8 @@ def test_the_track_command_is_documented():
     assert "visloc track" in (REPO / "README.md").read_text()
 
 
-def test_optical_flow_finds_points_of_a_shifted_real_image_again():
-    seq = open_source(None, drive=DRIVE, camera="image_00")
+def test_optical_flow_finds_points_of_a_shifted_real_image_again(kitti_root):
+    seq = open_source(kitti_root, drive=DRIVE, camera="image_00")
     from visloc.pose.flowtrack import follow_points
     from visloc.sources.drives import load_gray
     gray = load_gray(seq.frames[0].image_path)

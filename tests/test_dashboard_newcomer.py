@@ -37,7 +37,7 @@ from helpers import (
     wait_for,
 )
 
-pytestmark = [pytest.mark.browser, pytest.mark.kitti, pytest.mark.slow]
+pytestmark = [pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

@@ -17,7 +17,7 @@ from visloc.dashboard import runpanels as rp
 from helpers import (RUN_S, SERVER_WORK_S, DashboardProcess, choose, control, dismiss_webgl_notice, new_page, settled,
                      status_text, wait_for)
 
-pytestmark = [pytest.mark.browser, pytest.mark.kitti, pytest.mark.slow]
+pytestmark = [pytest.mark.slow]
 
 
 @pytest.fixture(scope="module")

@@ -39,7 +39,7 @@ from helpers import (
 
 from helpers import REPO, run_cli, write_csv_drive
 
-pytestmark = [pytest.mark.browser, pytest.mark.slow]
+pytestmark = [pytest.mark.slow]
 
 # Folder and file names: valid on Linux (no '/'), each a different way in. Whatever runs sets
 # window.__xss; what Markdown would make of a name is an element inside the panel showing it.

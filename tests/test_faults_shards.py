@@ -112,7 +112,6 @@ def test_an_address_where_no_scheduler_answers_is_refused(fault, tmp_path, csv_d
     assert not (tmp_path / "city" / "tiles").exists()
 
 
-@pytest.mark.kitti
 @pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["shards-worker-killed"]]))
 def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path):

@@ -157,7 +157,6 @@ def test_changed_bytes_are_named_refused_and_repaired(clean, tmp_path, fault):
     assert max(abs(a - b) for a, b in zip(errors, clean_errors, strict=True)) <= 1e-6
 
 
-@pytest.mark.browser
 @pytest.mark.parametrize("fault", params([CASES["dashboard-damaged-store"]]))
 def test_the_dashboard_shows_a_damaged_store_in_the_page(clean, tmp_path, browser, fault):
     _, clean_store, _ = clean

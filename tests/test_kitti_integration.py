@@ -12,7 +12,7 @@ import pytest
 
 from helpers import KITTI_DRIVE, run_cli
 
-pytestmark = [pytest.mark.kitti, pytest.mark.slow]
+pytestmark = [pytest.mark.slow]
 
 
 @pytest.fixture(scope="session")

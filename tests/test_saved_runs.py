@@ -16,9 +16,6 @@ from visloc.dashboard import runpanels as rp
 from helpers import run_cli
 from helpers import one_line_error
 
-pytestmark = [pytest.mark.kitti]
-
-
 def test_an_evaluation_reads_back_step_for_step_in_local_metres(kitti_evaluation):
     tmp, report, _ = kitti_evaluation
     run = visloc.load_run(tmp / "eval.json")

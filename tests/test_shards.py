@@ -280,7 +280,6 @@ def city_0001(kitti_root, shared_tmp):
     return folder / "city"
 
 
-@pytest.mark.kitti
 @pytest.mark.slow
 def test_paper_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_evaluation, tmp_path):
     _, single, _ = kitti_evaluation
@@ -294,7 +293,6 @@ def test_paper_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_evalua
     assert _errors(sharded) == _errors(single)
 
 
-@pytest.mark.kitti
 @pytest.mark.slow
 def test_refined_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_refined, tmp_path):
     runs = {"file": _errors(kitti_refined[0])}  # the same series, evaluated on one file
@@ -307,7 +305,6 @@ def test_refined_mode_on_tiles_equals_one_file(city_0001, kitti_root, kitti_refi
     assert max(abs(a - b) for a, b in zip(runs["file"], runs["tiles"], strict=True)) <= 1e-6
 
 
-@pytest.mark.kitti
 @pytest.mark.slow
 def test_structure_is_read_from_the_tile_that_owns_each_view(city_0001, kitti_root, kitti_evaluation, tmp_path):
     """A sharded store's catalogue holds no structure points: a view's points are read from the tile that
@@ -377,9 +374,7 @@ def test_ingest_joins_a_running_cluster_by_its_address(tmp_path, csv_drive):
             p.wait(timeout=60)
 
 
-@pytest.mark.kitti
 @pytest.mark.slow
-@pytest.mark.browser
 def test_the_dashboard_opens_a_sharded_store(city_0001, browser):
     """``visloc dashboard --db FOLDER``: the page offers the folder as its store and plays the drive's first run."""
     from helpers import RUN_S, DashboardProcess, new_page, screenshot
