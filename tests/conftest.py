@@ -191,6 +191,17 @@ def pytest_collection_modifyitems(config, items):
                 wrong.append(f"{item.nodeid}: marked {mark} but does not use the fixture {fixture}")
     if wrong:
         raise pytest.UsageError("markers that do not tell the truth:\n" + "\n".join(wrong))
+    for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
+        if _module_fixtures(item):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+
+
+def _module_fixtures(item) -> list[str]:
+    """The module-scoped fixtures ``item`` uses (a store, a server, made once for its module's tests)."""
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return []
+    return [name for name, defs in info.name2fixturedefs.items() if defs and defs[-1].scope == "module"]
 
 
 def pytest_terminal_summary(terminalreporter):

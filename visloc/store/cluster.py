@@ -13,12 +13,14 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 from collections import deque
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 
 from visloc.errors import InputError
 
+LISTENER_TIMEOUT_S = 10.0  # how long ingest waits for anything at an address to accept a connection
 WORKERS_TIMEOUT_S = 120.0  # how long ingest waits for a first worker to join a scheduler it was pointed at
 # glibc's allocator, as a process starts: the mmap threshold grows with the largest block freed, up to 32 MiB
 # on 64-bit, and the heap is trimmed above twice it
@@ -137,6 +139,20 @@ class Cluster:
             yield futures[future], future.result()
 
 
+def _require_listener(address: str) -> None:
+    """Refuse at once an address where nothing accepts a connection (the scheduler is not started, or the port
+    is wrong) instead of waiting out the scheduler's connect timeout; a TCP address only (the scheduler's
+    default), and a host that accepts is left to the scheduler's own handshake."""
+    scheme, _, rest = address.rpartition("://")
+    host, _, port = rest.rpartition(":")
+    if scheme not in ("", "tcp") or not host or not port.isdigit():
+        return
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=LISTENER_TIMEOUT_S).close()
+    except OSError as exc:
+        raise InputError(f"--address {address}: no Dask scheduler answers there ({exc})") from None
+
+
 @contextmanager
 def open_cluster(workers: int = 2, address: str | None = None) -> Iterator[Cluster]:
     """A cluster for the ``with`` block: with ``address``, the Dask scheduler there; otherwise a local
@@ -144,6 +160,7 @@ def open_cluster(workers: int = 2, address: str | None = None) -> Iterator[Clust
     shares this machine's cores among them (one thread each with a worker per core)."""
     distributed = _require_dask()
     if address:
+        _require_listener(address)
         try:
             client = distributed.Client(address, timeout="30s")
         except (OSError, TimeoutError) as exc:
