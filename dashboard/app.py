@@ -32,6 +32,7 @@ from visloc.dashboard.gui import Handles, build_gui, enable_for_mode, paper_valu
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionView
+from visloc.dashboard.viewkit import flat_scene
 from visloc.dashboard.state import CONTROLLED, Allowed, Controls, Run, Shown, discover_stores, first_choices
 
 PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
@@ -54,7 +55,7 @@ class DashboardApp:
         self._jobs = LatestJobRunner(on_error=lambda name, exc: self._show_error(f"{name}: {exc}"))
         # the step's images (PNG reads, Figure 3) in their own worker: scrubbing never cancels a match
         self._image_jobs = LatestJobRunner(on_error=lambda name, exc: self._show_error(f"{name}: {exc}"))
-        server.scene.set_up_direction("+z")
+        flat_scene(server.scene)
         self.gui = build_gui(server, str(store_path))
         self.page = Page(server, self.gui)
         self.session = SessionView(self.gui.session)  # how many tabs, and which one changed what

@@ -23,7 +23,7 @@ from visloc.dashboard import scene
 from visloc.dashboard.gui import timeline_plots
 from visloc.dashboard.page import draw_timelines
 from visloc.dashboard.panels import status_html
-from visloc.dashboard.viewkit import SCALE_NODES, KeptScene, ScaleFollower, apply_layers, draw_grid
+from visloc.dashboard.viewkit import SCALE_NODES, KeptScene, ScaleFollower, apply_layers, draw_grid, flat_scene
 
 COMPARE_RGB = rp.COMPARE_RGB
 LAYERS = ("Truth", "Measurements", "Estimate", "Estimate ellipses", "Measurement ellipses", "Comparison",
@@ -64,7 +64,7 @@ class RunViewer:
         self.state = ViewerState()
         self._lock = threading.RLock()
         self._stop = threading.Event()
-        server.scene.set_up_direction("+z")
+        flat_scene(server.scene)
         self._largest_m, self._farthest_m, self._marker_m = 10.0, 200.0, 0.1  # set for each series drawn
         self._build_gui(compare)
         server.on_client_connect(self._tab_opened)

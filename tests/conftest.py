@@ -170,6 +170,24 @@ def browser():
 
 
 
+@pytest.fixture(autouse=True)
+def _close_pages_a_test_opened(request):
+    """After a browser test, close the pages it opened and left open (a page left open keeps the browser
+    drawing its 3D view, a core's share for the rest of the run); a module fixture's page is kept."""
+    if "browser" not in request.fixturenames:
+        yield
+        return
+    browser = request.getfixturevalue("browser")
+    before = {id(page) for context in browser.contexts for page in context.pages}
+    yield
+    for context in list(browser.contexts):
+        opened = [page for page in context.pages if id(page) not in before]
+        for page in opened:
+            page.close()
+        if opened and not context.pages:
+            context.close()
+
+
 # -- markers that tell the truth ------------------------------------------------------------------------------
 
 # a marker and the fixture that makes it true: a test is marked exactly when it uses the fixture, directly or

@@ -328,7 +328,7 @@ def run_number(page) -> int:
 
 
 def new_page(browser):
-    page = browser.new_page(viewport={"width": 1400, "height": 900})
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
     page.set_default_timeout(PAGE_TIMEOUT_MS)
     return page
 
