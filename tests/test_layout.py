@@ -4,6 +4,7 @@ what was measured."""
 from __future__ import annotations
 
 import ast
+import functools
 import json
 import re
 import subprocess
@@ -20,6 +21,7 @@ PACKAGES = {"visloc": "visloc", "db": "visloc.db", "dashboard": "visloc.dashboar
 MAX_MODULE_LINES = 450
 
 
+@functools.cache
 def modules() -> dict[str, Path]:
     """Dotted module name -> file, for every module the wheel installs (subpackages included)."""
     out = {}
@@ -30,10 +32,11 @@ def modules() -> dict[str, Path]:
     return out
 
 
-def packages() -> list[str]:
+@functools.cache
+def packages() -> tuple[str, ...]:
     """Every package the wheel installs: the folders above and each subpackage of visloc/."""
     subpackages = sorted(f"visloc.{p.parent.name}" for p in (REPO / "visloc").glob("*/__init__.py"))
-    return [*PACKAGES.values(), *subpackages]
+    return (*PACKAGES.values(), *subpackages)
 
 
 def imports_of(path: Path, name: str) -> set[str]:
@@ -50,7 +53,8 @@ def imports_of(path: Path, name: str) -> set[str]:
                 base = ".".join(parts[: len(parts) - node.level + 1] + ([base] if base else []))
             found.add(base)
             found.update(f"{base}.{a.name}" for a in node.names)
-    return {m for m in found if m in modules()}
+    known = modules()
+    return {m for m in found if m in known}
 
 
 def test_no_import_cycles_between_modules():
