@@ -3,8 +3,9 @@
     python scripts/min_versions.py [pyproject.toml]   # one "name==X" line per dependency, on stdout
 
 Reads [project] dependencies and the "test" extra. Exits 1, one line per offender on stderr, if a
-dependency has no ">=" floor (or has a marker, an extra or a second bound this simple reading would
-silently drop), so the pins always cover every dependency. scripts/check_min_versions.sh installs
+dependency has no ">=" floor (or has a marker, an extra or a lower bound this simple reading would
+silently drop), so the pins always cover every dependency. A cap ("name>=X,<Y", for a release known to
+break) is allowed: the floor X is what gets pinned. scripts/check_min_versions.sh installs
 these pins and runs tests against them; tests/test_dependency_floors.py imports ``floors``.
 """
 
@@ -17,8 +18,8 @@ from pathlib import Path
 
 PYPROJECT = Path(__file__).resolve().parent.parent / "pyproject.toml"
 EXTRAS = ("test",)
-# "name>=X" and nothing else: no extras ([...]), no markers (;), no second bound (,)
-FLOOR = re.compile(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*>=\s*([0-9][0-9A-Za-z.+!-]*)\s*$")
+# "name>=X", or "name>=X,<Y", and nothing else: no extras ([...]), no markers (;), no other bound
+FLOOR = re.compile(r"^\s*([A-Za-z0-9][A-Za-z0-9._-]*)\s*>=\s*([0-9][0-9A-Za-z.+!-]*)\s*(,\s*<\s*[0-9][0-9A-Za-z.+!-]*\s*)?$")
 
 
 def requirements(pyproject: Path = PYPROJECT) -> list[str]:

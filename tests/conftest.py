@@ -211,9 +211,20 @@ def pytest_collection_modifyitems(config, items):
                 wrong.append(f"{item.nodeid}: marked {mark} but does not use the fixture {fixture}")
     if wrong:
         raise pytest.UsageError("markers that do not tell the truth:\n" + "\n".join(wrong))
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
     for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
         if _module_fixtures(item):
             item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+
+
+def pytest_runtest_setup(item):
+    """A test pytest-xdist should have kept with its group, when the group did not reach its id (pytest-xdist 3.8
+    with pytest 9.2): the workers would each build its module's server or store. It fails, saying why."""
+    if (getattr(item.config.option, "loadgroup", False) and item.get_closest_marker("xdist_group")
+            and "@" not in item.nodeid):
+        pytest.fail(f"pytest-xdist's --dist loadgroup does not group with pytest {pytest.__version__}: "
+                    "install the pytest that pyproject.toml names", pytrace=False)
 
 
 def _module_fixtures(item) -> list[str]:

@@ -180,6 +180,7 @@ def test_missing_data_root_is_named(tmp_path):
     assert not (tmp_path / "s.sqlite").exists()  # a source that cannot be read leaves no empty store behind
 
 
+@pytest.mark.slow
 def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):
     from helpers import make_fake_kitti
 
@@ -263,6 +264,7 @@ def test_refined_mode_without_calibration_is_refused_naming_what_is_missing(synt
                for s in json.loads((tmp_path / "paper.json").read_text())["steps"])
 
 
+@pytest.mark.slow
 def test_both_modes_report_the_same_keys(tmp_path):
     from helpers import make_fake_kitti
 
@@ -297,6 +299,7 @@ def test_bench_refuses_bad_parameters_in_one_line(args, named):
     one_line_error(run_cli("bench", *args), named)
 
 
+@pytest.mark.slow
 def test_evaluate_drives_runs_every_drive_with_the_protocols_it_supports(tmp_path):
     import shutil
 

@@ -226,6 +226,7 @@ def fake_kitti(tmp_path_factory):
     return root
 
 
+@pytest.mark.slow
 def test_the_papers_numbers_appear_only_for_its_drive_and_protocol(fake_kitti, tmp_path):
     store = tmp_path / "s.sqlite"
     common = ("--db", store, "--steps", "2", "--start-frames", "0", "--workers", "1")
@@ -319,6 +320,7 @@ def test_error_lines_ignore_progress():
     assert error_lines(stderr) == ["visloc: error: d/frame_0000.png: cannot decode image"]
 
 
+@pytest.mark.slow
 def test_track_writes_its_frames_as_trajectory_files(fake_kitti, tmp_path):
     result = run_cli("track", fake_kitti, "--camera", "image_00", "--exclusion-s", "1", "--frames", "3", "--workers",
                      "1", "--geojson", "out/track.geojson", "--csv", "out/track.csv", cwd=tmp_path)

@@ -38,9 +38,6 @@ from helpers import (
     wait_for,
 )
 
-pytestmark = [pytest.mark.slow]
-
-
 @pytest.fixture(scope="module")
 def dashboard(kitti_evaluation):
     """The dashboard on the store the KITTI evaluation built (features + cached counts)."""
@@ -68,6 +65,7 @@ def wait_for_step_figure(page, previous_src: str | None = None) -> str:
     return wait_for(shown, SERVER_WORK_S, "the step's picture")
 
 
+@pytest.mark.slow
 def test_page_loads_with_its_controls_and_panels(dashboard, browser):
     page = open_page(browser, dashboard.url)
     try:
@@ -88,6 +86,7 @@ def test_page_loads_with_its_controls_and_panels(dashboard, browser):
         page.close()
 
 
+@pytest.mark.slow
 def test_scrubbing_moves_the_highlighted_step(dashboard, browser):
     page = open_page(browser, dashboard.url)
     try:
@@ -119,6 +118,7 @@ def test_scrubbing_moves_the_highlighted_step(dashboard, browser):
         page.close()
 
 
+@pytest.mark.slow
 def test_changing_R_refilters_without_rematching(dashboard, browser):
     page = open_page(browser, dashboard.url)
     try:
@@ -138,6 +138,7 @@ def test_changing_R_refilters_without_rematching(dashboard, browser):
         page.close()
 
 
+@pytest.mark.slow
 def test_moving_tau1_rematches_in_the_background(dashboard, browser):
     page = open_page(browser, dashboard.url)
     try:
@@ -171,6 +172,7 @@ def test_moving_tau1_rematches_in_the_background(dashboard, browser):
         page.close()
 
 
+@pytest.mark.slow
 def test_a_zero_exclusion_on_the_queries_own_drive_is_warned_of(dashboard, browser):
     page = open_page(browser, dashboard.url)
     warning = "Warning: exclusion 0 s with a database of the queries' own drive"
@@ -195,6 +197,7 @@ def test_a_zero_exclusion_on_the_queries_own_drive_is_warned_of(dashboard, brows
         page.close()
 
 
+@pytest.mark.slow
 def test_two_tabs_see_the_same_session(dashboard, browser):
     a, b = open_page(browser, dashboard.url), open_page(browser, dashboard.url)
     try:
@@ -206,6 +209,7 @@ def test_two_tabs_see_the_same_session(dashboard, browser):
         b.close()
 
 
+@pytest.mark.slow
 def test_a_bad_store_is_reported_in_the_page_and_the_server_lives_on(dashboard, browser, kitti_evaluation):
     folder = kitti_evaluation[0] / "bad_stores"  # inside the store's folder: the page may open it
     folder.mkdir(exist_ok=True)
@@ -229,6 +233,7 @@ def test_a_bad_store_is_reported_in_the_page_and_the_server_lives_on(dashboard, 
         page.close()
 
 
+@pytest.mark.slow
 def test_a_missing_store_at_start_shows_a_message(browser, tmp_path):
     proc = DashboardProcess("--db", str(tmp_path / "nothing_here.sqlite"), "--port", "8360")
     try:
@@ -242,6 +247,7 @@ def test_a_missing_store_at_start_shows_a_message(browser, tmp_path):
         proc.stop()
 
 
+@pytest.mark.slow
 def test_a_taken_port_moves_and_the_printed_url_says_where(dashboard):
     second = DashboardProcess("--db", "unused.sqlite", "--port", str(dashboard.port))
     try:
@@ -260,6 +266,7 @@ def test_bad_port_is_a_one_line_error():
     assert result.stderr.strip() == "visloc: error: --port 70000: must be in 1..65535"
 
 
+@pytest.mark.slow
 def test_switching_to_the_refined_mode_measures_metric_poses(dashboard, browser):
     page = open_page(browser, dashboard.url)
     try:
@@ -286,6 +293,7 @@ def current_step(page) -> int:
                .group(1))
 
 
+@pytest.mark.slow
 def test_the_camera_rate_path_plays_every_frame_at_the_camera_rate(dashboard, browser):
     page = open_page(browser, dashboard.url)
     try:

@@ -37,9 +37,6 @@ from helpers import (
     wait_for,
 )
 
-pytestmark = [pytest.mark.slow]
-
-
 @pytest.fixture(scope="module")
 def dashboard(kitti_evaluation):
     tmp, _, _ = kitti_evaluation
@@ -186,6 +183,7 @@ def test_pure_parts_say_what_they_show():
     assert img.shape == (mapview.VIEW_HEIGHT_PX + mapview.HEADER_PX + mapview.FOOTER_PX, mapview.MAP_WIDTH_PX, 3)
 
 
+@pytest.mark.slow
 def test_title_numbering_units_help_and_mode_controls(dashboard, browser):
     page = open_on_current_step(browser, dashboard.url)
     try:
@@ -234,6 +232,7 @@ def test_title_numbering_units_help_and_mode_controls(dashboard, browser):
         page.close()
 
 
+@pytest.mark.slow
 def test_the_3d_view_has_a_scale_layers_and_follows_the_estimate(dashboard, browser, tmp_path):
     """The live 3D view: a grid labelled in metres, a scale bar and a north arrow (drawn in the canvas: look at
     the screenshots, kept in the test's folder); a checkbox per layer; "Camera follows" frames the current
@@ -261,6 +260,7 @@ def test_the_3d_view_has_a_scale_layers_and_follows_the_estimate(dashboard, brow
         page.close()
 
 
+@pytest.mark.slow
 def test_the_map_follows_the_step_and_the_plots_read_as_data(dashboard, browser):
     page = open_on_current_step(browser, dashboard.url)
     try:
@@ -296,6 +296,7 @@ def test_the_map_follows_the_step_and_the_plots_read_as_data(dashboard, browser)
         page.close()
 
 
+@pytest.mark.slow
 def test_numbers_of_the_previous_run_are_marked_while_rematching(dashboard, browser):
     """A re-match fills in from the first step: the last step keeps the previous run's numbers, marked,
     until the new run gets there; the first step shows the new run's as soon as it is matched."""
@@ -330,6 +331,7 @@ def test_numbers_of_the_previous_run_are_marked_while_rematching(dashboard, brow
         page.close()
 
 
+@pytest.mark.slow
 def test_every_tab_sees_the_shared_session_and_who_changed_what(dashboard, browser):
     a = open_on_current_step(browser, dashboard.url)
     b = open_on_current_step(browser, dashboard.url)
@@ -356,6 +358,7 @@ def test_every_tab_sees_the_shared_session_and_who_changed_what(dashboard, brows
         b.close()
 
 
+@pytest.mark.slow
 def test_the_run_downloads_as_geojson_and_csv(dashboard, browser, tmp_path):
     page = open_on_current_step(browser, dashboard.url)
     try:
@@ -380,6 +383,7 @@ def test_the_run_downloads_as_geojson_and_csv(dashboard, browser, tmp_path):
         page.close()
 
 
+@pytest.mark.slow
 def test_a_long_error_wraps_inside_the_panel(dashboard, browser, kitti_evaluation):
     page = open_on_current_step(browser, dashboard.url)
     try:
@@ -402,6 +406,7 @@ def test_a_long_error_wraps_inside_the_panel(dashboard, browser, kitti_evaluatio
         page.close()
 
 
+@pytest.mark.slow
 def test_the_first_run_fills_in_as_it_is_matched(kitti_evaluation, browser, tmp_path):
     """On a store without cached counts the first run takes a while: the page shows the steps matched
     so far, with the progress, before it is ready."""

@@ -67,7 +67,7 @@ def test_the_version_order_used_here():
 
 
 def test_every_dependency_has_a_plain_floor():
-    assert not NOT_PLAIN, f"not a plain 'name>=X' floor (scripts/check_min_versions.sh pins 'name==X'): {NOT_PLAIN}"
+    assert not NOT_PLAIN, f"not a plain 'name>=X' (or capped 'name>=X,<Y') floor (scripts/check_min_versions.sh pins 'name==X'): {NOT_PLAIN}"
     assert len(FLOORS) == len(min_versions.requirements(REPO / "pyproject.toml")), "a dependency is listed twice"
 
 

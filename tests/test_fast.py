@@ -99,6 +99,7 @@ def fast_retrieval(q, descriptors, east_north, times, index, params, query_s, pr
                               RetrievalParams(window_s=1e9, exclusion_s=0.0), prediction)
 
 
+@pytest.mark.slow
 def test_gated_retrieval_returns_the_exact_answer_when_the_truth_is_inside_the_gate():
     descriptors, east_north, times = synthetic_db()
     params = FastParams(shortlist_size=0, n_words=16)
@@ -146,6 +147,7 @@ def test_global_shortlist_finds_the_right_place_on_a_synthetic_database():
     assert set(shortlist(index.vectors_f32, index.encoder.encode(query_image(120, SPEC)), 5, among=among)) <= set(among)
 
 
+@pytest.mark.slow
 def test_fast_localizer_tracks_like_the_paper_on_a_synthetic_road():
     descriptors, east_north, times = synthetic_db()
     retrieval = RetrievalParams(window_s=20.0, exclusion_s=0.0)

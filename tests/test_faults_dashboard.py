@@ -39,8 +39,6 @@ from helpers import (
 
 from helpers import REPO, run_cli, write_csv_drive
 
-pytestmark = [pytest.mark.slow]
-
 # Folder and file names: valid on Linux (no '/'), each a different way in. Whatever runs sets
 # window.__xss; what Markdown would make of a name is an element inside the panel showing it.
 HTML_DRIVE = '<iframe srcdoc="<img src=x onerror=parent.__xss=1>">'
@@ -155,6 +153,7 @@ def store_panel(page):
     return page.get_by_text(re.compile("^SIFT settings:")).locator("xpath=..")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([f for f in FAULTS if f.id in CASES]))
 def test_file_and_store_text_reaches_the_page_as_text(fault, served, hostile_page):
     case, page = CASES[fault.id], hostile_page
@@ -188,6 +187,7 @@ def test_file_and_store_text_reaches_the_page_as_text(fault, served, hostile_pag
     assert served.proc.alive()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([f for f in FAULTS if f.id == "dashboard-writes-nothing"]))
 def test_the_dashboard_never_writes_into_the_store(fault, served, hostile_page):
     # hostile_page waited for the first run to be ready: every query of it was matched
@@ -246,6 +246,7 @@ def store_options(page) -> list[str]:
     return texts
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([f for f in FAULTS if f.id == "dashboard-path-outside"]))
 def test_a_store_outside_the_allowed_folders_is_refused(fault, fenced, browser):
     page = open_page(browser, fenced.proc.url)

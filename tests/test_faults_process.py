@@ -81,6 +81,7 @@ def sift_workers(pid: int) -> list[int]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["killed-sift-worker"]]))
 def test_a_killed_worker_ends_the_ingest_keeping_what_was_committed(tmp_path, fault):
     n_frames = 200
@@ -161,6 +162,7 @@ def test_a_worker_dead_before_the_next_frame_is_handed_out_is_said_too(tmp_path,
     assert "a SIFT worker process died" in message and str(frames[2].image_path) in message and "\n" not in message
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["huge-image-header"]]))
 def test_an_image_too_large_is_refused_from_its_header(tmp_path, fault):
     csv_path = write_csv_drive(tmp_path / "drive", n_frames=6)
@@ -186,6 +188,7 @@ def test_the_image_limit_can_be_lowered_and_is_checked(tmp_path, fault):
     assert result.returncode == 0, result.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["featureless-frame"], CASES["corrupt-frame"]]))
 def test_a_bad_frame_is_named_then_skipped_and_recorded(tmp_path, fault):
     csv_path = write_csv_drive(tmp_path / "drive", n_frames=8)
@@ -247,6 +250,7 @@ def test_sigint_stops_an_ingest_started_in_the_background(tmp_path, fault, worke
     assert f"interrupted; {db_path} keeps {len(interrupted)} images" in err
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["sigterm-ingest"]]))
 def test_sigterm_stops_an_ingest_as_ctrl_c_does(tmp_path, fault):
     status, err, stopped, csv_path, db_path = stopped_ingest(tmp_path, signal.SIGTERM, 2)

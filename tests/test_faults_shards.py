@@ -54,6 +54,7 @@ def _all_ids(path) -> list[int]:
     return [r[0] for r in staging_images(path)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["shards-damaged-tile"]]))
 def test_a_damaged_tile_is_named_and_written_again(fault, tmp_path, csv_drive):
     city = tmp_path / "city"
@@ -75,6 +76,7 @@ def test_a_damaged_tile_is_named_and_written_again(fault, tmp_path, csv_drive):
     assert checked.returncode == 0 and "no damage found" in checked.stdout, checked.stdout + checked.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["shards-bad-arguments"]]))
 def test_bad_sharded_arguments_are_refused_in_one_line(fault, tmp_path, csv_drive):
     one_line_error(_ingest(csv_drive, tmp_path / "c", "--tile-m", "0"), "--tile-m")
@@ -89,6 +91,7 @@ def test_bad_sharded_arguments_are_refused_in_one_line(fault, tmp_path, csv_driv
     one_line_error(_ingest(csv_drive, city, "--tile-m", "8", "--workers", "1"), str(city), "4 m", "8 m")
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["shards-unreadable-image"]]))
 def test_an_unreadable_image_is_named_and_the_tiles_stay_complete(fault, tmp_path):
     from helpers import write_csv_drive

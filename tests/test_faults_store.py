@@ -147,6 +147,7 @@ def _create_and_fill(path: str, worker: int, barrier) -> None:
             store.add_images([(record, kp, desc)])
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["concurrent-create"]]))
 def test_writers_creating_one_store_at_once_wait_for_each_other(tmp_path, fault):
     ctx = mp.get_context("spawn")

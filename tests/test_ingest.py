@@ -61,6 +61,7 @@ def _ingest_process(csv_path, db_path):
                              "--workers", "1"], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
 def test_killed_ingest_process_resumes_to_the_same_store(tmp_path, sig):
     n_frames = 240  # long enough that a loaded machine cannot finish it between the 8th row and the signal

@@ -87,6 +87,7 @@ def _all_ids(path) -> list[int]:
     return [r[0] for r in staging_images(path)]
 
 
+@pytest.mark.slow
 def test_sharded_ingest_equals_one_file_row_for_row_and_resumes(tmp_path, csv_drive):
     single = tmp_path / "one.sqlite"
     assert _ingest(csv_drive, single, "--workers", "1").returncode == 0
@@ -117,6 +118,7 @@ def test_sharded_ingest_equals_one_file_row_for_row_and_resumes(tmp_path, csv_dr
     assert f"sharded store: {len(tiles)} tiles of 4 m" in info.stdout
 
 
+@pytest.mark.slow
 def test_a_drive_added_elsewhere_leaves_every_tile_there_as_it_was(tmp_path, csv_drive):
     """A city grows drive by drive: a drive 1 km north writes its own tiles only; the tiles already
     there (their rows, their files) stay untouched."""
@@ -150,6 +152,7 @@ def _moved_north(csv_drive, folder) -> Path:
     return folder / "geotags.csv"
 
 
+@pytest.mark.slow
 def test_a_command_reads_the_catalogue_of_the_drives_it_uses_only(tmp_path, csv_drive):
     """A city holds many drives; a command that localizes on one reads the rows of that one only, merged
     from the tiles that own its images, and answers as a store of that drive alone does."""
@@ -182,6 +185,7 @@ def test_a_command_reads_the_catalogue_of_the_drives_it_uses_only(tmp_path, csv_
     assert "tiles read: " in here.stdout
 
 
+@pytest.mark.slow
 def test_a_changed_store_replaces_the_catalogue_made_of_it_before(tmp_path, csv_drive):
     """The catalogue a command reads is merged from the tiles once and kept while they stay as they are:
     extending the store makes a new one and removes the old one, so the temporary folder does not fill
@@ -209,6 +213,7 @@ def test_a_changed_store_replaces_the_catalogue_made_of_it_before(tmp_path, csv_
     assert len(reader.load_database(*key)) == 12 and len(reader.datasets()) == 3
 
 
+@pytest.mark.slow
 def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_drive):
     """A sharded store's database holds every image's metadata at once; the features of an image are
     read from the tile that owns it when the engine asks for them, within the cache's budget."""
@@ -344,6 +349,7 @@ def _errors(report: dict) -> list[float]:
     return [q["estimate_error_m"] for series in report["series"] for q in series]
 
 
+@pytest.mark.slow
 def test_ingest_joins_a_running_cluster_by_its_address(tmp_path, csv_drive):
     """A scheduler and a worker started as a user starts them on a real cluster (``dask scheduler``,
     ``dask worker``), and ingest pointed at the scheduler with --address."""
