@@ -100,3 +100,33 @@ def test_the_sharding_figures_are_what_their_json_renders():
     assert shard_scale.render(result) in (REPO / "docs" / "sharding.md").read_text()
     assert len(result["ingest"]) == 3
     assert result["city"]["images"] >= 1_000_000 and result["city"]["tiles"] >= 1000
+
+
+def test_the_one_file_ingest_speedup_is_what_its_json_renders():
+    """The one-file ingest on every core against one process (docs/performance.md) is rendered from
+    docs/results/ingest_cores.json (written by scripts/ingest_cores.py): both cameras of a drive, every round's
+    two stores identical row for row."""
+    import json
+
+    import ingest_cores
+
+    result = json.loads(ingest_cores.OUT.read_text())
+    rendered = ingest_cores.render(result)
+    assert rendered in (REPO / "docs" / "performance.md").read_text()
+    assert result["cameras"] == ["image_00", "image_01"] and result["rounds"] >= 3
+    assert result["identical_stores"] and len(result["identical_per_round"]) == result["rounds"]
+    assert len(result["speedups"]) == result["rounds"]
+
+
+def test_the_command_line_start_times_are_what_their_json_renders():
+    """How soon the command line answers (docs/performance.md) is rendered from docs/results/cli_startup.json
+    (written by scripts/cli_startup.py), each command against a bare interpreter of the same rounds."""
+    import json
+
+    import cli_startup
+
+    result = json.loads(cli_startup.OUT.read_text())
+    rendered = cli_startup.render(result)
+    assert rendered in (REPO / "docs" / "performance.md").read_text()
+    assert cli_startup.BARE in result["commands"] and "visloc --help" in result["commands"]
+    assert result["commands"][cli_startup.BARE]["median_ratio_to_bare"] == 1.0

@@ -18,7 +18,7 @@ Everything else is importable from its stage's module.
 
 import importlib
 
-__version__ = "0.1.0"
+__version__ = "0.1.0"  # the one place the version is written: pyproject.toml reads it from here
 
 # Each public name and the module it comes from. They are imported when first used (PEP 562), so that
 # ``import visloc`` and the command line's parsing, help and refusals load none of OpenCV, faiss, pyproj

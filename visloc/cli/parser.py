@@ -31,16 +31,13 @@ from visloc.store.defaults import DEFAULT_TILE_CACHE_MB
 
 
 def _version() -> str:
-    from importlib.metadata import PackageNotFoundError, version
+    import visloc  # its own attribute, which pyproject.toml reads: no scan of the installed packages' metadata
 
-    try:
-        return version("visloc")
-    except PackageNotFoundError:
-        return "unknown (not installed)"
+    return visloc.__version__
 
 
 class _VersionAction(argparse.Action):
-    """``--version``: the installed package's version, read only when asked for."""
+    """``--version``: the package's version, read only when asked for."""
 
     def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
         super().__init__(option_strings, dest=dest, default=default, nargs=0, help=help)
