@@ -37,6 +37,7 @@ def store(store_0005) -> Path:
     return store_0005
 
 
+@pytest.mark.slow
 def test_stored_structure_equals_structure_computed_afresh(store):
     ws = Workspace(store)
     db = ws.load_database(SOURCE, "image_00")
@@ -122,6 +123,7 @@ def test_variants_keep_the_excluded_images_out_of_the_structure():
     assert choose_variant(variants, allowed, query_after_view=False) is None
 
 
+@pytest.mark.slow
 def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_structure(store, tmp_path):
     path = copy_store(store, tmp_path / "v3")
     conn = sqlite3.connect(path)
@@ -153,6 +155,7 @@ def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_struc
             np.testing.assert_array_equal(s.points_world, original[k][variant].points_world)
 
 
+@pytest.mark.slow
 def test_an_interrupted_structure_build_resumes_where_it_stopped(store, tmp_path):
     path = copy_store(store, tmp_path / "partial")
     conn = sqlite3.connect(path)
@@ -169,6 +172,7 @@ def test_an_interrupted_structure_build_resumes_where_it_stopped(store, tmp_path
     conn.close()
 
 
+@pytest.mark.slow
 def test_track_localizes_every_frame_and_writes_its_json(store, kitti_root, tmp_path):
     out = tmp_path / "track.json"
     result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
@@ -204,6 +208,7 @@ def test_track_localizes_every_frame_and_writes_its_json(store, kitti_root, tmp_
     assert np.median([f["measurement_error_m"] for f in geometry]) < 1.0
 
 
+@pytest.mark.slow
 def test_track_exact_path_runs_too(store, kitti_root, tmp_path):
     out = tmp_path / "exact.json"
     result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store, "--exact",
@@ -301,6 +306,7 @@ def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covari
         previous = gray
 
 
+@pytest.mark.slow
 def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_background_thread(
         store, kitti_root, tmp_path):
     runs = []

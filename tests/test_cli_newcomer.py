@@ -205,6 +205,7 @@ def test_a_camera_for_a_csv_drive_is_refused(newcomer, args, flag):
     one_line_error(run_cli(*args, cwd=newcomer), flag, "my_drive/geotags.csv is a CSV drive", "leave")
 
 
+@pytest.mark.slow
 def test_an_ambiguous_database_lists_what_the_store_holds(newcomer, tmp_path):
     store = tmp_path / "two.sqlite"
     for name in ("drive_a", "drive_b"):

@@ -120,6 +120,7 @@ def test_both_stores_hold_the_same_geotags_attitudes_accuracies_and_calibration(
         np.testing.assert_array_equal(a, b)
 
 
+@pytest.mark.slow
 def test_refined_measurements_agree_between_both_stores(both):
     """Same camera, 1 s exclusion, the refined method on both stores: the same measurements.
 
@@ -154,6 +155,7 @@ def test_refined_measurements_agree_between_both_stores(both):
             assert 0.3 <= r.absolute_sigma_m <= 0.53 and r.measurement_side in ("both", "one")
 
 
+@pytest.mark.slow
 def test_a_csv_with_attitude_but_no_calibration_runs_the_paper_mode_only(both, tmp_path):
     drive = tmp_path / "uncalibrated"
     drive.mkdir()

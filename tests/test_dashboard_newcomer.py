@@ -81,6 +81,7 @@ def two_csv_drives(tmp_path):
     return db, queries, visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0)
 
 
+@pytest.mark.slow
 def test_match_drive_hands_over_the_run_so_far_after_each_query(tmp_path):
     """The engine's ``on_step``: the partial runs the dashboard shows while the first run is matched."""
     import numpy as np

@@ -176,6 +176,7 @@ def test_an_image_too_large_is_refused_from_its_header(tmp_path, fault):
     assert stored_frames(db_path) == [0, 1, 2]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["image-limit-lowered"]]))
 def test_the_image_limit_can_be_lowered_and_is_checked(tmp_path, fault):
     csv_path = write_csv_drive(tmp_path / "drive", n_frames=4)  # 320x240: 0.077 megapixels
@@ -240,6 +241,7 @@ def stopped_ingest(tmp_path: Path, signum: int, workers: int, *, background: boo
     return proc.returncode, err, snapshot(db_path), csv_path, db_path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["sigint-in-background"]]))
 @pytest.mark.parametrize("workers", [1, 2])
 def test_sigint_stops_an_ingest_started_in_the_background(tmp_path, fault, workers):
@@ -263,6 +265,7 @@ def test_sigterm_stops_an_ingest_as_ctrl_c_does(tmp_path, fault):
     assert f"{200 - len(stopped)} added, {len(stopped)} already stored" in again.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["dashboard-sigint-in-background"]]))
 def test_sigint_stops_a_dashboard_started_in_the_background(tmp_path, fault):
     csv_path = write_csv_drive(tmp_path / "drive", n_frames=4)

@@ -96,6 +96,7 @@ def test_info_changes_nothing_in_the_file(built, tmp_path, fault):
     assert sqlite3.connect(path).execute("PRAGMA journal_mode").fetchone()[0] == "delete"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["old-schema-read"]]))
 def test_reading_an_old_store_does_not_migrate_it(tmp_path, fault):
     path = tmp_path / "v1.sqlite"

@@ -134,6 +134,7 @@ def damaged_copy(store: Path, folder: Path) -> Path:
     return store
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["store-bytes-changed"]]))
 def test_changed_bytes_are_named_refused_and_repaired(clean, tmp_path, fault):
     root, clean_store, clean_errors = clean
@@ -157,6 +158,7 @@ def test_changed_bytes_are_named_refused_and_repaired(clean, tmp_path, fault):
     assert max(abs(a - b) for a, b in zip(errors, clean_errors, strict=True)) <= 1e-6
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["dashboard-damaged-store"]]))
 def test_the_dashboard_shows_a_damaged_store_in_the_page(clean, tmp_path, browser, fault):
     _, clean_store, _ = clean
@@ -179,6 +181,7 @@ def test_the_dashboard_shows_a_damaged_store_in_the_page(clean, tmp_path, browse
         proc.stop()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["store-table-lost"]]))
 def test_a_lost_table_is_named_and_rebuilt_by_ingest(clean, tmp_path, fault):
     root, clean_store, _ = clean
@@ -208,6 +211,7 @@ def test_a_closed_pipe_ends_the_command_quietly(clean, fault, command):
     assert "Traceback" not in result.stderr and "Error" not in result.stderr, result.stderr
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["store-full-disk"]]))
 def test_a_full_disk_is_said_and_rerunning_goes_on(clean, tmp_path, fault):
     root, _, _ = clean
@@ -236,6 +240,7 @@ def table_rows(store: Path) -> dict[str, list[tuple]]:
     return out
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["images-remade-same-names"]]))
 def test_images_remade_under_the_same_names_are_described_again(clean, kitti_root, tmp_path, fault):
     _, clean_store, _ = clean
@@ -253,6 +258,7 @@ def test_images_remade_under_the_same_names_are_described_again(clean, kitti_roo
     assert table_rows(store) == table_rows(fresh)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("fault", params([CASES["images-half-size"]]))
 def test_images_at_half_size_get_scaled_intrinsics(kitti_root, tmp_path, fault):
     """On 60 frames and series of six steps: the property is the refined mode's accuracy, which a database

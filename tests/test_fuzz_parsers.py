@@ -122,6 +122,7 @@ def test_open_csv_survives_any_bytes(folder, content):
     survives(open_csv, written(folder / "bytes.csv", content))
 
 
+@pytest.mark.slow
 @FUZZ
 @given(text=csv_text())
 def test_open_csv_survives_mutated_csv(folder, text):
@@ -176,6 +177,7 @@ def calib_text(draw, keys: dict[str, int]) -> str:
                      st.binary(max_size=100)),
        velo=calib_text({"R": 9, "T": 3}), imu=calib_text({"R": 9, "T": 3}),
        camera=st.sampled_from(["image_00", "image_01"]))
+@pytest.mark.slow
 def test_kitti_calibration_survives_anything(folder, cam, velo, imu, camera):
     date = folder / "calib"
     date.mkdir(exist_ok=True)
