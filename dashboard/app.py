@@ -32,8 +32,8 @@ from visloc.dashboard.gui import Handles, build_gui, enable_for_mode, paper_valu
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionView
-from visloc.dashboard.viewkit import flat_scene
 from visloc.dashboard.state import CONTROLLED, Allowed, Controls, Run, Shown, discover_stores, first_choices
+from visloc.dashboard.viewkit import flat_scene
 
 PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
 

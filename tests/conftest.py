@@ -170,12 +170,11 @@ def browser():
         b.close()
 
 
-
-
 @pytest.fixture(autouse=True)
 def _close_pages_a_test_opened(request):
-    """After a browser test, close the pages it opened and left open (a page left open keeps the browser
-    drawing its 3D view, a core's share for the rest of the run); a module fixture's page is kept."""
+    """After a browser test, close the pages it opened and left open (a page left open keeps its 3D view and
+    websocket alive for the rest of the run: about a fifth of a core idle, more while its server sends
+    updates); a module fixture's page is kept."""
     if "browser" not in request.fixturenames:
         yield
         return
@@ -211,7 +210,6 @@ def pytest_collection_modifyitems(config, items):
                 wrong.append(f"{item.nodeid}: marked {mark} but does not use the fixture {fixture}")
     if wrong:
         raise pytest.UsageError("markers that do not tell the truth:\n" + "\n".join(wrong))
-    _longest_first(items)
     if not config.pluginmanager.hasplugin("xdist"):
         return
     for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
@@ -226,32 +224,6 @@ def pytest_runtest_setup(item):
             and "@" not in item.nodeid):
         pytest.fail(f"pytest-xdist's --dist loadgroup does not group with pytest {pytest.__version__}: "
                     "install the pytest that pyproject.toml names", pytrace=False)
-
-
-# The modules that cost most (measured in a whole run), in the order that keeps both workers busy: the README
-# walk-through (several minutes, shares nothing) beside the modules that build the shared artifacts, each
-# artifact's first user before its later ones, so that a worker rarely waits for the other's lock
-FIRST = ("test_walkthrough", "test_dashboard", "test_faults_trust", "test_shards", "test_camera_rate",
-         "test_dashboard_newcomer", "test_dashboard_runs", "test_csv_drive", "test_faults_shards")
-# the other modules, by what their tests' marks say they cost, most first
-COST_RANK = (("browser", "kitti"), ("kitti", "slow"), ("browser",), ("kitti",), ("slow",), ())
-
-
-def _rank(item) -> int:
-    if item.module.__name__ in FIRST:
-        return FIRST.index(item.module.__name__)
-    marks = {m.name for m in item.iter_markers()}
-    return len(FIRST) + next(k for k, needs in enumerate(COST_RANK) if set(needs) <= marks)
-
-
-def _longest_first(items) -> None:
-    """Modules whose tests cost most run first (a module's tests stay together and in their order), so that the
-    workers end together instead of one finishing a long test alone: the longest-first rule of scheduling."""
-    rank: dict[str, int] = {}
-    for item in items:
-        rank[item.module.__name__] = min(rank.get(item.module.__name__, len(FIRST) + len(COST_RANK)), _rank(item))
-    order = {id(item): k for k, item in enumerate(items)}
-    items.sort(key=lambda item: (rank[item.module.__name__], order[id(item)]))
 
 
 def _module_fixtures(item) -> list[str]:
