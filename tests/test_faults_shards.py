@@ -119,7 +119,9 @@ def test_an_address_where_no_scheduler_answers_is_refused(fault, tmp_path, csv_d
 @pytest.mark.parametrize("fault", params([CASES["shards-worker-killed"]]))
 def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path):
     """SIGKILL one of two workers while they describe the drive: its frames are described again by
-    the other (and the worker restarted), and the store equals one written by a single process."""
+    the other (and the worker restarted), and the store equals one written by a single process. SIFT only
+    (``--features-only``) on both sides: the kill comes while frames are described, and the structure a
+    cluster builds is compared with one file's in test_shards."""
     from visloc.params import SiftParams
     from visloc.sources.drives import open_source
     from visloc.store.build import ingest_sequence
@@ -129,7 +131,7 @@ def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path)
     limit = 24
     single = tmp_path / "one.sqlite"
     made = run_cli("ingest", kitti_root, "--drive", KITTI_DRIVE, "--camera", "image_00", "--db", single,
-                   "--workers", "1", "--limit", str(limit), timeout=1800)
+                   "--workers", "1", "--limit", str(limit), "--features-only", timeout=1800)
     assert made.returncode == 0, made.stderr
 
     city = tmp_path / "city"
@@ -137,6 +139,7 @@ def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path)
     seq = open_source(kitti_root, drive=KITTI_DRIVE, camera="image_00")
     prepare_store(city, 25.0, 50.0, seq.frames[0].lat_deg, seq.frames[0].lon_deg)
     killed: list[int] = []
+    described_at_kill: list[int] = []
     with open_cluster(2) as cluster:
         pids = list(cluster.worker_pids().values())
         ws = Workspace(staging, create=True)
@@ -144,19 +147,21 @@ def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path)
         def kill_one_when_started() -> None:
             deadline = time.monotonic() + 600
             while time.monotonic() < deadline:  # a condition, not a delay: the first images are stored
-                if staging.exists() and _count(staging) >= 4:
+                if staging.exists() and (described := _count(staging)) >= 4:
                     os.kill(pids[0], signal.SIGKILL)
                     killed.append(pids[0])
+                    described_at_kill.append(described)
                     return
                 time.sleep(0.05)
 
         watcher = threading.Thread(target=kill_one_when_started, daemon=True)
         watcher.start()
-        report = ingest_sequence(ws, seq, SiftParams(), limit=limit, cluster=cluster)
+        report = ingest_sequence(ws, seq, SiftParams(), limit=limit, cluster=cluster, structure=False)
         watcher.join(timeout=5)
         publish_tiles(city, cluster, ws.global_vectors_by_image())
         alive = list(cluster.worker_pids().values())
     assert killed and killed[0] not in alive, "no worker was killed mid-ingest"
+    assert described_at_kill[0] < limit, "the worker was killed after every frame was described"
     assert report.n_added == limit
     ids = _all_ids(single)
     assert _all_ids(merged_store(city)) == ids
