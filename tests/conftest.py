@@ -210,6 +210,8 @@ def pytest_collection_modifyitems(config, items):
                 wrong.append(f"{item.nodeid}: marked {mark} but does not use the fixture {fixture}")
     if wrong:
         raise pytest.UsageError("markers that do not tell the truth:\n" + "\n".join(wrong))
+    # the longest tests first, the rest in their order: the workers end together (the longest-first rule)
+    items.sort(key=lambda item: item.get_closest_marker("longest") is None)
     if not config.pluginmanager.hasplugin("xdist"):
         return
     for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker

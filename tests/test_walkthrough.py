@@ -24,7 +24,7 @@ from helpers import control, dismiss_webgl_notice, new_page, run_number, wait_fo
 
 from helpers import REPO
 
-pytestmark = [pytest.mark.slow]
+pytestmark = [pytest.mark.slow, pytest.mark.longest]
 
 MARKER = "<!-- the walk-through: tests/test_walkthrough.py runs this block as it is -->"
 README_ROOT = "../shared/data/kitti"
