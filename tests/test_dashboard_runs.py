@@ -90,10 +90,12 @@ def test_the_3d_view_zooms_from_the_drive_to_one_ellipse_and_layers_hide(viewer,
     assert bare != zoomed
 
 
-def test_a_saved_run_is_tuned_live_from_its_parameters(browser, kitti_evaluation, kitti_two_runs, tmp_path):
-    """``--tune-from``: the live page on the run's store starts from the run's τ1 (0.7, not the paper's 0.8),
-    matches with it, and says which run it started from."""
-    store = kitti_evaluation[0] / "kitti.sqlite"
+def test_a_saved_run_is_tuned_live_from_its_parameters(browser, kitti_two_runs, tmp_path):
+    """``--tune-from``: the live page on the run's store (the copy it was evaluated on, which keeps its counts
+    at τ1 0.7) starts from the run's τ1 (0.7, not the paper's 0.8), matches with it, and says which run it
+    started from."""
+    store = kitti_two_runs[1].parent / "kitti.sqlite"
+    assert store.is_file()
     proc = DashboardProcess("--db", str(store), "--tune-from", str(kitti_two_runs[1]), "--port", "8352")
     try:
         page = new_page(browser)
