@@ -17,7 +17,8 @@ import re
 import numpy as np
 import pytest
 
-from helpers import run_cli
+import visloc
+from helpers import KITTI_DRIVE, run_cli
 from helpers import (
     RUN_S,
     SERVER_WORK_S,
@@ -307,9 +308,6 @@ CAMERA_RATE_START_S = 6.0  # the last five seconds of the drive: every frame the
 
 @pytest.mark.slow
 def test_the_camera_rate_path_plays_every_frame_at_the_camera_rate(dashboard, browser, kitti_root):
-    import visloc
-    from helpers import KITTI_DRIVE
-
     drive = visloc.open_source(kitti_root, drive=KITTI_DRIVE, camera="image_00")
     from_start = np.flatnonzero(drive.timestamps_s - drive.timestamps_s[0] >= CAMERA_RATE_START_S)
     n_frames, first_frame = len(from_start), drive.frames[from_start[0]].frame
