@@ -13,6 +13,7 @@ import re
 import shutil
 import signal
 import sqlite3
+import struct
 import subprocess
 import sys
 import threading
@@ -403,3 +404,17 @@ def settled(locator, what: str) -> bytes:
         return shots[-1] if shots[-1] == shots[-2] else None
 
     return wait_for(still, SERVER_WORK_S, what, poll_s=0.5)
+
+
+# -- a worker process that dies as the kernel's out-of-memory killer can leave it -------------------------------
+
+def die_halfway_through_sending(*_args) -> None:
+    """A task for a ``concurrent.futures`` worker process that dies as one killed while sending its result: it
+    holds the result queue's lock, writes the header of a message and none of its bytes, and is killed."""
+    frame = sys._getframe(1)
+    while frame is not None and "result_queue" not in frame.f_locals:
+        frame = frame.f_back
+    queue = frame.f_locals["result_queue"]
+    queue._wlock.acquire()
+    os.write(queue._writer.fileno(), struct.pack("!i", 1 << 20))
+    os.kill(os.getpid(), signal.SIGKILL)

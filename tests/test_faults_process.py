@@ -62,7 +62,16 @@ def ingest_process(csv_path: Path, db_path: Path, workers: int, *, background: b
 
     return subprocess.Popen([sys.executable, "-m", "visloc", "ingest", str(csv_path), "--db", str(db_path),
                              "--workers", str(workers)], cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            text=True, preexec_fn=ignore_sigint if background else None)
+                            text=True, preexec_fn=ignore_sigint if background else None, start_new_session=True)
+
+
+def stop_group(proc: subprocess.Popen) -> None:
+    """Kill what is left of ``proc``'s process group (its worker processes hold its output pipes open)."""
+    try:
+        os.killpg(proc.pid, signal.SIGKILL)
+    except ProcessLookupError:
+        pass
+    proc.communicate(timeout=120)
 
 
 def sift_workers(pid: int) -> list[int]:
@@ -95,9 +104,8 @@ def test_a_killed_worker_ends_the_ingest_keeping_what_was_committed(tmp_path, fa
         os.kill(workers[0], signal.SIGKILL)
         _, err = proc.communicate(timeout=600)  # old versions waited for the dead worker forever
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        if proc.returncode is None:  # it did not end: no worker of its group is left behind
+            stop_group(proc)
     assert proc.returncode == 2, err
     lines = error_lines(err)  # progress lines aside
     assert len(lines) == 1 and lines[0].startswith("visloc: error: ") and "worker process died" in lines[0], err
@@ -108,6 +116,34 @@ def test_a_killed_worker_ends_the_ingest_keeping_what_was_committed(tmp_path, fa
     assert resumed.returncode == 0, resumed.stderr
     assert f"{n_frames - len(interrupted)} added, {len(interrupted)} already stored" in resumed.stdout
     assert not sift_workers(proc.pid)
+
+
+WORKER_DIES_WHILE_SENDING = """
+import sys
+from helpers import die_halfway_through_sending
+from visloc.errors import InputError
+from visloc.store.processes import local_processes
+
+if __name__ == "__main__":
+    try:
+        with local_processes(2, "structure") as pool:
+            list(pool.run_all(die_halfway_through_sending, [(k,) for k in range(8)]))
+    except InputError as exc:
+        print(exc)
+        sys.exit(2)
+"""
+
+
+@pytest.mark.parametrize("fault", params([CASES["killed-sift-worker"]]))
+def test_a_worker_killed_while_sending_its_result_ends_the_step_at_once(tmp_path, fault):
+    """CPython's process pool waits forever for the rest of a result its worker died sending (the race a kill
+    -9 can hit); the pool's wait sees the dead worker instead, and the process exits."""
+    script = tmp_path / "pool.py"
+    script.write_text(WORKER_DIES_WHILE_SENDING)
+    result = subprocess.run([sys.executable, script], capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "tests"), str(REPO)])})
+    assert result.returncode == 2, result.stderr
+    assert result.stdout.startswith("structure: a worker process died"), result.stdout
 
 
 def write_huge_png(path: Path, width_px: int, height_px: int) -> None:
@@ -235,9 +271,8 @@ def stopped_ingest(tmp_path: Path, signum: int, workers: int, *, background: boo
         os.kill(proc.pid, signum)
         _, err = proc.communicate(timeout=600)
     finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.communicate()
+        if proc.returncode is None:
+            stop_group(proc)
     return proc.returncode, err, snapshot(db_path), csv_path, db_path
 
 

@@ -27,6 +27,7 @@ from visloc.db.blobs import repair_hint
 from visloc.db.integrity import forget_damage, forget_derived, scan
 from visloc.db.provenance import StoredSource, record_sources, replace_images, same_checksums, stored_sources
 from visloc.errors import InputError
+from visloc.store.processes import stop_now, wait_or_broken
 from visloc.features.sift import extract_sift, make_sift, undistort_keypoints
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, check_image_size, header_size_px, require_max_image_mp
 from visloc.params import SiftParams
@@ -199,16 +200,19 @@ def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Se
             if not in_flight:
                 if refused is not None:
                     raise died(refused)
-                return
+                break
             frame, future = in_flight.popleft()
             try:
+                wait_or_broken(pool, {future})
                 yield frame, future.result()
             except InputError as exc:
                 yield frame, exc
             except BrokenProcessPool:
                 raise died(frame) from None
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+    except BaseException:  # a worker died, an error, an interruption: the frames in flight are not waited for
+        stop_now(pool)
+        raise
+    pool.shutdown(wait=True)
 
 
 def ingest(

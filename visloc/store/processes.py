@@ -18,6 +18,43 @@ from contextlib import contextmanager
 from visloc.errors import InputError
 
 MIN_ITEMS_PER_WORKER = 4  # a step with fewer images per worker runs in this process
+POLL_S = 0.5  # how often a wait for results looks whether a worker process has ended
+
+
+def worker_ended(executor: ProcessPoolExecutor) -> bool:
+    """Whether one of the pool's worker processes has ended (killed, out of memory). CPython's pool says so by
+    breaking, except when the worker died halfway through sending a result: its manager thread then waits for
+    the rest of the message forever, and so would every wait for a result."""
+    processes = getattr(executor, "_processes", None) or {}
+    return any(p.exitcode is not None for p in list(processes.values()))
+
+
+def wait_or_broken(executor: ProcessPoolExecutor, futures) -> set[Future]:
+    """The futures of ``futures`` that are done, as soon as one is; ``BrokenProcessPool`` when a worker process
+    has ended instead (see ``worker_ended``)."""
+    while True:
+        done, _ = wait(futures, timeout=POLL_S, return_when=FIRST_COMPLETED)
+        if done:
+            return done
+        if worker_ended(executor):
+            raise BrokenProcessPool("a worker process ended without its result")
+
+
+def stop_now(executor: ProcessPoolExecutor) -> None:
+    """Stop the pool at once, on an error or an interruption: its processes killed (their tasks are lost; what
+    came back is committed) and its manager thread released without waiting for it. A worker killed while
+    sending a result leaves the manager thread reading a message that never ends; closing the result queue's
+    last writer ends the read, and the thread, instead of leaving the process unable to exit (the executor
+    offers no public way to do either)."""
+    processes = list((getattr(executor, "_processes", None) or {}).values())
+    for process in processes:
+        process.kill()
+    for process in processes:
+        process.join(timeout=10)
+    result_queue = getattr(executor, "_result_queue", None)
+    if result_queue is not None:
+        result_queue._writer.close()
+    executor.shutdown(wait=False, cancel_futures=True)
 
 
 def _init_worker(opencv_threads: int) -> None:
@@ -51,15 +88,13 @@ class LocalProcesses:
                 running[self.executor.submit(fn, *a)] = a
             if not running:
                 return
-            done, _ = wait(running, return_when=FIRST_COMPLETED)
-            for future in done:
-                a = running.pop(future)
-                try:
-                    result = future.result()
-                except BrokenProcessPool:
-                    raise InputError(f"{self.what}: a worker process died (killed, or out of memory); what "
-                                     "finished before is stored: run the same command again to go on") from None
-                yield a, result
+            try:
+                finished = [(running.pop(future), future.result())
+                            for future in wait_or_broken(self.executor, running)]
+            except BrokenProcessPool:
+                raise InputError(f"{self.what}: a worker process died (killed, or out of memory); what "
+                                 "finished before is stored: run the same command again to go on") from None
+            yield from finished
 
 
 @contextmanager
@@ -74,9 +109,7 @@ def local_processes(workers: int, what: str) -> Iterator[LocalProcesses]:
         yield LocalProcesses(executor, workers, what)
     except BaseException:
         # interrupted (Ctrl-C, kill) or failed: what came back is committed; stop the tasks in flight now
-        # rather than wait for them (the executor offers no public way to)
-        for process in list(getattr(executor, "_processes", {}).values()):
-            process.terminate()
-        executor.shutdown(wait=True, cancel_futures=True)
+        # rather than wait for them
+        stop_now(executor)
         raise
     executor.shutdown(wait=True)
