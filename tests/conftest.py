@@ -12,7 +12,6 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from collections import Counter
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -212,18 +211,13 @@ def pytest_collection_modifyitems(config, items):
                 wrong.append(f"{item.nodeid}: marked {mark} but does not use the fixture {fixture}")
     if wrong:
         raise pytest.UsageError("markers that do not tell the truth:\n" + "\n".join(wrong))
-    grouped = config.pluginmanager.hasplugin("xdist")
-    if grouped:
-        for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
-            if _module_fixtures(item):
-                item.add_marker(pytest.mark.xdist_group(item.module.__name__))
-    # the longest first, so that the workers end together (the longest-first rule): a test marked longest, then
-    # the groups that must run on one worker, the largest first, then the rest in their order (scripts/test.sh
-    # keeps this order with --no-loadscope-reorder)
-    group_of = {id(item): _group(item) for item in items}
-    sizes = Counter(group_of.values())
-    items.sort(key=lambda item: (item.get_closest_marker("longest") is None, -sizes[group_of[id(item)]]
-                                 if group_of[id(item)] else 0))
+    # the longest tests first, the rest in their order: the workers end together (the longest-first rule)
+    items.sort(key=lambda item: item.get_closest_marker("longest") is None)
+    if not config.pluginmanager.hasplugin("xdist"):
+        return
+    for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
+        if _module_fixtures(item):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
 
 
 def pytest_runtest_setup(item):
@@ -233,11 +227,6 @@ def pytest_runtest_setup(item):
             and "@" not in item.nodeid):
         pytest.fail(f"pytest-xdist's --dist loadgroup does not group with pytest {pytest.__version__}: "
                     "install the pytest that pyproject.toml names", pytrace=False)
-
-
-def _group(item) -> str | None:
-    marker = item.get_closest_marker("xdist_group")
-    return marker.args[0] if marker else None
 
 
 def _module_fixtures(item) -> list[str]:
