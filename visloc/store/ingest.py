@@ -27,11 +27,11 @@ from visloc.db.blobs import repair_hint
 from visloc.db.integrity import forget_damage, forget_derived, scan
 from visloc.db.provenance import StoredSource, record_sources, replace_images, same_checksums, stored_sources
 from visloc.errors import InputError
-from visloc.store.processes import stop_now, wait_or_broken
 from visloc.features.sift import extract_sift, make_sift, undistort_keypoints
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, check_image_size, header_size_px, require_max_image_mp
 from visloc.params import SiftParams
 from visloc.sources.drives import Frame, Sequence, file_digest, read_image
+from visloc.store.processes import stop_now, wait_or_broken
 
 SIFT_SETTINGS_KEY = "sift"
 
