@@ -17,7 +17,8 @@ from types import SimpleNamespace
 
 import pytest
 
-from helpers import CSV_PAIR_FRAMES, DRIVE_0005, DRIVE_0005_FRAMES, KITTI_DRIVE, built_once, copy_store, require_drive, run_cli, write_csv_drive
+from helpers import (CSV_PAIR_FRAMES, DRIVE_0005, DRIVE_0005_FRAMES, KITTI_DRIVE, OTHER_MEAS_VAR_M2, OTHER_RUN_NAME,
+                     built_once, copy_store, require_drive, run_cli, write_csv_drive)
 from visloc.db import FeatureStore
 from visloc.sources.drives import default_data_root
 
@@ -105,20 +106,21 @@ def kitti_refined(kitti_evaluation, kitti_root, shared_tmp):
 @pytest.fixture(scope="session")
 def kitti_two_runs(kitti_evaluation, kitti_root, shared_tmp):
     """Two saved runs of the same series, as ``evaluate`` wrote them: the session's evaluation (the paper's
-    parameters) and the same at τ1 0.7, matched on a copy of the same store, which stays beside them
-    (``kitti.sqlite``, holding the counts at τ1 0.7 of every query at 1 Hz: a page tuned from that run)."""
+    parameters) and the same with the measurement variance R at ``OTHER_MEAS_VAR_M2`` (σ 5 m), filtered from
+    the counts a copy of the session's store keeps (no matching), which stays beside them (``kitti.sqlite``: a
+    page tuned from that run finds its counts there)."""
     evaluated, _, _ = kitti_evaluation
 
     def build(folder: Path) -> dict:
         shutil.copy(evaluated / "eval.json", folder / "eval.json")  # the two runs side by side
         store = copy_store(evaluated / "kitti.sqlite", folder)
         result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", store, "--start-frames", "0,25,50",
-                         "--tau1", "0.7", "--json", folder / "eval_tau1_0.7.json", timeout=1800)
+                         "--meas-var-m2", OTHER_MEAS_VAR_M2, "--json", folder / OTHER_RUN_NAME, timeout=1800)
         assert result.returncode == 0, result.stderr
         return {}
 
-    folder, _ = built_once(shared_tmp, "kitti_0001_tau1_0.7", build)
-    return folder / "eval.json", folder / "eval_tau1_0.7.json"
+    folder, _ = built_once(shared_tmp, "kitti_0001_meas_var_25", build)
+    return folder / "eval.json", folder / OTHER_RUN_NAME
 
 
 @pytest.fixture(scope="session")

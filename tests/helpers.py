@@ -34,6 +34,8 @@ KITTI_DRIVE = "2011_09_26_drive_0001"
 DRIVE_0005 = "2011_09_26_drive_0005"
 DRIVE_0005_FRAMES = 40  # frames of drive 0005's left camera in the shared store (conftest.store_0005)
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 49.015003823272, 8.4342971002335  # first OXTS record of drive 0001
+OTHER_MEAS_VAR_M2 = "25"  # R of the second saved run (conftest.kitti_two_runs), m^2: σ 5 m
+OTHER_RUN_NAME = "eval_meas_var_25.json"
 CSV_PAIR_FRAMES = 14  # frames of each drive of the shared synthetic pair (conftest.csv_pair)
 
 

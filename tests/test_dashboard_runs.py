@@ -1,6 +1,7 @@
 """Saved runs in the browser, as a person inspects them: ``visloc dashboard --run A --run B`` in a subprocess,
-driven in headless Chromium. Two evaluations of the real drive (τ1 0.6 and 0.7) opened and compared, the
-timeline's worst step jumped to, the 3D view zoomed from the whole drive to one ellipse, a layer hidden.
+driven in headless Chromium. Two evaluations of the real drive (the paper's R, and R at σ 5 m) opened and
+compared, the timeline's worst step jumped to, the 3D view zoomed from the whole drive to one ellipse, a layer
+hidden.
 
 Screenshots stay in each test's temporary folder (pytest keeps the last runs' folders), to be looked at.
 """
@@ -14,8 +15,8 @@ import pytest
 import visloc
 from visloc.dashboard import runpanels as rp
 
-from helpers import (RUN_S, SERVER_WORK_S, DashboardProcess, choose, control, dismiss_webgl_notice, new_page, settled,
-                     status_text, wait_for)
+from helpers import (OTHER_RUN_NAME, RUN_S, SERVER_WORK_S, DashboardProcess, choose, control, dismiss_webgl_notice,
+                     new_page, settled, status_text, wait_for)
 
 pytestmark = [pytest.mark.slow]
 
@@ -30,7 +31,7 @@ def viewer(kitti_two_runs):
 def opened(browser, viewer):
     page = new_page(browser)
     page.goto(viewer.url)
-    page.get_by_text(re.compile(r"^eval: \d+ steps in 3 series; compared with eval_tau1_0\.7$")).wait_for()
+    page.get_by_text(re.compile(r"^eval: \d+ steps in 3 series; compared with eval_meas_var_25$")).wait_for()
     page.get_by_text(re.compile(r"^Step \d+ of \d+$")).first.wait_for()  # tabs share one state: any step
     dismiss_webgl_notice(page)
     return page
@@ -45,8 +46,8 @@ def test_two_saved_runs_open_side_by_side_with_what_differs(viewer, browser, kit
     page.screenshot(path=str(tmp_path / "opened.png"))
     page.get_by_role("tab", name="Runs").click()
     page.get_by_text("Parameters that differ", exact=True).wait_for()
-    row = page.locator("tr", has=page.get_by_text("match.tau1", exact=True)).first
-    assert row.locator("td").nth(2).inner_text() == "0.7"
+    row = page.locator("tr", has=page.get_by_text("filter.meas_var_m2", exact=True)).first
+    assert row.locator("td").nth(2).inner_text() == "25"
     page.get_by_text("final estimate error mean (m)", exact=True).first.wait_for()
     page.screenshot(path=str(tmp_path / "runs_tab.png"))
     # the step table shows both runs' fields, side by side
@@ -91,20 +92,20 @@ def test_the_3d_view_zooms_from_the_drive_to_one_ellipse_and_layers_hide(viewer,
 
 
 def test_a_saved_run_is_tuned_live_from_its_parameters(browser, kitti_two_runs, tmp_path):
-    """``--tune-from``: the live page on the run's store (the copy it was evaluated on, which keeps its counts
-    at τ1 0.7) starts from the run's τ1 (0.7, not the paper's 0.8), matches with it, and says which run it
-    started from."""
+    """``--tune-from``: the live page on the run's store (the copy it was evaluated on, which keeps its counts)
+    starts from the run's R (σ 5 m, not the paper's 11.12 m), filters with it, and says which run it started
+    from."""
     store = kitti_two_runs[1].parent / "kitti.sqlite"
     assert store.is_file()
     proc = DashboardProcess("--db", str(store), "--tune-from", str(kitti_two_runs[1]), "--port", "8352")
     try:
         page = new_page(browser)
         page.goto(proc.url)
-        page.get_by_text(re.compile(r"^Started from the saved run .*eval_tau1_0\.7\.json")).wait_for()
-        box = control(page, "τ1 (Lowe ratio)").locator("input:not([type=hidden])")
-        wait_for(lambda: box.input_value() == "0.7", SERVER_WORK_S, "τ1 to read 0.7")
-        wait_for(lambda: re.search(r"^Ready \(run 1, paper, τ1 0\.7, τ2 0\.97\)", status_text(page)), RUN_S,
-                 "the run at τ1 0.7")
+        page.get_by_text(re.compile(rf"^Started from the saved run .*{re.escape(OTHER_RUN_NAME)}")).wait_for()
+        box = control(page, "R: meas. σ (m)").locator("input:not([type=hidden])")
+        wait_for(lambda: box.input_value() == "5", SERVER_WORK_S, "R's σ to read 5")
+        wait_for(lambda: re.search(r"^Ready \(run 1, paper, τ1 0\.8, τ2 0\.97\)", status_text(page)), RUN_S,
+                 "the run at R σ 5 m")
         page.screenshot(path=str(tmp_path / "tuned_from_saved_run.png"))
         page.close()
     finally:

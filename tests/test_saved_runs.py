@@ -3,6 +3,7 @@ opens it (``visloc.load_run``), compared with a second run, and what the viewer 
 
 from __future__ import annotations
 
+import html
 import json
 import shutil
 from pathlib import Path
@@ -41,10 +42,10 @@ def test_kitti_two_runs_compare_in_one_frame_and_say_which_parameters_differ(kit
     assert b.frame == a.frame
     assert b.series[0][0].truth_m == pytest.approx(a.series[0][0].truth_m, abs=1e-9)  # the same query, same place
     differ = {name: (x, y) for name, x, y in visloc.params_that_differ(a, b)}
-    assert differ["match.tau1"][1] == 0.7 and differ["match.tau1"][0] != 0.7
-    assert "match.tau2" not in differ
-    html = rp.runs_html(a, b)
-    assert "Parameters that differ" in html and "tau1" in html
+    assert differ["filter.meas_var_m2"][1] == 25.0 and differ["filter.meas_var_m2"][0] != 25.0
+    assert "match.tau1" not in differ and "match.tau2" not in differ
+    page = html.unescape(rp.runs_html(a, b))  # the page's text, every character escaped
+    assert "Parameters that differ" in page and "meas_var_m2" in page
 
 
 def test_drives_json_lists_the_runs_beside_it(kitti_two_runs, tmp_path):
@@ -52,7 +53,7 @@ def test_drives_json_lists_the_runs_beside_it(kitti_two_runs, tmp_path):
     index = tmp_path / "drives.json"
     index.write_text(json.dumps({"root": "x", "drives": {"d": [
         {"mode": "paper", "protocol_label": "left queries, right database", "file": runs[0].name},
-        {"mode": "paper", "protocol_label": "τ1 0.7", "file": runs[1].name},
+        {"mode": "paper", "protocol_label": "R σ 5 m", "file": runs[1].name},
         {"mode": "refined", "file": "not_there.json"}]}}))
     files = visloc.run_files(index)
     assert [p for _, p in files] == runs  # a file that is not beside it is left out
@@ -85,12 +86,18 @@ def test_a_saved_run_gives_the_live_page_its_settings(kitti_two_runs, tmp_path):
     settings = visloc.live_settings(visloc.load_run(kitti_two_runs[1]))
     report = json.loads(kitti_two_runs[1].read_text())["params"]
     assert settings.method == report["mode"] == "paper" and settings.rate_hz == pytest.approx(1.0)
-    assert settings.params["tau1"] == 0.7 and settings.params["tau2"] == report["match"]["tau2"]
-    assert settings.params["meas_var_m2"] == report["filter"]["meas_var_m2"]
+    assert settings.params["meas_var_m2"] == report["filter"]["meas_var_m2"] == 25.0
+    assert settings.params["tau1"] == report["match"]["tau1"] and settings.params["tau2"] == report["match"]["tau2"]
     assert (settings.database, settings.queries) == (report["database"], report["queries"])
     values, moved = saved_values(settings)
-    assert values["params"]["tau1"] == 0.7 and values["mode"] == "paper" and values["rate"] == "1" and not moved
-    assert values["params"]["meas_var_m2"] == paper_values()["params"]["meas_var_m2"]  # R shown as its σ, alike
+    assert values["params"]["meas_var_m2"] == pytest.approx(5.0) and not moved  # R shown as its σ, as the paper's is
+    assert paper_values()["params"]["meas_var_m2"] == pytest.approx(11.12)
+    assert values["mode"] == "paper" and values["rate"] == "1"
+    other = json.loads(kitti_two_runs[1].read_text())  # the same run, as if made at another τ1
+    other["params"]["match"]["tau1"] = 0.7
+    (tmp_path / "tau1_0.7.json").write_text(json.dumps(other))
+    values, moved = saved_values(visloc.live_settings(visloc.load_run(tmp_path / "tau1_0.7.json")))
+    assert values["params"]["tau1"] == 0.7 and values["params"]["meas_var_m2"] == pytest.approx(5.0) and not moved
     track = tmp_path / "track.json"  # a camera-rate run records its interval, its exclusion and its filter
     track.write_text(json.dumps({"queries": "d/image_00", "database": "d/image_01", "per_frame": [
         {"frame": 0, "truth_m": [0, 0]}], "params": {"track": {"fast": True, "exclusion_s": 99.0},
