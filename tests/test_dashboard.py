@@ -141,12 +141,20 @@ def test_changing_R_refilters_without_rematching(dashboard, browser):
 
 @pytest.mark.slow
 def test_moving_tau1_rematches_in_the_background(dashboard, browser):
+    """τ1 moved key by key: each run supersedes the one before, the page stays responsive while the last
+    one is matched, and the re-match fills in from the first step: a step not matched yet keeps the
+    previous run's numbers, marked as such in the step panel, its plot and the map, until the new run gets
+    there; the first step shows the new run's numbers as soon as it is matched. (One re-match serves
+    every check: matching the drive's eleven queries again is the costliest thing the page does.)"""
     page = open_page(browser, dashboard.url)
     try:
+        page.get_by_role("tab", name="Current step").click()
+        dismiss_webgl_notice(page)
         go_to_step(page, 2)
         runs = run_number(page)
         best_before = row(page, "best match")
         count_before = int(re.search(r"(\d+) correspondences", best_before).group(1))
+        go_to_step(page, 10)  # the last step (the slider's 11): matched last
         thumb = control(page, "τ1 (Lowe ratio)").locator("[role=slider]")
         thumb.focus()
         box = control(page, "τ1 (Lowe ratio)").locator("input:not([type=hidden])")
@@ -156,13 +164,33 @@ def test_moving_tau1_rematches_in_the_background(dashboard, browser):
             wait_for(lambda: box.input_value() == value, SERVER_WORK_S, f"τ1 to read {value}")
         assert control(page, "τ1 (Lowe ratio)").locator("input:not([type=hidden])").input_value() == "0.9"
         wait_for(lambda: "Matching" in status_text(page), SERVER_WORK_S, "matching to start")
+        # the last step keeps the previous run's numbers, marked, until the new run reaches it
+        badge = page.get_by_text("previous run (τ1 0.8) — re-matching for τ1 0.9…", exact=True)
+        badge.first.wait_for()
+        page.get_by_text("numbers of the previous run, shown until the new run reaches this step").first.wait_for()
+        title = page.locator(".uplot .u-title").first
+        wait_for(lambda: "previous run" in title.inner_text(), SERVER_WORK_S, "the plot to say it is the previous run")
+        page.get_by_role("tab", name="Map").click()
+        wait_for(lambda: any(badge.nth(i).is_visible() for i in range(badge.count())), SERVER_WORK_S,
+                 "the map's own badge")
+        screenshot(page, "newcomer_stale_map.png")
+        page.get_by_role("tab", name="Current step").click()
+        badge.first.wait_for()
+        screenshot(page, "newcomer_stale.png")
+        go_to_step(page, 0)  # step 1 is matched first: the new run's numbers, whether or not the rest is
+        wait_for(lambda: not any(badge.nth(i).is_visible() for i in range(badge.count())), RUN_S,
+                 "step 1 of the new run")
+        screenshot(page, "newcomer_refilling.png")
         # the page stays responsive while the worker matches
         page.get_by_role("button", name="Next ▶").click()
-        page.get_by_text("Step 4 of 11", exact=True).wait_for()
+        page.get_by_text("Step 2 of 11", exact=True).wait_for()
         screenshot(page, "dashboard_matching.png")
         wait_for(lambda: run_number(page) > runs, RUN_S, "the run with τ1 = 0.9")
         assert run_number(page) == runs + 1, "superseded runs must not complete"
         assert "τ1 0.9, τ2 0.97)" in status_text(page)
+        go_to_step(page, 10)
+        badge.first.wait_for(state="detached")
+        wait_for(lambda: "previous run" not in title.inner_text(), SERVER_WORK_S, "the plot to be current")
         go_to_step(page, 2)
         count_after = int(re.search(r"(\d+) correspondences", row(page, "best match")).group(1))
         assert count_after != count_before

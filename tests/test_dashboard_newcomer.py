@@ -299,41 +299,6 @@ def test_the_map_follows_the_step_and_the_plots_read_as_data(dashboard, browser)
 
 
 @pytest.mark.slow
-def test_numbers_of_the_previous_run_are_marked_while_rematching(dashboard, browser):
-    """A re-match fills in from the first step: the last step keeps the previous run's numbers, marked,
-    until the new run gets there; the first step shows the new run's as soon as it is matched."""
-    page = open_on_current_step(browser, dashboard.url)
-    try:
-        dismiss_webgl_notice(page)
-        runs = run_number(page)
-        go_to_step(page, 10)  # the last step (the slider's 11)
-        set_number(page, "τ1 (Lowe ratio)", "0.74")  # counts not in the store: a real re-match
-        badge = page.get_by_text("previous run (τ1 0.8) — re-matching for τ1 0.74…", exact=True)
-        badge.first.wait_for()
-        page.get_by_text("numbers of the previous run, shown until the new run reaches this step").first.wait_for()
-        title = page.locator(".uplot .u-title").first
-        wait_for(lambda: "previous run" in title.inner_text(), SERVER_WORK_S, "the plot to say it is the previous run")
-        page.get_by_role("tab", name="Map").click()
-        wait_for(lambda: any(badge.nth(i).is_visible() for i in range(badge.count())), SERVER_WORK_S,
-                 "the map's own badge")
-        screenshot(page, "newcomer_stale_map.png")
-        page.get_by_role("tab", name="Current step").click()
-        badge.first.wait_for()
-        screenshot(page, "newcomer_stale.png")
-        go_to_step(page, 0)  # step 1 is matched first: the new run's numbers, whether or not the rest is
-        wait_for(lambda: not any(badge.nth(i).is_visible() for i in range(badge.count())), RUN_S,
-                 "step 1 of the new run")
-        screenshot(page, "newcomer_refilling.png")
-        wait_for(lambda: run_number(page) > runs, RUN_S, "the run with τ1 0.74")
-        go_to_step(page, 10)
-        badge.first.wait_for(state="detached")
-        wait_for(lambda: "previous run" not in title.inner_text(), SERVER_WORK_S, "the plot to be current")
-    finally:
-        reset(page)
-        page.close()
-
-
-@pytest.mark.slow
 def test_every_tab_sees_the_shared_session_and_who_changed_what(dashboard, browser):
     a = open_on_current_step(browser, dashboard.url)
     b = open_on_current_step(browser, dashboard.url)
