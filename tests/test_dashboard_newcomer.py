@@ -1,7 +1,8 @@
 """The dashboard explains itself to a first-time user: page title, step numbering from 1, local
 metres with lat/lon on demand, hints and a help fold, controls of other modes disabled, a map,
-static plot legends, stale numbers marked while re-matching, wrapping messages, a visible shared
-session, downloads of the run, and a first run that fills in as it is matched.
+static plot legends, wrapping messages, a visible shared session and downloads of the run. Stale
+numbers marked while re-matching are checked during tests/test_dashboard.py's re-match, and a first run
+that fills in as it is matched on the sharded store (tests/test_shards.py), which keeps no counts.
 
 ``visloc dashboard`` in a subprocess on the KITTI store, driven in the session's headless Chromium
 (see tests/test_dashboard.py). Screenshots go to ``out/screenshots/newcomer_*.png``.
@@ -13,8 +14,6 @@ import csv
 import io
 import json
 import re
-import shutil
-import sqlite3
 from dataclasses import replace
 
 import pytest
@@ -27,14 +26,12 @@ from helpers import (
     control,
     dismiss_webgl_notice,
     go_to_step,
-    new_page,
     open_other_store,
     open_page,
     reset,
     row,
     run_number,
     screenshot,
-    status_text,
     wait_for,
 )
 
@@ -371,35 +368,3 @@ def test_a_long_error_wraps_inside_the_panel(dashboard, browser, kitti_evaluatio
     finally:
         reset(page)
         page.close()
-
-
-@pytest.mark.slow
-def test_the_first_run_fills_in_as_it_is_matched(kitti_evaluation, browser, tmp_path):
-    """On a store without the cached counts of the run's queries the first run takes a while: the page shows
-    the steps matched so far, with the progress, before it is ready. The counts of the first five queries
-    (frames 0-40) are kept and those of the last six forgotten: six full matchings are enough to watch."""
-    source, _, _ = kitti_evaluation
-    store = tmp_path / "fresh.sqlite"
-    shutil.copy(source / "kitti.sqlite", store)
-    with sqlite3.connect(store) as conn:
-        forgotten = conn.execute("DELETE FROM pair_counts WHERE query_image_id IN (SELECT id FROM images WHERE "
-                                 "camera = 'image_00' AND frame >= 50)").rowcount
-    conn.close()
-    assert forgotten >= 6 * 80  # six queries, each against the images at least 1 s from it
-    proc = DashboardProcess("--db", str(store), "--port", "8424")
-    try:
-        page = new_page(browser)
-        page.goto(proc.url)
-        page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()
-        seen = wait_for(lambda: (run_number(page) == 0 and re.search(r"\d+ of 11 queries matched so far",
-                                                                     page.locator("body").inner_text())),
-                        RUN_S, "steps shown while the first run is matched")
-        assert seen
-        wait_for(lambda: re.search(r"^Matching 11 queries .*: \d+ of 11 queries matched", status_text(page)),
-                 SERVER_WORK_S, "the progress in words")
-        screenshot(page, "newcomer_first_run_filling_in.png")
-        wait_for(lambda: run_number(page) == 1, 2 * RUN_S, "the first run to be ready")
-        page.get_by_text("Step 1 of 11", exact=True).wait_for()
-        page.close()
-    finally:
-        proc.stop()
