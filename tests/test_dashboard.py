@@ -36,6 +36,7 @@ from helpers import (
     screenshot,
     settled,
     status_text,
+    visit,
     wait_for,
 )
 
@@ -267,7 +268,7 @@ def test_a_missing_store_at_start_shows_a_message(browser, tmp_path):
     proc = DashboardProcess("--db", str(tmp_path / "nothing_here.sqlite"), "--port", "8360")
     try:
         page = new_page(browser)
-        page.goto(proc.url)
+        visit(page, proc.url)
         page.get_by_text(re.compile("nothing_here.sqlite: database file does not exist")).wait_for()
         screenshot(page, "dashboard_missing_store.png")
         page.close()

@@ -16,7 +16,7 @@ import visloc
 from visloc.dashboard import runpanels as rp
 
 from helpers import (OTHER_RUN_NAME, RUN_S, SERVER_WORK_S, DashboardProcess, choose, control, dismiss_webgl_notice,
-                     new_page, settled, status_text, wait_for)
+                     new_page, settled, status_text, visit, wait_for)
 
 pytestmark = [pytest.mark.slow]
 
@@ -30,7 +30,7 @@ def viewer(kitti_two_runs):
 
 def opened(browser, viewer):
     page = new_page(browser)
-    page.goto(viewer.url)
+    visit(page, viewer.url)
     page.get_by_text(re.compile(r"^eval: \d+ steps in 3 series; compared with eval_meas_var_25$")).wait_for()
     page.get_by_text(re.compile(r"^Step \d+ of \d+$")).first.wait_for()  # tabs share one state: any step
     dismiss_webgl_notice(page)
@@ -100,7 +100,7 @@ def test_a_saved_run_is_tuned_live_from_its_parameters(browser, kitti_two_runs, 
     proc = DashboardProcess("--db", str(store), "--tune-from", str(kitti_two_runs[1]), "--port", "8352")
     try:
         page = new_page(browser)
-        page.goto(proc.url)
+        visit(page, proc.url)
         page.get_by_text(re.compile(rf"^Started from the saved run .*{re.escape(OTHER_RUN_NAME)}")).wait_for()
         box = control(page, "R: meas. σ (m)").locator("input:not([type=hidden])")
         wait_for(lambda: box.input_value() == "5", SERVER_WORK_S, "R's σ to read 5")

@@ -20,7 +20,7 @@ import pytest
 
 from helpers import KITTI_DRIVE, REPO, built_once, copy_store, run_cli
 from fault_table import Fault, params
-from helpers import SERVER_WORK_S, DashboardProcess, new_page, one_line_error, screenshot
+from helpers import SERVER_WORK_S, DashboardProcess, new_page, one_line_error, screenshot, visit
 
 FAULTS = [
     Fault("store-bytes-changed", "store contents",
@@ -167,7 +167,7 @@ def test_the_dashboard_shows_a_damaged_store_in_the_page(clean, tmp_path, browse
                             "--port", "8395")
     page = new_page(browser)
     try:
-        page.goto(proc.url)
+        visit(page, proc.url)
         page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()  # the GUI arrives over the websocket
         shown = page.get_by_text(re.compile("checksum mismatch")).first
         shown.wait_for(timeout=SERVER_WORK_S * 1000)

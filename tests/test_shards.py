@@ -397,12 +397,13 @@ def test_the_dashboard_opens_a_sharded_store(city_0001, browser):
     """``visloc dashboard --db FOLDER``: the page offers the folder as its store and plays the drive's first run.
     A sharded store keeps no counts, so that run takes a while: the page shows the steps matched so far, with
     the progress in words, before it is ready."""
-    from helpers import RUN_S, SERVER_WORK_S, DashboardProcess, new_page, run_number, screenshot, status_text, wait_for
+    from helpers import (RUN_S, SERVER_WORK_S, DashboardProcess, new_page, run_number, screenshot, status_text, visit,
+                         wait_for)
 
     proc = DashboardProcess("--db", str(city_0001), "--port", "8431")
     try:
         page = new_page(browser)
-        page.goto(proc.url)
+        visit(page, proc.url)
         page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()
         seen = wait_for(lambda: (run_number(page) == 0 and re.search(r"\d+ of 11 queries matched so far",
                                                                      page.locator("body").inner_text())),

@@ -20,7 +20,7 @@ import threading
 
 import geojson
 import pytest
-from helpers import control, dismiss_webgl_notice, new_page, run_number, wait_for
+from helpers import control, dismiss_webgl_notice, new_page, run_number, visit, wait_for
 
 from helpers import REPO
 
@@ -89,7 +89,7 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser, tmp_path):
         url = URL_LINE.search(log).group(1)
         page = new_page(browser)
         try:
-            page.goto(url)
+            visit(page, url)
             page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()
             wait_for(lambda: run_number(page) > 0, 600, "the first run to be ready")
             page.get_by_text("Step 1 of 8", exact=True).wait_for()  # one query a second over the 80 frames
