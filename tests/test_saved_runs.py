@@ -48,6 +48,29 @@ def test_kitti_two_runs_compare_in_one_frame_and_say_which_parameters_differ(kit
     assert "Parameters that differ" in page and "meas_var_m2" in page
 
 
+def test_runs_that_differ_in_tau1_say_so(kitti_evaluation, tmp_path):
+    """The parameter that differs is named whichever it is: the session's run against the same run as if made
+    at τ1 0.7."""
+    report = json.loads((kitti_evaluation[0] / "eval.json").read_text())
+    report["params"]["match"]["tau1"] = 0.7
+    (tmp_path / "tau1_0.7.json").write_text(json.dumps(report))
+    a = visloc.load_run(kitti_evaluation[0] / "eval.json")
+    b = visloc.load_run(tmp_path / "tau1_0.7.json", a.frame)
+    differ = {name: (x, y) for name, x, y in visloc.params_that_differ(a, b)}
+    assert list(differ) == ["match.tau1"] and differ["match.tau1"] == (0.8, 0.7)
+
+
+def test_a_run_with_another_R_has_the_same_measurements_and_other_estimates(kitti_two_runs):
+    """R is the filter's: the second saved run matched nothing again (the same best matches and measurements)
+    and its estimates differ."""
+    a, b = (json.loads(path.read_text())["series"] for path in kitti_two_runs)
+    assert [len(s) for s in a] == [len(s) for s in b] == [6, 6, 6]
+    steps = [(x, y) for sa, sb in zip(a, b, strict=True) for x, y in zip(sa, sb, strict=True)]
+    for key in ("query_frame", "counts", "best_db_frame", "measurement_error_m"):
+        assert [x[key] for x, _ in steps] == [y[key] for _, y in steps], key
+    assert [x["estimate_error_m"] for x, _ in steps] != [y["estimate_error_m"] for _, y in steps]
+
+
 def test_drives_json_lists_the_runs_beside_it(kitti_two_runs, tmp_path):
     runs = [Path(shutil.copy(run, tmp_path / run.name)) for run in kitti_two_runs]  # the shared runs stay as made
     index = tmp_path / "drives.json"
