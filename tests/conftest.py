@@ -220,16 +220,6 @@ def pytest_collection_modifyitems(config, items):
     for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
         if _module_fixtures(item):
             item.add_marker(pytest.mark.xdist_group(item.module.__name__))
-        else:
-            shared = [name for name in KEPT_ON_ONE_WORKER if name in item.fixturenames]
-            if shared:
-                item.add_marker(pytest.mark.xdist_group(shared[0]))
-
-
-# Session artifacts that only a few tests use, each built in minutes: their tests run on one worker, which builds
-# the artifact once and goes on, instead of a second worker waiting idle for it (a CI run had a worker wait 207 s
-# for the sharded store while the other built it).
-KEPT_ON_ONE_WORKER = ("city_0001", "clean")
 
 
 def pytest_runtest_setup(item):
