@@ -48,14 +48,21 @@ def test_kitti_two_runs_compare_in_one_frame_and_say_which_parameters_differ(kit
     assert "Parameters that differ" in page and "meas_var_m2" in page
 
 
+def at_tau1_0_7(run: Path, folder: Path) -> Path:
+    """A copy of the saved run ``run`` in ``folder``, as if it had been made at τ1 0.7 (matching again is not
+    what the tests that read it check)."""
+    report = json.loads(run.read_text())
+    report["params"]["match"]["tau1"] = 0.7
+    copy = folder / f"{run.stem}_tau1_0.7.json"
+    copy.write_text(json.dumps(report))
+    return copy
+
+
 def test_runs_that_differ_in_tau1_say_so(kitti_evaluation, tmp_path):
     """The parameter that differs is named whichever it is: the session's run against the same run as if made
     at τ1 0.7."""
-    report = json.loads((kitti_evaluation[0] / "eval.json").read_text())
-    report["params"]["match"]["tau1"] = 0.7
-    (tmp_path / "tau1_0.7.json").write_text(json.dumps(report))
     a = visloc.load_run(kitti_evaluation[0] / "eval.json")
-    b = visloc.load_run(tmp_path / "tau1_0.7.json", a.frame)
+    b = visloc.load_run(at_tau1_0_7(kitti_evaluation[0] / "eval.json", tmp_path), a.frame)
     differ = {name: (x, y) for name, x, y in visloc.params_that_differ(a, b)}
     assert list(differ) == ["match.tau1"] and differ["match.tau1"] == (0.8, 0.7)
 
@@ -116,10 +123,7 @@ def test_a_saved_run_gives_the_live_page_its_settings(kitti_two_runs, tmp_path):
     assert values["params"]["meas_var_m2"] == pytest.approx(5.0) and not moved  # R shown as its σ, as the paper's is
     assert paper_values()["params"]["meas_var_m2"] == pytest.approx(11.12)
     assert values["mode"] == "paper" and values["rate"] == "1"
-    other = json.loads(kitti_two_runs[1].read_text())  # the same run, as if made at another τ1
-    other["params"]["match"]["tau1"] = 0.7
-    (tmp_path / "tau1_0.7.json").write_text(json.dumps(other))
-    values, moved = saved_values(visloc.live_settings(visloc.load_run(tmp_path / "tau1_0.7.json")))
+    values, moved = saved_values(visloc.live_settings(visloc.load_run(at_tau1_0_7(kitti_two_runs[1], tmp_path))))
     assert values["params"]["tau1"] == 0.7 and values["params"]["meas_var_m2"] == pytest.approx(5.0) and not moved
     track = tmp_path / "track.json"  # a camera-rate run records its interval, its exclusion and its filter
     track.write_text(json.dumps({"queries": "d/image_00", "database": "d/image_01", "per_frame": [
