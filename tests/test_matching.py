@@ -90,6 +90,24 @@ def test_nearest_two_is_exact_against_float64_brute_force():
     assert nn.index1[5] == 17 and nn.dist1_sq[5] == 0
 
 
+def test_nearest_two_by_blocks_of_query_rows_equals_one_product_of_all_rows(monkeypatch):
+    """The query rows go a block at a time (the scores stay in cache): every array comes out the same as from
+    one product of all rows, ties and zero vectors included, with a last block shorter than the others."""
+    import visloc.retrieval.matching as matching
+
+    rng = np.random.default_rng(2)
+    query = rng.integers(0, 4, (300, 128), dtype=np.uint8)  # few values: many ties
+    database = rng.integers(0, 4, (400, 128), dtype=np.uint8)
+    database[7], query[3] = database[6], 0
+    monkeypatch.setattr(matching, "_SCORE_BLOCK_BYTES", 1 << 40)
+    whole = nearest_two(query, database)
+    monkeypatch.setattr(matching, "_SCORE_BLOCK_BYTES", 4 * 400 * 7)  # 7 rows a block: 42 blocks and one of 6
+    blocks = nearest_two(query, database)
+    for name in ("index1", "dist1_sq", "dist2_sq", "cosine1"):
+        a, b = getattr(whole, name), getattr(blocks, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name
+
+
 @pytest.mark.parametrize("tau1,tau2", [(0.6, 0.9), (0.8, 0.97), (1.0, -1.0)])
 def test_mask_equals_the_equations_elementwise(tau1, tau2):
     rng = np.random.default_rng(1)
