@@ -14,12 +14,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from visloc.db.shards import Manifest, file_sha256, rows_digest, staging_images
+from visloc.db.shards import STAGING_NAME, Manifest, file_sha256, rows_digest, staging_images
 from visloc.store.sharded import GlobalSearch, TileIndex, merged_store
 from visloc.store.workspace import Workspace
 from visloc.store.tiles import cells_within, owner_cells, tiles_of_images
 
-from helpers import KITTI_DRIVE, built_once, run_cli
+from helpers import KITTI_DRIVE, built_once, copy_store, run_cli
 from helpers import one_line_error
 
 pytest.importorskip("distributed")
@@ -271,14 +271,27 @@ def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_dr
 # -- the same answers as one file (drive 0001 in 25 m tiles, two workers) -------------------------------
 
 @pytest.fixture(scope="session")
-def city_0001(kitti_root, shared_tmp):
-    """Drive 0001 in 25 m tiles, made once per run: its right camera as the database (features, global vectors,
-    structure, self-check), its left camera as queries (features only, as ``evaluate`` stores them in a file)."""
+def city_0001(kitti_evaluation, kitti_root, shared_tmp):
+    """Drive 0001 in 25 m tiles, made once per run by ``visloc ingest --tile-m 25`` on a local Dask cluster: its
+    right camera as the database (features, global vectors, structure, self-check), its left camera as queries
+    (features only, as ``evaluate`` stores them in a file).
+
+    The ingest resumes from a working store that already holds what its first stages make: the session's one
+    file (``kitti_evaluation``, the same cameras and settings) less its counts, which is what those stages leave
+    (``visloc.store.sharded``). So here the cluster cuts the tiles and the tests read them; that the cluster's
+    own features, structure and self-check equal one file's row for row is checked on the synthetic drive
+    (``test_sharded_ingest_equals_one_file_row_for_row_and_resumes``)."""
+    one_file = kitti_evaluation[0] / "kitti.sqlite"
+
     def build(folder: Path) -> dict:
+        staging = folder / "city" / STAGING_NAME
+        copy_store(one_file, staging.parent).rename(staging)
+        Workspace(staging).clear_pair_counts()  # ingest keeps no counts
         for camera, extra in (("image_01", ()), ("image_00", ("--features-only",))):
             made = run_cli("ingest", kitti_root, "--drive", KITTI_DRIVE, "--camera", camera, "--db", folder / "city",
                            "--tile-m", "25", "--workers", "2", *extra, timeout=3600)
             assert made.returncode == 0, made.stderr
+            assert "0 added, 108 already stored" in made.stdout, made.stdout
         return {}
 
     folder, _ = built_once(shared_tmp, "city_0001", build)
