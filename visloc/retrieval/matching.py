@@ -26,12 +26,16 @@ and ``backend_counter`` compute every count; ``PairCountCache`` remembers them p
 
 from __future__ import annotations
 
+import functools
+import os
 import time
 from collections.abc import Callable, Hashable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import faiss
 import numpy as np
+from threadpoolctl import ThreadpoolController
 
 from visloc.errors import ParameterError
 from visloc.params import MatchParams
@@ -74,6 +78,25 @@ def best_two(score: np.ndarray, q_sq: np.ndarray) -> tuple[np.ndarray, np.ndarra
 
 
 _SCORE_BLOCK_BYTES = 2 << 20  # scores of a block of query rows: about one core's L2 cache
+_threads: dict[int, ThreadPoolExecutor] = {}  # per process id (a forked worker makes its own)
+
+
+@functools.cache
+def _blas() -> ThreadpoolController:
+    return ThreadpoolController()
+
+
+def _blas_threads() -> int:
+    """How many threads BLAS runs now (one inside ``threadpool_limits(1)``)."""
+    return max([c.num_threads for c in _blas().lib_controllers if c.user_api == "blas"] or [1])
+
+
+def _row_threads(n: int) -> ThreadPoolExecutor:
+    key = os.getpid()
+    pool = _threads.get(key)
+    if pool is None or pool._max_workers < n:
+        pool = _threads[key] = ThreadPoolExecutor(max_workers=n, thread_name_prefix="visloc-match")
+    return pool
 
 
 def nearest_two(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
@@ -94,18 +117,32 @@ def nearest_two(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
     # go a block at a time, each block's scores small enough to stay in the core's cache for the passes
     # that find the nearest two: every row's numbers are the same as in one product of all rows.
     rows = max(1, _SCORE_BLOCK_BYTES // (4 * n_db))
-    score_block = np.empty((min(rows, n_query), n_db), np.float32)
     index1 = np.empty(n_query, np.intp)
     best = np.empty(n_query, np.float32)
     dist1_sq = np.empty(n_query, np.float32)
     dist2_sq = np.empty(n_query, np.float32)
-    for start in range(0, n_query, rows):
-        stop = min(start + rows, n_query)
-        score = score_block[: stop - start]
-        np.matmul(q[start:stop], d_t, out=score)
-        score -= half_d_sq
-        index1[start:stop], best[start:stop], dist1_sq[start:stop], dist2_sq[start:stop] = \
-            best_two(score, q_sq[start:stop])
+
+    def blocks(first: int, last: int) -> None:  # query rows first..last-1, a block at a time
+        score_block = np.empty((min(rows, last - first), n_db), np.float32)
+        for start in range(first, last, rows):
+            stop = min(start + rows, last)
+            score = score_block[: stop - start]
+            np.matmul(q[start:stop], d_t, out=score)
+            score -= half_d_sq
+            index1[start:stop], best[start:stop], dist1_sq[start:stop], dist2_sq[start:stop] = \
+                best_two(score, q_sq[start:stop])
+
+    # The blocks' products are small: with BLAS's own threads, a second thread mostly waits for the first (about
+    # twice the CPU time for the same pair, and far more on a busy machine, where it waits to be scheduled). So
+    # BLAS runs one thread, and the rows are shared among as many threads of ours as BLAS had (one in ingest's
+    # workers, one per core elsewhere), each through its own blocks: nothing to wait for until all are done.
+    n_threads = min(_blas_threads(), -(-n_query // rows))
+    with _blas().limit(limits=1, user_api="blas"):
+        if n_threads <= 1:
+            blocks(0, n_query)
+        else:
+            cuts = [round(n_query * k / n_threads) for k in range(n_threads + 1)]
+            list(_row_threads(n_threads).map(blocks, cuts[:-1], cuts[1:]))
     dot1 = best + 0.5 * d_sq[index1]
     norms = np.sqrt(q_sq) * np.sqrt(d_sq[index1])
     with np.errstate(invalid="ignore", divide="ignore"):
