@@ -273,7 +273,6 @@ class DashboardApp:
             self._store_error(str(exc))
             return
         s = self.shown
-        self.gui.store_message.content = panels.status_html(f"Opened {path}: {len(datasets)} image series")
         s.workspace, s.datasets, s.store_path, s.caches = workspace, datasets, path, {}
         names = [d.name for d in datasets]
         db_choice, q_choice = first_choices(datasets, *self.preferred)
@@ -283,6 +282,8 @@ class DashboardApp:
         g.db.options, g.queries.options = names, names
         g.db.value, g.queries.value = db_choice, q_choice
         g.store_info.content = panels.store_html(path, datasets, workspace.sift_params)
+        # said last: when the page reads "Opened", the store box and the choices already show the store
+        self.gui.store_message.content = panels.status_html(f"Opened {path}: {len(datasets)} image series")
         self.request_apply()
 
     def _start_loading(self, data_key: tuple) -> None:

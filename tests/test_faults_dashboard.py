@@ -275,7 +275,7 @@ def test_a_store_outside_the_allowed_folders_is_refused(fault, fenced, browser):
         page.get_by_text(f"Open reads {second}", exact=True).wait_for()
         page.get_by_role("button", name="Open", exact=True).click()
         page.get_by_text(f"Opened {second}: 2 image series", exact=True).wait_for()
-        assert store_box.input_value() == str(second)
+        wait_for(lambda: store_box.input_value() == str(second), SERVER_WORK_S, "the store box to show the store opened")
         assert store_options(page) == [str(second)]
         assert fenced.proc.alive()
         assert not any("warning" in line for line in fenced.proc.output), "warned of serving on 127.0.0.1"
