@@ -75,13 +75,13 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser, tmp_path):
         log = "".join(output)
         assert found.is_set(), f"the walk-through stopped (exit {proc.returncode}) before the dashboard:\n{log}"
         # what the commands before the dashboard wrote
-        series = geojson.loads((out / "series_20.geojson").read_text())
+        series = geojson.loads((out / "series_10.geojson").read_text())
         assert series.is_valid, series.errors()
         kinds = {f["properties"]["kind"] for f in series["features"]}
         assert {"truth track", "measurement track", "estimate track", "estimate"} <= kinds
         assert len([f for f in series["features"] if f["properties"]["kind"] == "estimate"]) == 6
         evaluation = json.loads((out / "evaluation.json").read_text())
-        assert evaluation["n_series"] == len(evaluation["series"]) == 3
+        assert evaluation["n_series"] == len(evaluation["series"]) == 2
         rows = list(csv.DictReader((out / "evaluation.csv").open()))
         assert len(rows) == sum(len(s) for s in evaluation["series"])
         assert "1.85" not in log  # the paper's figure for its own drive is not a comparison for this one
@@ -92,7 +92,7 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser, tmp_path):
             visit(page, url)
             page.get_by_text("τ1 (Lowe ratio)", exact=True).wait_for()
             wait_for(lambda: run_number(page) > 0, 600, "the first run to be ready")
-            page.get_by_text("Step 1 of 8", exact=True).wait_for()  # one query a second over the 80 frames
+            page.get_by_text("Step 1 of 7", exact=True).wait_for()  # one query a second over the 61 frames
             page.get_by_text("Data", exact=True).click()
             assert control(page, "Database").locator("input").first.input_value() == "database/camera"
             queries = page.get_by_text("Queries", exact=True).last  # the Data fold's, after the fold named so
