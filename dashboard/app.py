@@ -282,8 +282,7 @@ class DashboardApp:
         g.db.options, g.queries.options = names, names
         g.db.value, g.queries.value = db_choice, q_choice
         g.store_info.content = panels.store_html(path, datasets, workspace.sift_params)
-        # said last: when the page reads "Opened", the store box and the choices already show the store
-        self.gui.store_message.content = panels.status_html(f"Opened {path}: {len(datasets)} image series")
+        self.gui.store_message.content = panels.status_html(f"Opened {path}: {len(datasets)} image series")  # last: box shown
         self.request_apply()
 
     def _start_loading(self, data_key: tuple) -> None:
