@@ -218,30 +218,8 @@ def pytest_collection_modifyitems(config, items):
     if not config.pluginmanager.hasplugin("xdist"):
         return
     for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
-        longest = item.get_closest_marker("longest") is not None
-        if _module_fixtures(item) or longest:  # a longest test's group says so to the scheduler (below)
-            item.add_marker(pytest.mark.xdist_group((LONGEST_GROUP if longest else "") + item.module.__name__))
-
-
-LONGEST_GROUP = "longest-"  # the start of the xdist group of a test marked ``longest``
-
-
-def pytest_xdist_make_scheduler(config, log):
-    """pytest-xdist's ``--dist loadgroup``, with the groups of the ``longest`` tests handed out first, one per
-    worker as they come. xdist orders the groups by their number of tests: a long test alone in its group would
-    start late, and the workers would wait on each other (a test waiting for a shared store another worker is
-    still making) or end apart."""
-    if config.getvalue("dist") != "loadgroup":
-        return None
-    from xdist.scheduler import LoadGroupScheduling
-
-    class LongestFirst(LoadGroupScheduling):
-        def _assign_work_unit(self, node) -> None:
-            for scope in reversed([s for s in self.workqueue if s.startswith(LONGEST_GROUP)]):
-                self.workqueue.move_to_end(scope, last=False)
-            super()._assign_work_unit(node)
-
-    return LongestFirst(config, log)
+        if _module_fixtures(item):
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__))
 
 
 def pytest_runtest_setup(item):

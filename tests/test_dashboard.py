@@ -40,10 +40,6 @@ from helpers import (
     wait_for,
 )
 
-# the first of these tests to run makes the session's store (minutes on 2 cores): the module is started first
-pytestmark = pytest.mark.longest
-
-
 @pytest.fixture(scope="module")
 def dashboard(kitti_evaluation):
     """The dashboard on the store the KITTI evaluation built (features + cached counts)."""
