@@ -19,6 +19,7 @@ from visloc.pose.refined import pose_measurement
 from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.drives import open_source
+from visloc.stats import CHI2_2DOF_999
 from visloc.pose.structure import VARIANTS, ViewStructure, choose_variant, view_structures
 from visloc.store.build import build_global_vectors, build_structure
 from visloc.retrieval.matching import count_correspondences
@@ -308,7 +309,7 @@ def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covari
         again = follower._full(gray, seq.timestamps_s[k], None, engine, "frame").measurement
         assert again.source == "geometry"
         d = tracked.east_north_m - again.east_north_m
-        assert float(d @ np.linalg.solve(tracked.cov_m2 + again.cov_m2, d)) < 13.8  # 99.9 % for 2 degrees
+        assert float(d @ np.linalg.solve(tracked.cov_m2 + again.cov_m2, d)) < CHI2_2DOF_999  # 99.9 % for 2 degrees
         truth = np.asarray(db.frame.to_local(seq.frames[k].lat_deg, seq.frames[k].lon_deg), float)
         assert np.linalg.norm(tracked.east_north_m - truth) < np.linalg.norm(again.east_north_m - truth) + 0.3
         assert all(abs(db.timestamps_s[v] - seq.timestamps_s[k]) >= 1.0 for v in tracked.view_indices)

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from visloc.params import FilterParams
+from visloc.stats import CHI2_2DOF_999
 from visloc.tracking.kalman import ConstantVelocityKalman, process_noise, run_filter, transition_matrix
 
 
@@ -107,11 +108,11 @@ def test_the_gate_rejects_an_outlier_and_only_predicts():
     params = FilterParams(dt_s=1.0, meas_var_m2=0.01, accel_var_m2_s4=0.1, init_var=1000.0)
     track = [np.array([10.0 * k, 0.0]) for k in range(5)]
     outlier = np.array([50.0, 30.0])  # 30 m off the track (expected: 50, 0)
-    gated = run_filter([*track, outlier, np.array([60.0, 0.0])], params, gate_chi2=13.82)
+    gated = run_filter([*track, outlier, np.array([60.0, 0.0])], params, gate_chi2=CHI2_2DOF_999)
     assert [s.gated for s in gated] == [False] * 5 + [True, False]
     np.testing.assert_allclose(gated[5].x, gated[5].x_prior)  # predicted only
     np.testing.assert_allclose(gated[5].P, gated[5].P_prior)
-    assert gated[5].innovation.mahalanobis ** 2 > 13.82  # kept for diagnostics
+    assert gated[5].innovation.mahalanobis ** 2 > CHI2_2DOF_999  # kept for diagnostics
     assert np.linalg.norm(gated[6].x[:2] - [60.0, 0.0]) < 0.2  # the track goes on undisturbed
     ungated = run_filter([*track, outlier], params)  # gate off (the paper's filter): the outlier is applied
     assert not ungated[5].gated and ungated[5].x[1] > 25.0  # pulled most of the 30 m towards it
@@ -171,13 +172,13 @@ def test_measurements_that_persistently_disagree_with_the_track_restart_it():
     track there with the velocity the two agree on, and the track follows the measurements again."""
     truth = _drive(4) + _drive(4, start_m=40.0)
     R = 0.01 * np.eye(2)
-    steps = run_filter(truth, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=13.82, reinit_after_gated=2)
+    steps = run_filter(truth, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=CHI2_2DOF_999, reinit_after_gated=2)
     assert [s.gated for s in steps] == [False] * 4 + [True, False, False, False]
     assert [s.restarted for s in steps] == [False] * 5 + [True, False, False]
     assert np.linalg.norm(steps[-1].position_m - truth[-1]) < 0.1
     np.testing.assert_allclose(steps[5].x[2:], [5.0, 0.0], atol=1e-6)
     # without restarts the same track locks every later measurement out
-    locked = run_filter(truth, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=13.82)
+    locked = run_filter(truth, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=CHI2_2DOF_999)
     assert all(s.gated for s in locked[4:]) and np.linalg.norm(locked[-1].position_m - truth[-1]) > 10
 
 
@@ -186,7 +187,7 @@ def test_a_single_outlier_neither_enters_nor_restarts_the_track():
     measured = [z.copy() for z in truth]
     measured[4] = measured[4] + np.array([0.0, 15.0])
     R = 0.01 * np.eye(2)
-    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=13.82,
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=CHI2_2DOF_999,
                        reinit_after_gated=2)
     assert [s.gated for s in steps] == [False] * 4 + [True] + [False] * 3
     assert not any(s.restarted for s in steps)
@@ -198,7 +199,7 @@ def test_a_first_measurement_that_was_an_outlier_is_replaced_once_the_next_ones_
     measured = [z.copy() for z in truth]
     measured[0] = measured[0] + np.array([12.0, -9.0])
     R = 0.01 * np.eye(2)
-    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=13.82,
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=CHI2_2DOF_999,
                        reinit_after_gated=2)
     # the second measurement still fits (the first one says nothing of the velocity); the two after
     # it do not, and the second of those restarts the track
@@ -231,14 +232,14 @@ def test_a_turn_or_a_stop_is_followed_not_gated(kind):
     rng = np.random.default_rng(3)
     R = 0.1**2 * np.eye(2)
     measured = [t + rng.normal(scale=0.1, size=2) for t in truth]
-    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=13.82,
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(truth), gate_chi2=CHI2_2DOF_999,
                        reinit_after_gated=2)
     assert not any(s.gated for s in steps) and any(s.maneuver for s in steps)
     errors = [np.linalg.norm(s.position_m - t) for s, t in zip(steps, truth)]
     measurement_errors = [np.linalg.norm(z - t) for z, t in zip(measured, truth)]
     assert np.mean(errors) <= 1.5 * np.mean(measurement_errors) and max(errors) < 0.5
     stiff = run_filter(measured, FilterParams(maneuver_accel_var_m2_s4=0.0), covariances_m2=[R] * len(truth),
-                       gate_chi2=13.82, reinit_after_gated=2)
+                       gate_chi2=CHI2_2DOF_999, reinit_after_gated=2)
     assert any(s.gated for s in stiff) and max(np.linalg.norm(s.position_m - t) for s, t in zip(stiff, truth)) > 1.0
 
 
@@ -250,7 +251,7 @@ def test_a_bad_measurement_that_got_in_does_not_lock_the_good_ones_out():
     measured = [z.copy() for z in truth]
     measured[3] = measured[3] + np.array([0.0, 2.5])
     R = 0.05**2 * np.eye(2)
-    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=13.82,
+    steps = run_filter(measured, FilterParams(), covariances_m2=[R] * len(measured), gate_chi2=CHI2_2DOF_999,
                        reinit_after_gated=2)
     assert not steps[3].gated  # it got in
     assert steps[4].retracted_previous  # the next one contradicted it and took it out
@@ -270,7 +271,7 @@ def test_the_smoother_runs_on_each_segment_between_restarts_on_its_own():
     truth = _drive(4) + _drive(4, start_m=40.0)
     R = 0.01 * np.eye(2)
     params = FilterParams()
-    steps = run_filter(truth, params, covariances_m2=[R] * len(truth), gate_chi2=13.82, reinit_after_gated=2)
+    steps = run_filter(truth, params, covariances_m2=[R] * len(truth), gate_chi2=CHI2_2DOF_999, reinit_after_gated=2)
     restart = next(k for k, s in enumerate(steps) if s.restarted)
     smoothed = rts_smooth(steps, params.dt_s)
     # each segment smoothed alone gives the same numbers

@@ -5,7 +5,8 @@ import pytest
 
 from visloc.geometry.bundle import heading_spread_rad
 from visloc.pose.selfcheck import MIN_POSES_PER_SIDE, SelfCheckPose, lever_gain_from
-from visloc.pose.uncertainty import (CHI2_2DOF_95, DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, calibration, chi2_2dof_quantile,
+from visloc.stats import CHI2_2DOF_95, chi2_2dof_quantile
+from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, calibration,
                                 fit_lever_gain, nees)
 
 

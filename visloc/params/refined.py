@@ -7,6 +7,7 @@ from dataclasses import dataclass
 
 from visloc.params.declare import MAX_C_INT, Control, Params, param
 from visloc.params.paper import MAX_GEOTAG_SIGMA_M, MAX_SECONDS
+from visloc.stats import CHI2_2DOF_999
 
 REFINED_BOTH = ("refined", "refined-fast")
 FAST_RETRIEVAL = ("refined-fast", "--fast")
@@ -74,7 +75,7 @@ class RefinedParams(Params):
              "accuracies (OXTS pos_accuracy, a CSV's accuracy_m) are used as they are",
         unit="m", low=0, high=MAX_GEOTAG_SIGMA_M)
     gate_chi2: float = _refined(
-        13.82, "a measurement whose squared Mahalanobis distance y' S^-1 y to the prediction exceeds this is not "
+        CHI2_2DOF_999, "a measurement whose squared Mahalanobis distance y' S^-1 y to the prediction exceeds this is not "
                "applied (2 degrees of freedom; 13.82 = 99.9 %); 0 disables gating", low=0,
         control=Control("Gate χ² (refined)", 0.0, 50.0, 0.01, "filter",
                         hint="Refined modes only: a measurement whose squared Mahalanobis distance to the filter's "

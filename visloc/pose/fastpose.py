@@ -22,17 +22,15 @@ they differ in which candidates they look at and in the matches.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Hashable, Mapping, Sequence
 
 import numpy as np
 
-from visloc.errors import InputError
+from visloc.errors import InputError, ParameterError
 from visloc.features.sift import Query
 from visloc.geometry.projective import CameraModel
-from visloc.errors import ParameterError
 from visloc.retrieval.matching import CountFn, best_two, correspondences
-from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
+from visloc.pose.measurement import Measurement, MeasurementEnd, query_pixels
 from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval.retrievers import Retrieval
 from visloc.pose.structure import ViewStructure, choose_variant
@@ -167,18 +165,12 @@ class FastPoseMeasurer:
         return self._lookups[key]
 
     def measure(self, query: Query, retrieval: Retrieval) -> Measurement:
-        start = time.perf_counter()
+        end = MeasurementEnd(retrieval, self.db_east_north_m)
         if retrieval.best_index is None:
-            return geotag_measurement(retrieval, self.db_east_north_m, "no database image has a correspondence")
-
-        def fallback(reason: str, **extra) -> Measurement:
-            m = geotag_measurement(retrieval, self.db_east_north_m, reason)
-            return Measurement(m.east_north_m, None, GEOTAG, fallback_reason=reason, db_index=m.db_index,
-                               compute_ms=(time.perf_counter() - start) * 1000.0, **extra)
-
-        if query.keypoints_f32 is None or len(query.keypoints_f32) != len(query.descriptors_u8):
-            return fallback("query keypoints not given")
-        query_xy = np.asarray(query.keypoints_f32, float)[:, :2]
+            return end.no_match()
+        query_xy = query_pixels(query.keypoints_f32, query.descriptors_u8)
+        if query_xy is None:
+            return end.fallback(end.NO_KEYPOINTS)
         allowed = None
         if self.exclusion_s > 0:
             allowed = np.abs(self.db_timestamps_s - query.timestamp_s) >= self.exclusion_s
@@ -198,16 +190,8 @@ class FastPoseMeasurer:
         base = dict(n_structure_matches=best, candidate_structure_matches={
             int(c): int(n) for c, n in zip(retrieval.candidates, retrieval.counts)})
         if not usable:
-            return fallback(f"no candidate has {self.min_matches} matches to stored structure the query allows "
+            return end.fallback(f"no candidate has {self.min_matches} matches to stored structure the query allows "
                             f"(best {best})", **base)
         posed = pose_from_views(query_xy, usable, pairs_of, lambda i: (lookups[i], 0.0), neighbours_used,
                                 self.db_east_north_m, self.geometry, self.query_camera, self.params)
-        base.update(posed.support)
-        if posed.reason is not None:
-            return fallback(posed.reason, **base)
-        return Measurement(
-            posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
-            reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
-        absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m, cov_terms_m2=posed.cov_terms_m2,
-            compute_ms=(time.perf_counter() - start) * 1000.0, inliers=posed.inliers, **base,
-        )
+        return end.posed(posed, **base)

@@ -22,7 +22,7 @@ import numpy as np
 
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams
-from visloc.pose.measurement import GEOMETRY, Measurement
+from visloc.pose.measurement import Measurement, posed_measurement
 from visloc.pose.viewpose import DatabaseGeometry, MapCorrespondences, pose_from_views
 
 FLOW_WINDOW_PX = 21  # Lucas-Kanade's window side
@@ -155,13 +155,9 @@ def pose_tracked(points: TrackedPoints, undistorted_px: np.ndarray, db_east_nort
     posed = pose_from_views(np.asarray(undistorted_px, float), usable, pairs_of, lambda i: (lookup[i], 0.0),
                             neighbours, db_east_north_m, geometry, query_camera,
                             params.replace(n_views=max(params.n_views, len(usable))))
-    support = dict(posed.support)
     if posed.reason is not None:
-        return Measurement(None, None, None, fallback_reason=f"tracked points: {posed.reason}", **support), None
-    m = Measurement(posed.east_north_m, posed.cov_m2, GEOMETRY, db_index=posed.anchor,
-                    reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
-                    absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m,
-                    cov_terms_m2=posed.cov_terms_m2, inliers=posed.inliers, **support)
+        return Measurement(None, None, None, fallback_reason=f"tracked points: {posed.reason}", **posed.support), None
+    m = posed_measurement(posed)
     return m, posed.inliers
 
 

@@ -10,14 +10,18 @@ Every measurer has ``measure(query, retrieval) -> Measurement``.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Hashable
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
 from visloc.features.sift import Query
 from visloc.retrieval.retrievers import Retrieval
+
+if TYPE_CHECKING:
+    from visloc.pose.viewpose import PosedViews
 
 GEOMETRY = "geometry"
 GEOTAG = "geotag"
@@ -100,6 +104,60 @@ def geotag_measurement(retrieval: Retrieval, db_east_north_m: np.ndarray, reason
     if best is None:
         return Measurement(None, None, None, fallback_reason=reason, db_index=None)
     return Measurement(np.asarray(db_east_north_m[best], float), None, GEOTAG, fallback_reason=reason, db_index=best)
+
+
+def posed_measurement(posed: "PosedViews", **extra) -> Measurement:
+    """The geometry measurement of a pose on views (``visloc.pose.viewpose.pose_from_views``, which
+    succeeded); ``extra``: the path's own support and timing fields."""
+    return Measurement(
+        posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
+        reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
+        absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m,
+        cov_terms_m2=posed.cov_terms_m2, inliers=posed.inliers, **posed.support, **extra)
+
+
+def query_pixels(keypoints_f32: np.ndarray | None, descriptors_u8: np.ndarray) -> np.ndarray | None:
+    """(N, 2) pixel x, y of a query's keypoints ((N, 6) or (N, 2), x and y first), or None when they are
+    not given or do not match its descriptors row for row: there is nothing to pose."""
+    if keypoints_f32 is None or len(keypoints_f32) != len(descriptors_u8):
+        return None
+    return np.asarray(keypoints_f32, float)[:, :2]
+
+
+class MeasurementEnd:
+    """How a refined measurement of one query ends, on every path (exact, camera-rate): a geometry
+    measurement from a pose on views, or the paper's geotag with the reason geometry failed. Both carry
+    the time since this object was made (``compute_ms``) and the database structure built on the way
+    (``structure_ms``, which the path adds to)."""
+
+    NO_MATCH = "no database image has a correspondence"
+    NO_KEYPOINTS = "query keypoints not given"
+
+    def __init__(self, retrieval: Retrieval, db_east_north_m: np.ndarray):
+        self.start = time.perf_counter()
+        self.retrieval = retrieval
+        self.db_east_north_m = db_east_north_m
+        self.structure_ms = 0.0
+
+    def _timing(self) -> dict:
+        return dict(compute_ms=(time.perf_counter() - self.start) * 1000.0, structure_ms=self.structure_ms)
+
+    def no_match(self) -> Measurement:
+        """A retrieval that matched nothing: no measurement at all (or the best match's geotag)."""
+        return geotag_measurement(self.retrieval, self.db_east_north_m, self.NO_MATCH)
+
+    def fallback(self, reason: str, **extra) -> Measurement:
+        """The geotag of the best match by count, with ``reason``; ``extra``: the support found so far."""
+        m = geotag_measurement(self.retrieval, self.db_east_north_m, reason)
+        return Measurement(m.east_north_m, None, GEOTAG, fallback_reason=reason, db_index=m.db_index,
+                           **self._timing(), **extra)
+
+    def posed(self, posed: "PosedViews", **extra) -> Measurement:
+        """The pose's geometry measurement, or the fallback with the reason it gave."""
+        self.structure_ms += posed.structure_ms
+        if posed.reason is not None:
+            return self.fallback(posed.reason, **posed.support, **extra)
+        return posed_measurement(posed, **self._timing(), **extra)
 
 
 class Measurer(Protocol):

@@ -51,7 +51,7 @@ from visloc.features.sift import Query
 from visloc.geometry.projective import CameraModel, essential_inliers
 from visloc.geometry.multiview import triangulate_tracks
 from visloc.retrieval.matching import correspondences
-from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement, geotag_measurement
+from visloc.pose.measurement import Measurement, MeasurementEnd, query_pixels
 from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval.retrievers import Retrieval
 from visloc.pose.viewpose import DatabaseGeometry, pose_from_views, require_calibrated
@@ -213,21 +213,13 @@ def pose_measurement(
     ``geometry`` must have its camera (see ``PoseMeasurer``). ``query_keypoints_f32`` is (N, 6) or
     (N, 2) with pixel x, y first. Pass a ``StructureCache`` to reuse database structure across queries.
     """
-    start = time.perf_counter()
+    end = MeasurementEnd(retrieval, db_east_north_m)
     if retrieval.best_index is None:
-        return geotag_measurement(retrieval, db_east_north_m, "no database image has a correspondence")
-
-    spent = {"structure_ms": 0.0}
-
-    def fallback(reason: str, **extra) -> Measurement:
-        m = geotag_measurement(retrieval, db_east_north_m, reason)
-        return Measurement(m.east_north_m, None, GEOTAG, fallback_reason=reason, db_index=m.db_index,
-                           compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=spent["structure_ms"],
-                           **extra)
-
-    if query_keypoints_f32 is None or len(query_keypoints_f32) != len(query_descriptors_u8):
-        return fallback("query keypoints not given")
-    query_xy = np.asarray(query_keypoints_f32, float)[:, :2]
+        return end.no_match()
+    fallback = end.fallback
+    query_xy = query_pixels(query_keypoints_f32, query_descriptors_u8)
+    if query_xy is None:
+        return fallback(end.NO_KEYPOINTS)
 
     # 1. verification: re-rank the top-k candidates by essential-matrix inliers
     order = np.argsort(-retrieval.counts, kind="stable")[: params.top_k]
@@ -271,17 +263,7 @@ def pose_measurement(
 
     posed = pose_from_views(query_xy, usable, pairs_of, structure_of, neighbours_used, db_east_north_m, geometry,
                             query_camera, params)
-    base.update(posed.support)
-    spent["structure_ms"] += posed.structure_ms
-    if posed.reason is not None:
-        return fallback(posed.reason, **base)
-    return Measurement(
-        posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
-        reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
-        absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m, cov_terms_m2=posed.cov_terms_m2,
-        compute_ms=(time.perf_counter() - start) * 1000.0, structure_ms=spent["structure_ms"],
-        inliers=posed.inliers, **base,
-    )
+    return end.posed(posed, **base)
 
 
 class PoseMeasurer:

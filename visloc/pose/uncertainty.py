@@ -30,14 +30,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-CHI2_2DOF_95 = 5.991  # the 95 % ellipse of a 2-D Gaussian: e' C^-1 e <= 5.991
+from visloc.stats import CHI2_2DOF_95, chi2_2dof_quantile
+
 SIDES = ("both", "one")  # views on both sides of the query, or on one side only
 NOMINAL_LEVELS = (0.10, 0.20, 0.30, 0.40, 0.50, 0.60, 0.70, 0.80, 0.90, 0.95, 0.99)
-
-
-def chi2_2dof_quantile(probability: float) -> float:
-    """The squared Mahalanobis radius holding ``probability`` of a 2-D Gaussian: -2 ln(1 - p)."""
-    return float(-2.0 * np.log1p(-probability))
 
 
 @dataclass(frozen=True)

@@ -31,6 +31,7 @@ from visloc.protocols.records import QueryTruth, StepRecord, records_of
 from visloc.tracking.runs import run_queries
 from visloc.tracking.kalman import rts_smooth
 from visloc.pose.uncertainty import SIDES, calibration
+from visloc.stats import CHI2_2DOF_95, summary_of
 from visloc.features.vlad import GlobalIndex
 
 
@@ -137,14 +138,6 @@ class Evaluation:
         geometry_nees = np.array([r.measurement_nees for r in measured
                                   if r.measurement_source == GEOMETRY and r.measurement_nees is not None])
 
-        def stats(values: np.ndarray, *names: str) -> dict:
-            if values.size == 0:
-                return {n: None for n in names}
-            table = {"mean": np.mean, "median": np.median, "min": np.min, "max": np.max,
-                     "p50": lambda v: np.percentile(v, 50), "p90": lambda v: np.percentile(v, 90),
-                     "p95": lambda v: np.percentile(v, 95)}
-            return {n: float(table[n](values)) for n in names}
-
         return {
             "n_series": len(self.series),
             "n_steps": self.n_steps,
@@ -155,14 +148,14 @@ class Evaluation:
             "estimate_error_haversine_m": self._per_step("estimate_error_haversine_m"),
             # the best a retrieval could do: the candidate image nearest to the truth
             "nearest_candidate_error_m": self._per_step("nearest_candidate_error_m"),
-            "final_error_m": stats(finals, "mean", "median", "p90", "min", "max"),
+            "final_error_m": summary_of(finals.tolist(), ("mean", "median", "p90", "min", "max")),
             # series grouped by how many of their best matches lie ahead of the query in time
             "final_error_m_by_steps_ahead": self._final_by_steps_ahead(),
-            "latency_ms": stats(latency, "p50", "p95"),
+            "latency_ms": summary_of(latency.tolist(), ("p50", "p95")),
             # the part of the latency the measurement takes (0 for the paper's geotag)
-            "measurement_latency_ms": stats(np.array([r.measurement_ms for r in records]), "p50", "p95"),
+            "measurement_latency_ms": summary_of([r.measurement_ms for r in records], ("p50", "p95")),
             "best_match_offset_s": {
-                **stats(offsets, "median"),
+                **summary_of(offsets.tolist(), ("median",)),
                 "fraction_ahead": float(np.mean(offsets > 0)) if offsets.size else None,
                 "fraction_behind": float(np.mean(offsets < 0)) if offsets.size else None,
             },
@@ -180,7 +173,7 @@ class Evaluation:
             # mean of e' R^-1 e over geometry measurements: 2 if their covariances are honest (chi-square, 2 dof)
             "measurement_nees": {
                 "mean": float(geometry_nees.mean()) if geometry_nees.size else None,
-                "fraction_within_95": float(np.mean(geometry_nees <= 5.991)) if geometry_nees.size else None,
+                "fraction_within_95": float(np.mean(geometry_nees <= CHI2_2DOF_95)) if geometry_nees.size else None,
                 "n": int(geometry_nees.size),
             } if refined else None,
             # how honest the covariances are (visloc.pose.uncertainty.calibration): the geometry measurements', over

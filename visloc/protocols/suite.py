@@ -23,9 +23,9 @@ from visloc.protocols.evaluation import Evaluation, measurement_calibration
 from visloc.pose.measurement import GEOMETRY
 from visloc.protocols.records import StepRecord
 from visloc.sources.drives import kitti_drives
+from visloc.stats import CHI2_2DOF_95, summary_of
 from visloc.pose.uncertainty import calibration
 
-CHI2_2DOF_95 = 5.991
 GROSS_ERROR_M = 2.0
 
 
@@ -56,14 +56,6 @@ def drives_of(root: Path) -> list[Path]:
     return [next(root.glob(f"*/{name}")) for name in kitti_drives(root)]
 
 
-def _stats(values: list[float]) -> dict:
-    v = np.asarray(values, float)
-    if v.size == 0:
-        return {"median": None, "mean": None, "p90": None, "max": None, "n": 0}
-    return {"median": float(np.median(v)), "mean": float(np.mean(v)), "p90": float(np.percentile(v, 90)),
-            "max": float(np.max(v)), "n": int(v.size)}
-
-
 def _row(records: list[StepRecord], finals: list[float], final_measurements: list[float], mode: str) -> dict:
     measured = [r for r in records if r.measurement_error_m is not None]
     geometry = [r for r in measured if r.measurement_source == GEOMETRY]
@@ -71,11 +63,11 @@ def _row(records: list[StepRecord], finals: list[float], final_measurements: lis
     return {
         "mode": mode,
         "n_steps": len(records),
-        "measurement_error_m": _stats([r.measurement_error_m for r in measured]),
-        "geometry_error_m": _stats([r.measurement_error_m for r in geometry]),
-        "final_error_m": _stats(finals),
+        "measurement_error_m": summary_of([r.measurement_error_m for r in measured], count=True),
+        "geometry_error_m": summary_of([r.measurement_error_m for r in geometry], count=True),
+        "final_error_m": summary_of(finals, count=True),
         # the measurements at the same (final) steps, to compare the filter with
-        "final_measurement_error_m": _stats(final_measurements),
+        "final_measurement_error_m": summary_of(final_measurements, count=True),
         "nees": {"mean": float(nees.mean()) if nees.size else None,
                  "fraction_within_95": float(np.mean(nees <= CHI2_2DOF_95)) if nees.size else None,
                  "n": int(nees.size)},

@@ -36,6 +36,7 @@ from visloc.tracking.follower import FollowedStep, PointFollower, first_fix
 from visloc.tracking.runs import steps_of
 from visloc.sources.drives import Sequence
 from visloc.pose.uncertainty import SIDES, calibration
+from visloc.stats import LATENCY_FIGURES, summary_of
 from visloc.store.workspace import Workspace
 
 WINDOW_S = 20.0  # the exact path's retrieval window, the paper's
@@ -118,18 +119,8 @@ class TrackFrame:
     relocalization_ms: dict | None = None  # the relocalization this frame used, its cost by stage (any thread), ms
 
 
-def _stats(values: list[float]) -> dict:
-    v = np.asarray([x for x in values if x is not None], float)
-    if not v.size:
-        return {"mean": None, "median": None, "p90": None, "max": None, "n": 0}
-    return {"mean": float(v.mean()), "median": float(np.median(v)), "p90": float(np.percentile(v, 90)),
-            "max": float(v.max()), "n": int(v.size)}
-
-
 def _latency(values: list[float]) -> dict | None:
-    v = np.asarray(values, float)
-    return {"p50": float(np.percentile(v, 50)), "p95": float(np.percentile(v, 95)), "max": float(v.max())} \
-        if v.size else None
+    return summary_of(values, LATENCY_FIGURES) if len(values) else None
 
 
 def _relocalizations(costs: list[dict], wall_s: float) -> dict | None:
@@ -170,10 +161,10 @@ class TrackRun:
             "pace_hz": self.pace_hz,
             "stages_ms": {k: float(np.median([getattr(x, k) for x in f])) if f else None
                           for k in ("sift_ms", "retrieval_ms", "geometry_ms", "filter_ms")},
-            "error_m": _stats([x.error_m for x in f]),
-            "measurement_error_m": _stats([x.measurement_error_m for x in f]),
-            "geometry_measurement_error_m": _stats([x.measurement_error_m for x in f
-                                                    if x.measurement_source == "geometry"]),
+            "error_m": summary_of([x.error_m for x in f], count=True),
+            "measurement_error_m": summary_of([x.measurement_error_m for x in f], count=True),
+            "geometry_measurement_error_m": summary_of([x.measurement_error_m for x in f
+                                                       if x.measurement_source == "geometry"], count=True),
             "geometry_fraction": n_geometry / len(f) if f else None,
             "gated": sum(x.gated for x in f), "restarts": sum(x.restarted for x in f),
             "maneuvers": sum(x.maneuver for x in f), "retracted": sum(x.retracted_previous for x in f),

@@ -41,11 +41,11 @@ from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.drives import Sequence, load_gray
+from visloc.stats import CHI2_2DOF_999
 from visloc.tracking.localizer import Localizer, StepResult
 
 TRACKED = "tracked"
 RELOCALIZED = "relocalized"
-DISAGREE_CHI2 = 13.8  # chi-square, 2 degrees of freedom, 99.9 %: a relocalization that disagrees with the track
 FIRST_FIX_CANDIDATES = 5
 FIRST_FIX_AGREEMENT_M = 10.0
 LOOKAHEAD_S = 0.5  # the followed points must still serve this much later, or a full localization is asked for
@@ -138,10 +138,11 @@ def shared_map_error(m: Measurement, frames: int) -> Measurement:
 
 
 def _disagree(a: Measurement, b: Measurement) -> bool:
+    """Two positions farther apart than the 99.9 % ellipse of their summed covariances."""
     if a.cov_m2 is None or b.cov_m2 is None or a.east_north_m is None or b.east_north_m is None:
         return False
     d = np.asarray(a.east_north_m, float) - np.asarray(b.east_north_m, float)
-    return float(d @ np.linalg.solve(np.asarray(a.cov_m2) + np.asarray(b.cov_m2), d)) > DISAGREE_CHI2
+    return float(d @ np.linalg.solve(np.asarray(a.cov_m2) + np.asarray(b.cov_m2), d)) > CHI2_2DOF_999
 
 
 def _at_pose(points: TrackedPoints, T_world_camera: np.ndarray, east_north_m: np.ndarray) -> TrackedPoints:
