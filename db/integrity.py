@@ -17,8 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from visloc.db.arrays import GLOBAL_VECTOR, NAMED_ARRAY, arrays_of, chunks
 from visloc.db.blobs import blob_problem
-from visloc.db.records import DESCRIPTOR_DIM, KEYPOINT_COLUMNS
 from visloc.db.schema import change_name, lacking
 from visloc.db.store import FeatureStore, where_drive
 
@@ -70,9 +70,8 @@ def _chunks(store: FeatureStore, sql_ids: str, args: list, sql_rows: str) -> Ite
     """Rows of ``sql_rows`` (a query with ``{marks}`` for rowids) for the rowids ``sql_ids`` selects,
     ``CHUNK_ROWS`` at a time."""
     rowids = [r[0] for r in store.db.execute(sql_ids, args)]
-    for start in range(0, len(rowids), CHUNK_ROWS):
-        chunk = rowids[start : start + CHUNK_ROWS]
-        yield from store.db.query(sql_rows.format(marks=",".join("?" * len(chunk))), chunk)
+    for chunk, marks in chunks(rowids, CHUNK_ROWS):
+        yield from store.db.query(sql_rows.format(marks=marks), chunk)
 
 
 def scan(store: FeatureStore, *, source: str | None = None, camera: str | None = None,
@@ -113,11 +112,10 @@ def _image_damage(r: dict) -> Iterator[Damage]:
     if problem:
         yield damage(problem)
         return
-    for column, crc_column, size in (("keypoints_f32", "keypoints_crc32", n * KEYPOINT_COLUMNS * 4),
-                                     ("descriptors_u8", "descriptors_crc32", n * DESCRIPTOR_DIM)):
-        problem = blob_problem(r.get(column), size, r.get(crc_column))
+    for array in arrays_of("images"):
+        problem = array.problem(r, n)
         if problem:
-            yield damage(f"{column.rsplit('_', 1)[0]}: {problem}")
+            yield damage(problem)
 
 
 def _structure_damage(store: FeatureStore, source: str | None, camera: str | None,
@@ -142,11 +140,10 @@ def _structure_damage(store: FeatureStore, source: str | None, camera: str | Non
         if problem:
             yield damage(problem)
             continue
-        for column, crc_column, size in (("rows_i32", "rows_crc32", n * 4), ("points_f64", "points_crc32", n * 24),
-                                         ("cov_f64", "cov_crc32", n * 72)):
-            problem = blob_problem(r.get(column), size, r.get(crc_column))
+        for array in arrays_of("structures"):
+            problem = array.problem(r, n)
             if problem:
-                yield damage(f"{column.rsplit('_', 1)[0]}: {problem}")
+                yield damage(problem)
         try:
             neighbours = [int(i) for i in json.loads(r["neighbour_ids_json"])]
         except (TypeError, ValueError):
@@ -168,7 +165,7 @@ def _vector_damage(store: FeatureStore, source: str | None, camera: str | None) 
         image = _name(r) if r["source"] is not None else f"image id {r['image_id']}"
         size = sizes.get(r["name"]) or 0
         problem = ("belongs to no stored image" if r["source"] is None
-                   else blob_problem(r["vector_f32"], size, r["vector_crc32"]))
+                   else blob_problem(r[GLOBAL_VECTOR.blob], size, r[GLOBAL_VECTOR.crc]))
         if problem:
             yield Damage("global_vectors", (r["name"], r["image_id"]), image, f"global vector ({r['name']}) {problem}",
                          r["source"], r["camera"], r["frame"])
@@ -183,7 +180,7 @@ def _array_damage(store: FeatureStore) -> Iterator[Damage]:
         except (TypeError, ValueError):
             yield Damage("arrays", (key,), f"array {key}", "shape or type cannot be read")
             continue
-        problem = blob_problem(r["data"], size, r["data_crc32"])
+        problem = blob_problem(r[NAMED_ARRAY.blob], size, r[NAMED_ARRAY.crc])
         if problem:
             yield Damage("arrays", (key,), f"array {key}", problem)
 
@@ -235,9 +232,7 @@ def forget_derived(store: FeatureStore, source: str, camera: str, image_ids: Ite
         for name in names:
             _forget_encoder(store, name)
         store.db.execute(f"DELETE FROM self_checks WHERE image_id {in_drive}", [source, camera])
-        for start in range(0, len(ids), 400):
-            chunk = sorted(ids)[start : start + 400]
-            marks = ",".join("?" * len(chunk))
+        for chunk, marks in chunks(sorted(ids), 400):
             store.db.execute(f"DELETE FROM pair_counts WHERE query_image_id IN ({marks}) OR db_image_id IN ({marks})",
                              [*chunk, *chunk])
 

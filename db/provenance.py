@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from visloc.db.records import ImageRecord, StoreError
-from visloc.db.blobs import crc32
+from visloc.db.arrays import DESCRIPTORS, KEYPOINTS
 from visloc.db.store import FeatureStore, image_row
 
 
@@ -64,5 +64,5 @@ def record_sources(store: FeatureStore, source: str, camera: str, digests: dict[
 
 def same_checksums(stored: StoredSource, keypoints: np.ndarray, descriptors: np.ndarray) -> bool:
     """Do these features give the checksums stored for the image? (Then they are the bytes first written.)"""
-    return (crc32(np.ascontiguousarray(keypoints, np.float32).tobytes()) == stored.keypoints_crc32
-            and crc32(np.ascontiguousarray(descriptors, np.uint8).tobytes()) == stored.descriptors_crc32)
+    return (KEYPOINTS.fields(keypoints)[KEYPOINTS.crc] == stored.keypoints_crc32
+            and DESCRIPTORS.fields(descriptors)[DESCRIPTORS.crc] == stored.descriptors_crc32)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
 
+from visloc.db.arrays import chunks
 from visloc.db.records import SelfCheckRecord
 from visloc.db.schema import now_iso
 from visloc.db.store import FeatureStore
@@ -38,9 +39,7 @@ class SelfCheckTable:
             return {}
         ids = [int(i) for i in image_ids]
         out: dict[int, SelfCheckRecord] = {}
-        for start in range(0, len(ids), 500):
-            chunk = ids[start : start + 500]
-            marks = ",".join("?" * len(chunk))
+        for chunk, marks in chunks(ids):
             for r in self.db.query(f"SELECT {', '.join(COLUMNS)} FROM self_checks WHERE params_json = ? "
                                    f"AND image_id IN ({marks})", [params_json, *chunk]):
                 out[int(r["image_id"])] = SelfCheckRecord(**r)

@@ -53,7 +53,8 @@ from pathlib import Path
 import numpy as np
 import sqlite_utils
 
-from visloc.db.blobs import array_from_blob, blob_of, repair_hint
+from visloc.db.arrays import DESCRIPTORS, KEYPOINTS, chunks
+from visloc.db.blobs import repair_hint
 from visloc.db.connection import BUSY_TIMEOUT_S, Database, connect
 from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, DamagedStoreError, EmptyStoreError,
                                ImageRecord, NotAStoreError, SettingsMismatchError, SkippedFrame, StoredImage, StoreError)
@@ -308,19 +309,13 @@ class FeatureStore:
         """image_id -> (keypoints_f32 (N, 6), descriptors_u8 (N, 128)), as writable arrays."""
         ids = [int(i) for i in image_ids]
         out: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        for start in range(0, len(ids), 500):
-            chunk = ids[start : start + 500]
-            marks = ",".join("?" * len(chunk))
+        for chunk, marks in chunks(ids):
             for r in self.db.query(
                 f"SELECT id, source, camera, frame, n_keypoints, keypoints_crc32, descriptors_crc32, keypoints_f32, "
                 f"descriptors_u8 FROM images WHERE id IN ({marks})", chunk
             ):
                 n, what = _count(r, self.label), _row_name(r, self.label)
-                kp = array_from_blob(r["keypoints_f32"], np.float32, (n, KEYPOINT_COLUMNS), what + " keypoints",
-                                     r["keypoints_crc32"], self.label)
-                desc = array_from_blob(r["descriptors_u8"], np.uint8, (n, DESCRIPTOR_DIM), what + " descriptors",
-                                       r["descriptors_crc32"], self.label)
-                out[r["id"]] = (kp, desc)
+                out[r["id"]] = (KEYPOINTS.read(r, n, what, self.label), DESCRIPTORS.read(r, n, what, self.label))
         missing = set(ids) - set(out)
         if missing:
             raise StoreError(f"{self.label}: no image with id {sorted(missing)[:5]}")
@@ -333,9 +328,7 @@ class FeatureStore:
         """(query_image_id, db_image_id) -> (n_correspondences, match_ms) cached for (tau1, tau2)."""
         out = {}
         ids = [int(i) for i in query_image_ids]
-        for start in range(0, len(ids), 500):
-            chunk = ids[start : start + 500]
-            marks = ",".join("?" * len(chunk))
+        for chunk, marks in chunks(ids):
             for r in self.db.query(
                 "SELECT query_image_id, db_image_id, n_correspondences, match_ms FROM pair_counts "
                 f"WHERE tau1 = ? AND tau2 = ? AND query_image_id IN ({marks})", [tau1, tau2, *chunk]
@@ -356,9 +349,7 @@ class FeatureStore:
         """Yield (image_id, descriptors_u8 (N, 128)) for ``image_ids`` in order, ``chunk_size`` rows per
         query: memory stays bounded by one chunk however large the store."""
         ids = [int(i) for i in image_ids]
-        for start in range(0, len(ids), chunk_size):
-            chunk = ids[start : start + chunk_size]
-            marks = ",".join("?" * len(chunk))
+        for chunk, marks in chunks(ids, chunk_size):
             rows = {r["id"]: r for r in self.db.query(
                 "SELECT id, source, camera, frame, n_keypoints, descriptors_crc32, descriptors_u8 FROM images "
                 f"WHERE id IN ({marks})", chunk)}
@@ -366,8 +357,7 @@ class FeatureStore:
                 if i not in rows:
                     raise StoreError(f"{self.label}: no image with id {i}")
                 r = rows[i]
-                yield i, array_from_blob(r["descriptors_u8"], np.uint8, (_count(r, self.label), DESCRIPTOR_DIM),
-                                         _row_name(r, self.label) + " descriptors", r["descriptors_crc32"], self.label)
+                yield i, DESCRIPTORS.read(r, _count(r, self.label), _row_name(r, self.label), self.label)
 
     def image_ids(self, source: str | None = None, camera: str | None = None) -> np.ndarray:
         """(N,) int64 image ids in (source, camera, timestamp) order, without loading any metadata."""
@@ -390,17 +380,14 @@ def image_row(record: ImageRecord, keypoints: np.ndarray, descriptors: np.ndarra
     """The ``images`` row of ``record`` with keypoints_f32 (N, 6) and descriptors_u8 (N, 128) as BLOBs, each
     with its CRC-32; ``StoreError`` naming the image's file when the arrays have other shapes or types."""
     descriptors = np.asarray(descriptors)
-    if descriptors.dtype != np.uint8 or descriptors.ndim != 2 or descriptors.shape[1] != DESCRIPTOR_DIM:
+    if descriptors.dtype != DESCRIPTORS.dtype or descriptors.shape[1:] != DESCRIPTORS.item_shape:
         raise StoreError(f"{record.path}: descriptors must be uint8 (N, {DESCRIPTOR_DIM}), got "
                          f"{descriptors.dtype} {descriptors.shape}")
-    if np.shape(keypoints) != (descriptors.shape[0], KEYPOINT_COLUMNS):
+    if np.shape(keypoints) != KEYPOINTS.shape(descriptors.shape[0]):
         raise StoreError(f"{record.path}: keypoints must be ({descriptors.shape[0]}, {KEYPOINT_COLUMNS}), got "
                          f"{np.shape(keypoints)}")
-    keypoints_blob, keypoints_crc = blob_of(keypoints, np.float32)
-    descriptors_blob, descriptors_crc = blob_of(descriptors, np.uint8)
     row = {k: getattr(record, k) for k in ImageRecord.__dataclass_fields__}
-    row.update(n_keypoints=int(descriptors.shape[0]), keypoints_crc32=keypoints_crc,
-               descriptors_crc32=descriptors_crc, keypoints_f32=keypoints_blob, descriptors_u8=descriptors_blob,
+    row.update(n_keypoints=int(descriptors.shape[0]), **KEYPOINTS.fields(keypoints), **DESCRIPTORS.fields(descriptors),
                created_at=now_iso())
     return row
 

@@ -11,9 +11,9 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Sequence
 
-import numpy as np
 
-from visloc.db.blobs import array_from_blob, blob_of, repair_hint
+from visloc.db.arrays import STRUCTURE_COVARIANCES, STRUCTURE_POINTS, STRUCTURE_ROWS, chunks
+from visloc.db.blobs import repair_hint
 from visloc.db.records import DamagedStoreError, StructureRecord
 from visloc.db.schema import now_iso
 from visloc.db.store import FeatureStore
@@ -30,9 +30,7 @@ class StructureTable:
         """Those of ``image_ids`` whose every variant is stored with settings ``params_json``."""
         ids = [int(i) for i in image_ids]
         done: set[int] = set()
-        for start in range(0, len(ids), 500):
-            chunk = ids[start : start + 500]
-            marks = ",".join("?" * len(chunk))
+        for chunk, marks in chunks(ids):
             rows = self.db.execute(
                 f"SELECT image_id FROM structures WHERE params_json = ? AND image_id IN ({marks}) "
                 "GROUP BY image_id HAVING count(*) = ?", [params_json, *chunk, n_variants])
@@ -45,10 +43,8 @@ class StructureTable:
         for r in records:
             row = {"image_id": int(r.image_id), "variant": r.variant, "params_json": r.params_json,
                    "neighbour_ids_json": json.dumps([int(i) for i in r.neighbour_ids]), "n_points": int(len(r.rows_i32))}
-            for column, crc_column, array, dtype in (("rows_i32", "rows_crc32", r.rows_i32, np.int32),
-                                                     ("points_f64", "points_crc32", r.points_f64, np.float64),
-                                                     ("cov_f64", "cov_crc32", r.cov_f64, np.float64)):
-                row[column], row[crc_column] = blob_of(array, dtype)
+            row.update(**STRUCTURE_ROWS.fields(r.rows_i32), **STRUCTURE_POINTS.fields(r.points_f64),
+                       **STRUCTURE_COVARIANCES.fields(r.cov_f64))
             rows.append({**row, "reason": r.reason, "build_ms": float(r.build_ms), "created_at": now_iso()})
         if rows:
             with self.db.atomic():
@@ -61,9 +57,7 @@ class StructureTable:
         reader takes from the tile that owns the image."""
         ids = [int(i) for i in image_ids]
         out: dict[tuple[int, str], StructureRecord] = {}
-        for start in range(0, len(ids), 500):
-            chunk = ids[start : start + 500]
-            marks = ",".join("?" * len(chunk))
+        for chunk, marks in chunks(ids):
             for r in self.db.query(
                 "SELECT s.image_id, s.variant, s.neighbour_ids_json, s.n_points, s.rows_crc32, s.points_crc32, "
                 "s.cov_crc32, s.rows_i32, s.points_f64, s.cov_f64, s.reason, s.build_ms, i.source, i.camera, i.frame "
@@ -76,12 +70,9 @@ class StructureTable:
                 out[(r["image_id"], r["variant"])] = StructureRecord(
                     image_id=r["image_id"], variant=r["variant"], params_json=params_json,
                     neighbour_ids=tuple(json.loads(r["neighbour_ids_json"])),
-                    rows_i32=array_from_blob(r["rows_i32"], np.int32, (n,), what + " rows", r["rows_crc32"],
-                                             self.label),
-                    points_f64=array_from_blob(r["points_f64"], np.float64, (n, 3), what + " points",
-                                               r["points_crc32"], self.label) if points else None,
-                    cov_f64=array_from_blob(r["cov_f64"], np.float64, (n, 3, 3), what + " covariances",
-                                            r["cov_crc32"], self.label) if points else None,
+                    rows_i32=STRUCTURE_ROWS.read(r, n, what, self.label),
+                    points_f64=STRUCTURE_POINTS.read(r, n, what, self.label) if points else None,
+                    cov_f64=STRUCTURE_COVARIANCES.read(r, n, what, self.label) if points else None,
                     reason=r["reason"], build_ms=r["build_ms"] or 0.0)
         return out
 

@@ -9,7 +9,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from visloc.db.blobs import array_from_blob, blob_problem, crc32, repair_hint
+from visloc.db.arrays import GLOBAL_VECTOR, NAMED_ARRAY
+from visloc.db.blobs import array_from_blob, blob_problem, repair_hint
 from visloc.db.records import DamagedStoreError, StoreError
 from visloc.db.store import FeatureStore
 
@@ -28,7 +29,7 @@ class VectorTable:
             raise StoreError(f"{self.label}: global vectors must be ({len(image_ids)}, D), got {v.shape}")
         with self.db.atomic():
             self.db["global_vectors"].insert_all(
-                ({"name": name, "image_id": int(i), "vector_crc32": crc32(row.tobytes()), "vector_f32": row.tobytes()}
+                ({"name": name, "image_id": int(i), **GLOBAL_VECTOR.fields(row)}
                  for i, row in zip(image_ids, v)), replace=True, batch_size=1000)
 
     def stored_vector_ids(self, name: str) -> list[int]:
@@ -70,7 +71,7 @@ class VectorTable:
         a = np.ascontiguousarray(array)
         with self.db.atomic():
             self.db["arrays"].upsert({"key": key, "dtype": a.dtype.str, "shape_json": json.dumps(list(a.shape)),
-                                      "data_crc32": crc32(a.tobytes()), "data": a.tobytes()}, pk="key")
+                                      **NAMED_ARRAY.fields(a)}, pk="key")
 
     def get_array(self, key: str) -> np.ndarray | None:
         if "arrays" not in self.db.table_names():

@@ -106,6 +106,21 @@ def test_the_history_defines_each_table_column_and_index_once():
     assert SCHEMA_VERSION == len(HISTORY) == 5
 
 
+def test_every_blob_of_the_schema_is_a_declared_stored_array_with_its_checksum_column():
+    """A BLOB column is read, written, checked and upgraded from its declaration in visloc.db.arrays: one
+    added to the schema without a declaration (and so without its CRC-32) fails here."""
+    from visloc.db.arrays import STORED_ARRAYS
+
+    changes = [c for step in HISTORY for c in step]
+    typed = ({(t.name, name): kind for t in changes if isinstance(t, Table) for name, kind in t.columns}
+             | {(c.table, c.name): c.sql_type for c in changes if isinstance(c, Column)})
+    blobs = {key for key, kind in typed.items() if "BLOB" in kind.upper()}
+    assert blobs == {(a.table, a.blob) for a in STORED_ARRAYS}
+    for a in STORED_ARRAYS:
+        assert "INTEGER" in typed[(a.table, a.crc)].upper(), a
+        assert a.count is None or (a.table, a.count) in typed, a
+
+
 def test_a_new_store_written_through_every_path_holds_exactly_what_the_history_makes(tmp_path):
     """A table or index made anywhere but the history (a second CREATE, a table sqlite-utils makes when
     an insert finds none) shows up here as a difference."""
