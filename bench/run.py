@@ -28,7 +28,6 @@ import os
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import cv2
@@ -38,13 +37,14 @@ from visloc.bench.refined import refined_fast, refined_fast_targets
 from visloc.bench.synthetic import SyntheticSpec, build_store, lost_query, peak_rss_mb
 from visloc.protocols.evaluation import evaluate, series_schedule
 from visloc.features.sift import extract_sift, make_sift
-from visloc.errors import InputError, ParameterError
+from visloc.errors import InputError
 from visloc.geo import geodesic_distance_m
 from visloc.retrieval.matching import backend_counter
 from visloc.params.methods import PAPER_METHOD
 from visloc.tracking.methods import build_localizer
 from visloc.progress import progress_reporter
-from visloc.params import PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_SIFT, FastParams, SiftParams
+from visloc.params import (BENCH, BENCH_WORKERS, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_SIFT,
+                           BenchParams, FastParams, SiftParams)
 from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import build_global_index
 from visloc.tracking.runs import run_queries
@@ -53,40 +53,6 @@ from visloc.store.workspace import Workspace
 from visloc.store.build import build_global_vectors, build_structure, ingest_sequence
 
 LEVERS = ("paper", "faiss_nn", "gate", "gate_shortlist", "fast")
-
-
-@dataclass(frozen=True)
-class BenchParams:
-    """What ``visloc bench`` runs; every check names its command-line flag."""
-
-    series: int = 2
-    shortlist_size: int = 8
-    fast_scale: float = 0.5
-    ingest_images: int = 40
-    workers: int = 2
-    synthetic_images: int = 100_000
-    synthetic_descriptors: int = 64
-    synthetic_queries: int = 20
-    skip_synthetic: bool = False
-    skip_accuracy: bool = False
-    refined_stride: int = 2
-    skip_refined: bool = False
-
-    def __post_init__(self) -> None:
-        def integer(flag: str, value, low: int) -> None:
-            if not (isinstance(value, int) and value >= low):
-                raise ParameterError(f"--{flag} {value!r}: must be an integer >= {low}")
-
-        integer("series", self.series, 1)
-        integer("shortlist", self.shortlist_size, 1)
-        integer("ingest-images", self.ingest_images, 2)
-        integer("workers", self.workers, 1)
-        integer("synthetic-images", self.synthetic_images, 1000)
-        integer("synthetic-descriptors", self.synthetic_descriptors, 8)
-        integer("synthetic-queries", self.synthetic_queries, 1)
-        integer("refined-stride", self.refined_stride, 1)
-        if not (isinstance(self.fast_scale, float) and 0.1 <= self.fast_scale <= 1.0):
-            raise ParameterError(f"--fast-scale {self.fast_scale!r}: must be in [0.1, 1]")
 
 
 def _pct(values) -> dict:
@@ -316,18 +282,19 @@ def _scale(out_dir: Path, p: BenchParams, say) -> dict:
 
 # -- main ----------------------------------------------------------------------------------------
 
-def run_bench(root: Path | None, drive: str | None, db_path: Path, fast_db_path: Path, params: BenchParams,
-              say=print) -> dict:
+def run_bench(root: Path | None, drive: str | None, db_path: Path, fast_db_path: Path, params: BenchParams = BENCH,
+              workers: int = BENCH_WORKERS, say=print) -> dict:
     """Every section, on drive ``drive`` of the KITTI root ``root`` (None: the default data root); builds
-    the stores of both SIFT settings at ``db_path`` and ``fast_db_path`` when they lack images."""
-    result: dict = {"params": asdict(params), "load_before": _load()}
+    the stores of both SIFT settings at ``db_path`` and ``fast_db_path`` when they lack images, with
+    ``workers`` processes."""
+    result: dict = {"params": {**params.as_dict(), "workers": workers}, "load_before": _load()}
     say(f"load before: {result['load_before']}")
     query_camera, db_camera = _cameras(root, drive)
     seq_by_key = {"queries": open_source(root, drive=drive, camera=query_camera),
                   "database": open_source(root, drive=drive, camera=db_camera)}
     result.update(drive=seq_by_key["queries"].source, query_camera=query_camera, db_camera=db_camera)
-    _ensure_store(db_path, seq_by_key, PAPER_SIFT, params.workers, say)
-    _ensure_store(fast_db_path, seq_by_key, PAPER_SIFT.replace(image_scale=params.fast_scale), params.workers, say)
+    _ensure_store(db_path, seq_by_key, PAPER_SIFT, workers, say)
+    _ensure_store(fast_db_path, seq_by_key, PAPER_SIFT.replace(image_scale=params.fast_scale), workers, say)
     datasets = {"full": _load_store(db_path, seq_by_key), "scaled": _load_store(fast_db_path, seq_by_key)}
     fp = FastParams(shortlist_size=params.shortlist_size)
     t0 = time.perf_counter()
@@ -350,7 +317,7 @@ def run_bench(root: Path | None, drive: str | None, db_path: Path, fast_db_path:
                                               params.refined_stride, say)
     result["peak_rss_mb"] = peak_rss_mb()
     say("3. ingest:")
-    result["ingest"] = _ingest_bench(seq_by_key, PAPER_SIFT, params.ingest_images, params.workers, say)
+    result["ingest"] = _ingest_bench(seq_by_key, PAPER_SIFT, params.ingest_images, workers, say)
     if not params.skip_synthetic:
         say("4. scale (synthetic database, own process):")
         result["scale"] = _scale(Path(fast_db_path).parent, params, say)

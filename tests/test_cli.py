@@ -100,7 +100,7 @@ def test_info_describes_the_store(synthetic):
     ("--accel-var-m2-s4", "-1", "accel_var_m2_s4 (Q)=-1.0"),
     ("--init-var", "-1", "init_var (P0)=-1.0"),
     ("--dt-s", "0", "dt_s=0.0"),
-    ("--steps", "0", "--steps 0: must be >= 1"),
+    ("--steps", "0", "--steps: steps=0: must be an integer >= 1"),
 ])
 def test_out_of_range_parameters_are_refused(synthetic, flag, value, name):
     _, _, query_csv, store = synthetic

@@ -296,7 +296,7 @@ def test_a_taken_port_moves_and_the_printed_url_says_where(dashboard):
 def test_bad_port_is_a_one_line_error():
     result = run_cli("dashboard", "--port", "70000")
     assert result.returncode == 2
-    assert result.stderr.strip() == "visloc: error: --port 70000: must be in 1..65535"
+    assert result.stderr.strip() == "visloc: error: --port: port=70000: must be an integer in [1, 65535]"
 
 
 @pytest.mark.slow

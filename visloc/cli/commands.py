@@ -10,7 +10,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from visloc.bench.run import BenchParams, run_bench
+from visloc.bench.run import run_bench
 from visloc.cli.choices import (PAPER_DATABASE_CAMERA, require_exports, write_exports, choose_database, exclusion_for, kitti_camera, kitti_only_camera,
                             make_folder_of, refuse_camera_for_csv, require_output, start_indices, store_for_writing)
 from visloc.errors import InputError, ParameterError
@@ -19,7 +19,7 @@ from visloc.params.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, 
 from visloc.tracking.methods import build_localizer
 from visloc.cli.outputs import require_output_folder, require_writable_output
 from visloc.cli.param_flags import params_from_flags
-from visloc.params import (FAST, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, FilterParams,
+from visloc.params import (BENCH, FAST, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, FilterParams,
                            MatchParams, RetrievalParams, SiftParams)
 from visloc.sources.queries import extract_queries
 from visloc.progress import progress_reporter
@@ -341,18 +341,15 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
 
 
 def cmd_bench(a: argparse.Namespace) -> int:
-    params = BenchParams(series=a.series, shortlist_size=a.shortlist, fast_scale=a.fast_scale,
-                         ingest_images=a.ingest_images, workers=a.workers, synthetic_images=a.synthetic_images,
-                         synthetic_descriptors=a.synthetic_descriptors, synthetic_queries=a.synthetic_queries,
-                         skip_synthetic=a.skip_synthetic, skip_accuracy=a.skip_accuracy,
-                         refined_stride=a.refined_stride, skip_refined=a.skip_refined)
+    params = params_from_flags(a, BENCH)
     require_output(a.json, "--json", a.db)
     for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
         require_output(path, flag, path)  # its missing folder (as out/) is made
     _open_source(a.root, drive=a.drive, camera="image_00")  # a missing drive fails here, before any slow work
     for flag, path in (("--db", a.db), ("--fast-db", a.fast_db)):
         make_folder_of(path, flag)
-    result = run_bench(a.root, a.drive, Path(a.db), Path(a.fast_db), params, say=lambda t: print(t, flush=True))
+    result = run_bench(a.root, a.drive, Path(a.db), Path(a.fast_db), params, a.workers,
+                       say=lambda t: print(t, flush=True))
     if a.json:
         write_json(a.json, result)
         print(f"wrote {a.json}")

@@ -40,20 +40,28 @@ def help_of(spec: Spec, default_text: str | None) -> str:
     return text if default_text is None else f"{text} (default {default_text})"
 
 
+def default_text_of(spec: Spec, value) -> str:
+    """A default as ``--help`` and the docs show it: its value, or what None means for it."""
+    return spec.when_unset if value is None and spec.when_unset else value_text(value)
+
+
 def add_param_flags(group, cls, preset=None, *, presets: Iterable[tuple[str, object]] = (),
-                    exclude: Iterable[str] = (), automatic: dict[str, str] | None = None) -> None:
+                    exclude: Iterable[str] = (), automatic: dict[str, str] | None = None,
+                    only: Iterable[str] | None = None) -> None:
     """One flag per declared field of ``cls`` that has one.
 
     preset:    the parameter object whose values are the defaults; None: the flags default to None, "the
                method's own", and ``presets`` (label, parameter object) say what that is per method
     exclude:   fields this command sets itself
+    only:      the fields this command takes (None: every field)
     automatic: field -> help of a flag whose default (None) the command chooses from the data
     """
     automatic = automatic or {}
     presets = list(presets)
+    only = None if only is None else set(only)
     for name, spec, _ in declared(cls):
         flag = flag_of(name, spec)
-        if flag is None or name in exclude:
+        if flag is None or name in exclude or (only is not None and name not in only):
             continue
         kwargs: dict = {"dest": dest_of(flag), "default": None}
         if spec.kind == "bool":
@@ -66,7 +74,7 @@ def add_param_flags(group, cls, preset=None, *, presets: Iterable[tuple[str, obj
             kwargs["help"] = automatic[name]
         elif preset is not None:
             kwargs["default"] = getattr(preset, name)
-            kwargs["help"] = help_of(spec, value_text(kwargs["default"]))
+            kwargs["help"] = help_of(spec, default_text_of(spec, kwargs["default"]))
         else:
             values = [(label, getattr(p, name)) for label, p in presets]
             if len({value_text(v) for _, v in values}) <= 1:

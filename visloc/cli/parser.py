@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import math
 import os
 import signal
 import sys
@@ -19,12 +18,11 @@ from visloc.cli.help_text import DEFAULT_DB, DEFAULT_FAST_DB, examples
 from visloc.cli.param_flags import add_param_flags, check_flag_values
 from visloc.cli.stopping import interrupted_status, interrupted_text, stop_on_signal
 from visloc.errors import VislocError
-from visloc.params import (FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, TRACK,
-                           FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams,
-                           TrackParams)
+from visloc.params import (BENCH, BENCH_WORKERS, COMMAND_OPTIONS, FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER,
+                           PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, TRACK, BenchParams, CommandOptions, FastParams,
+                           FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams, TrackParams)
 from visloc.params.methods import METHODS
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
-from visloc.store.defaults import DEFAULT_TILE_CACHE_MB
 
 # Parsing, --help, --version and refusing a bad argument load nothing heavy: what a command does
 # (``visloc.cli.commands``, OpenCV, the store) is imported once the arguments are accepted.
@@ -124,26 +122,20 @@ def _add_bad_frames(p: argparse.ArgumentParser) -> None:
 def _add_db(p: argparse.ArgumentParser, *, tile_cache: bool = False) -> None:
     p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store file (default %(default)s)")
     if tile_cache:
-        p.add_argument("--tile-cache-mb", type=_megabytes, default=DEFAULT_TILE_CACHE_MB, metavar="MB",
-                       help="sharded store: the most memory the open tiles' features and structure points may hold; "
-                            "the least recently used tile is dropped first (default %(default)g)")
+        _add_options(p, "tile_cache_mb")
 
 
-def _megabytes(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"{text!r}: give a number of megabytes above 0")
-    return value
+def _add_options(p, *names: str, preset: CommandOptions = COMMAND_OPTIONS) -> None:
+    """The commands' own options ``names`` (``visloc.params.options``), with ``preset``'s defaults."""
+    add_param_flags(p, CommandOptions, preset, only=names)
 
 
-def _add_database_choice(p: argparse.ArgumentParser, camera_default: str) -> None:
-    p.add_argument("--db-camera", default=None,
-                   help=f"database camera in the store (default: the database drive's only camera; {camera_default})")
-    p.add_argument("--db-source", default=None,
-                   help="database drive/dataset in the store (default: the store's only one, else the queries' own)")
+def _add_database_choice(p: argparse.ArgumentParser, camera_help: str,
+                         source_help: str = "database drive/dataset in the store (default: the store's only one, "
+                                            "else the queries' own)") -> None:
+    """--db-camera and --db-source: which of the store's drives and cameras is the database."""
+    p.add_argument("--db-camera", default=None, help=camera_help)
+    p.add_argument("--db-source", default=None, help=source_help)
 
 
 def _add_exports(p: argparse.ArgumentParser) -> None:
@@ -183,18 +175,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "Re-running skips what is stored; an interruption loses nothing committed.")
     _add_source(p, "KITTI camera to store", "image_01, or image_00 on a drive without it", multiple=True)
     _add_db(p)
-    p.add_argument("--workers", type=int, default=None, help="processes for SIFT, structure and self-check (default: number of cores)")
-    p.add_argument("--limit", type=int, default=None, help="stop after this many new images")
+    _add_options(p, "workers", "limit")
     p.add_argument("--features-only", action="store_true",
                    help="store SIFT features and geotags only, for a camera used only for queries: no global "
                         "vectors, structure or self-check, which a database camera needs (a later ingest without "
                         "this flag adds them)")
-    p.add_argument("--tile-m", type=float, default=None, metavar="M",
-                   help="write a sharded store: --db is a folder of square tiles this many metres wide, one store "
-                        "each, ingested on a Dask cluster (pip install 'visloc[cluster]'); every command reads it "
-                        "like a file")
-    p.add_argument("--halo-m", type=float, default=None, metavar="M",
-                   help="sharded store: copy into each tile the images this close to its border (default 50)")
+    _add_options(p, "tile_m", "halo_m")
     p.add_argument("--address", default=None, metavar="HOST:PORT",
                    help="sharded store: ingest on the Dask scheduler at this address (default: a local cluster "
                         "of --workers processes)")
@@ -207,9 +193,10 @@ def build_parser() -> argparse.ArgumentParser:
                                    "print the paper's Tables 2 and 3 for it.")
     _add_source(p, "query camera", "image_00")
     _add_db(p, tile_cache=True)
-    _add_database_choice(p, "with several, image_01 for image_00 queries, as the paper")
+    _add_database_choice(p, "database camera in the store (default: the database drive's only camera; with several, "
+                            "image_01 for image_00 queries, as the paper)")
     p.add_argument("--start-frame", type=int, default=0, help="query frame of the first step, t-5 (default %(default)s)")
-    p.add_argument("--steps", type=int, default=6, help="number of queries (default %(default)s)")
+    _add_options(p, "steps")
     _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
     _add_exports(p)
@@ -227,19 +214,17 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001")
     _add_db(p, tile_cache=True)
     p.add_argument("--query-camera", default=None, help="KITTI camera of the queries (default image_00, left gray)")
-    p.add_argument("--db-camera", default=None,
-                   help="KITTI camera of the database (default image_01, right gray; the query camera on a drive "
-                        "without image_01); with --db-source, a camera in the store")
-    p.add_argument("--db-source", default=None,
-                   help="evaluate against this drive/dataset already in the store (e.g. another CSV drive "
-                        "ingested before) instead of the query drive's own cameras")
-    p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
+    _add_database_choice(p, "KITTI camera of the database (default image_01, right gray; the query camera on a drive "
+                            "without image_01); with --db-source, a camera in the store",
+                         "evaluate against this drive/dataset already in the store (e.g. another CSV drive ingested "
+                         "before) instead of the query drive's own cameras")
+    _add_options(p, "steps")
     p.add_argument("--start-frames", default=None, help="only series starting at these query frames, e.g. 0,20,40")
     _add_sampling(p)
     p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
     p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
     _add_exports(p)
-    p.add_argument("--workers", type=int, default=None, help="processes for ingest: SIFT, structure and self-check (default: number of cores)")
+    _add_options(p, "workers")
     p.add_argument("--smooth", action="store_true",
                    help="also run the RTS smoother over each series and report its per-step errors")
     p.add_argument("--fast", action="store_true",
@@ -262,9 +247,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_db(p)
     p.add_argument("--out-dir", type=Path, default=Path("out/drives"), help="where the JSON goes (default %(default)s)")
     p.add_argument("--modes", default="paper,refined", help="comma-separated methods (default %(default)s)")
-    p.add_argument("--steps", type=int, default=6, help="queries per series (default %(default)s)")
+    _add_options(p, "steps")
     _add_sampling(p)
-    p.add_argument("--workers", type=int, default=None, help="processes for ingest: SIFT, structure and self-check (default: number of cores)")
+    _add_options(p, "workers")
     p.add_argument("--smooth", action="store_true", help="also run the RTS smoother over each series")
     _add_method(p, PAPER_EVAL_RETRIEVAL)
     _add_mode(p, choose_mode=False)
@@ -285,15 +270,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="tune a saved run live: the page on --db starts from that run's mode, query rate, "
                         "parameters, database and queries")
     p.add_argument("--host", default="127.0.0.1", help="interface to serve on (default %(default)s, this machine only)")
-    p.add_argument("--port", type=int, default=8080, help="port to try first (default %(default)s)")
+    _add_options(p, "port")
     p.add_argument("--allow", action="append", type=Path, default=None, metavar="DIR",
                    help="a folder whose stores the page may open (repeatable; default: the store's folder)")
-    p.add_argument("--db-camera", default=None,
-                   help="database camera to show first (default: the store's only camera, else image_01)")
+    _add_database_choice(p, "database camera to show first (default: the store's only camera, else image_01)",
+                         "database drive/dataset to show first, e.g. a CSV drive's folder name (default: the first)")
     p.add_argument("--query-camera", default=None,
                    help="query camera to show first (default: the store's only camera, else image_00)")
-    p.add_argument("--db-source", default=None,
-                   help="database drive/dataset to show first, e.g. a CSV drive's folder name (default: the first)")
     p.add_argument("--query-source", default=None,
                    help="query drive/dataset to show first (default: the database's drive, or another drive "
                         "when the store holds several and the cameras do not tell)")
@@ -310,20 +293,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--db", type=Path, default=Path(DEFAULT_DB), help="store of the paper's path (default %(default)s)")
     p.add_argument("--fast-db", type=Path, default=Path(DEFAULT_FAST_DB),
                    help="store of the fast path, SIFT at --fast-scale (default %(default)s)")
-    p.add_argument("--series", type=int, default=2, help="live series of 6 queries timed per lever (default %(default)s)")
-    p.add_argument("--shortlist", type=int, default=8, help="images matched exactly per query (default %(default)s)")
-    p.add_argument("--fast-scale", type=float, default=0.5, help="fast path's SIFT image scale (default %(default)s)")
-    p.add_argument("--ingest-images", type=int, default=40, help="images timed for ingest (default %(default)s)")
-    p.add_argument("--workers", type=int, default=2, help="processes for ingest and bare SIFT (default %(default)s)")
-    p.add_argument("--synthetic-images", type=int, default=100_000, help="synthetic database size (default %(default)s)")
-    p.add_argument("--synthetic-descriptors", type=int, default=64,
-                   help="descriptors per synthetic image (default %(default)s)")
-    p.add_argument("--synthetic-queries", type=int, default=20, help="lost queries on it (default %(default)s)")
-    p.add_argument("--skip-synthetic", action="store_true", help="leave out the synthetic database test")
-    p.add_argument("--skip-accuracy", action="store_true", help="leave out the accuracy over every series")
-    p.add_argument("--refined-stride", type=int, default=2,
-                   help="refined paths: time every stride-th frame of the drive with each (default %(default)s)")
-    p.add_argument("--skip-refined", action="store_true", help="leave out the exact and camera-rate refined paths")
+    add_param_flags(p, BenchParams, BENCH)
+    _add_options(p, "workers", preset=COMMAND_OPTIONS.replace(workers=BENCH_WORKERS))
     p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
     p.set_defaults(func=_runs("commands", "cmd_bench"))
 
@@ -336,15 +307,14 @@ def build_parser() -> argparse.ArgumentParser:
                                    "frame, sustained rate and errors against the frames' geotags.")
     _add_source(p, "camera of the frames", "image_00")
     _add_db(p, tile_cache=True)
-    p.add_argument("--db-camera", default=None,
-                   help="database camera (default: --camera; with --db-source, that source's only camera in the store)")
-    p.add_argument("--db-source", default=None,
-                   help="database drive/dataset in the store (default: the frames' own drive, ingested first)")
+    _add_database_choice(p, "database camera (default: --camera; with --db-source, that source's only camera in the "
+                            "store)", "database drive/dataset in the store (default: the frames' own drive, ingested "
+                                      "first)")
     p.add_argument("--exact", action="store_true",
                    help="the exact refined path (the paper's retrieval, every candidate verified; seconds per frame)")
-    p.add_argument("--frames", type=int, default=None, help="stop after this many frames (default: the whole drive)")
+    _add_options(p, "frames")
     add_param_flags(p.add_argument_group("the run"), TrackParams, TRACK, automatic={"exclusion_s": EXCLUSION_AUTO_HELP})
-    p.add_argument("--workers", type=int, default=None, help="processes for ingest: SIFT, structure and self-check (default: number of cores)")
+    _add_options(p, "workers")
     p.add_argument("--json", type=Path, default=None, help="write the summary and every frame as JSON")
     _add_exports(p)
     add_param_flags(p.add_argument_group("filter (its time step: the frame interval)"), FilterParams, PAPER_FILTER,
@@ -383,11 +353,6 @@ def main(argv: list[str] | None = None) -> int:
     signal.signal(signal.SIGTERM, stop_on_signal)  # `kill` stops it as cleanly as Ctrl-C
     parser = build_parser()
     args = parser.parse_args(argv)
-    for name in ("steps", "workers", "limit", "frames"):
-        value = getattr(args, name, None)
-        if value is not None and value < 1:
-            print(f"visloc: error: --{name} {value}: must be >= 1", file=sys.stderr)
-            return 2
     try:  # values refused on their own, before any command is loaded or creates a file
         check_flag_values(args)
         if getattr(args, "max_image_mp", None) is not None:

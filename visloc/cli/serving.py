@@ -9,8 +9,7 @@ from visloc.errors import InputError
 
 
 def cmd_dashboard(a: argparse.Namespace) -> int:
-    if not 1 <= a.port <= 65535:
-        raise InputError(f"--port {a.port}: must be in 1..65535")
+    # --port is checked against its declaration (visloc.params.options) by the parser
     from visloc.dashboard import serve, serve_runs  # on demand: the browser app (viser) is only needed here
 
     if a.run and a.tune_from:

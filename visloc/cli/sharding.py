@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 from collections.abc import Callable
@@ -26,14 +25,9 @@ def ingest_sharded(a: argparse.Namespace, sequences: list[Sequence], ingest_one:
     if folder.exists() and not folder.is_dir():
         raise InputError(f"--db {folder}: a store file; a sharded store is a folder (give a new folder, or drop "
                          "--tile-m to extend the file)")
-    tile_m = a.tile_m
-    if tile_m is None:
-        tile_m = sharded_grid(folder).tile_m
-    if not (math.isfinite(tile_m) and tile_m > 0):
-        raise InputError(f"--tile-m {a.tile_m}: give a tile width in metres above 0")
+    # --tile-m and --halo-m are checked against their declarations (visloc.params.options) by the parser
+    tile_m = sharded_grid(folder).tile_m if a.tile_m is None else a.tile_m
     halo_m = DEFAULT_HALO_M if a.halo_m is None else a.halo_m
-    if not (math.isfinite(halo_m) and halo_m >= 0):
-        raise InputError(f"--halo-m {a.halo_m}: give a halo in metres, 0 or more")
     if is_sharded(folder):  # refused before any image is described: a store keeps the grid it was made with
         have = sharded_grid(folder)
         halo_m = have.halo_m if a.halo_m is None else halo_m

@@ -3,11 +3,12 @@ paper's values as presets.
 
 * ``declare``: how a parameter is declared (``param``, ``Spec``, ``Control``) and checked;
 * ``paper``: SIFT, the correspondence tests, retrieval and the Kalman filter, and Table 1;
-* ``refined``: the refined measurement and gate, the fast retrieval, a run at camera rate.
+* ``refined``: the refined measurement and gate, the fast retrieval, a run at camera rate;
+* ``options``: the commands' own options (how much of a drive, processes, tiles, port) and ``visloc bench``'s.
 
 The command line's flags, the dashboard's controls, ``--help`` and ``docs/parameters.md``
 (``python -m visloc.params``) are all made from these declarations. Imports only
-``visloc.errors``.
+``visloc.errors`` and ``visloc.stats``.
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ from visloc.params.declare import (AUTO, MAX_C_INT, MAX_VARIANCE, METHODS_ALL, M
 from visloc.params.paper import (MAX_DT_S, MAX_GEOTAG_SIGMA_M, MAX_SECONDS, METRES_PER_DEGREE, MIN_DT_S,
                                  PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT,
                                  FilterParams, MatchParams, RetrievalParams, SiftParams)
+from visloc.params.options import BENCH, BENCH_WORKERS, COMMAND_OPTIONS, BenchParams, CommandOptions
 from visloc.params.refined import FAST, NN_BACKENDS, REFINED, TRACK, FastParams, RefinedParams, TrackParams
 
 # every parameter class, in the order the docs list them
-PARAMETER_CLASSES = (SiftParams, MatchParams, RetrievalParams, FilterParams, RefinedParams, FastParams, TrackParams)
+PARAMETER_CLASSES = (SiftParams, MatchParams, RetrievalParams, FilterParams, RefinedParams, FastParams, TrackParams,
+                     CommandOptions, BenchParams)
 
 
 
@@ -31,7 +34,7 @@ def dashboard_controls() -> list[tuple[type, str, Spec, object]]:
 
 
 __all__ = [
-    "AUTO", "FAST", "MAX_C_INT", "MAX_DT_S", "MAX_GEOTAG_SIGMA_M", "MAX_SECONDS", "MAX_VARIANCE", "METHODS_ALL",
+    "AUTO", "BENCH", "BENCH_WORKERS", "COMMAND_OPTIONS", "BenchParams", "CommandOptions", "FAST", "MAX_C_INT", "MAX_DT_S", "MAX_GEOTAG_SIGMA_M", "MAX_SECONDS", "MAX_VARIANCE", "METHODS_ALL",
     "METRES_PER_DEGREE", "MIN_DT_S", "MIN_VARIANCE", "NN_BACKENDS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER",
     "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PARAMETER_CLASSES", "REFINED", "TRACK", "Control", "FastParams",
     "FilterParams", "MatchParams", "Params", "RefinedParams", "RetrievalParams", "SiftParams", "Spec", "TrackParams",
@@ -57,6 +60,6 @@ def parameter_table_markdown() -> str:
             control = spec.control.label if spec.control else ""
             help_text = spec.help.replace("|", "\\|")
             lines.append(f"| `{name}` | {f'`{flag}`' if flag else '–'} | {spec.unit or '–'} | {spec.rule()} | "
-                         f"{value_text(default)} | {', '.join(spec.methods)} | {help_text} | {control or '–'} |")
+                         f"{value_text(default) if default is not None else spec.when_unset} | {', '.join(spec.methods)} | {help_text} | {control or '–'} |")
         lines.append("")
     return "\n".join(lines)

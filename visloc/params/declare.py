@@ -69,6 +69,7 @@ class Spec:
     choices: a "choice" parameter's values
     methods: the methods it affects (``METHODS_ALL`` by default); "ingest", "track" for those stages
     flag:    its command-line flag (``AUTO``: from its name; None: not on the command line)
+    when_unset: what None means for it (the command chooses: "number of cores", ...); None: None is refused
     symbol:  how the paper writes it ("R", "Q", "P0"), named beside it in messages
     control: its dashboard control, if it has one
     """
@@ -83,6 +84,7 @@ class Spec:
     choices: tuple[str, ...] = ()
     methods: tuple[str, ...] = METHODS_ALL
     flag: str | None = AUTO
+    when_unset: str | None = None
     symbol: str = ""
     control: Control | None = None
 
@@ -109,6 +111,8 @@ class Spec:
         return f"{what}finite".strip()
 
     def accepts(self, value) -> bool:
+        if value is None:
+            return self.when_unset is not None
         if self.kind == "bool":
             return isinstance(value, bool)
         if self.kind == "choice":

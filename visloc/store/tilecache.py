@@ -25,7 +25,7 @@ from visloc.db.connection import sqlite_error_line
 from visloc.db.shards import Manifest, tile_features, tile_structure_points
 from visloc.errors import InputError
 from visloc.pose.structure import ViewStructure
-from visloc.store.defaults import DEFAULT_TILE_CACHE_MB
+from visloc.params import COMMAND_OPTIONS
 
 
 @dataclass
@@ -45,7 +45,7 @@ class TileCache:
     images' features (image id -> (keypoints_f32, descriptors_u8)) and, for each structure setting
     asked, its images' structure points (image id -> variant -> (points_f64, cov_f64))."""
 
-    def __init__(self, folder: str | Path, budget_mb: float = DEFAULT_TILE_CACHE_MB):
+    def __init__(self, folder: str | Path, budget_mb: float = COMMAND_OPTIONS.tile_cache_mb):
         if not (math.isfinite(budget_mb) and budget_mb > 0):
             raise InputError(f"tile cache budget must be a number of MB above 0, got {budget_mb}")
         self.folder = Path(folder)

@@ -27,7 +27,7 @@ from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.store.sharded import Catalogue, held_datasets, owner_tiles
-from visloc.store.defaults import DEFAULT_TILE_CACHE_MB
+from visloc.params import COMMAND_OPTIONS
 from visloc.store.tilecache import TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
@@ -65,7 +65,7 @@ class Workspace(GlobalVectors):
     read-only medium): every method that would write raises ``InputError`` instead."""
 
     def __init__(self, path: str | Path, *, create: bool = False, read_only: bool = False,
-                 tile_cache_mb: float = DEFAULT_TILE_CACHE_MB):
+                 tile_cache_mb: float = COMMAND_OPTIONS.tile_cache_mb):
         self.path = Path(path)
         self.read_only = read_only
         # a sharded store (a folder of tiles, ``visloc.store.sharded``) is read from its catalogue (every
