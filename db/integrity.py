@@ -103,19 +103,20 @@ def scan(store: FeatureStore, *, source: str | None = None, camera: str | None =
         yield from _array_damage(store)
 
 
-def _image_damage(r: dict) -> Iterator[Damage]:
-    def damage(problem: str) -> Damage:
-        return Damage("images", (r["id"],), _name(r), problem, r["source"], r["camera"], r["frame"])
-
-    n = r["n_keypoints"]
-    problem = _count_problem(n, "keypoint count")
+def _array_problems(r: dict, table: str, count_what: str) -> tuple[bool, list[str]]:
+    """(whether the row's count is a count, what is wrong with it or with each array of ``table`` it counts)."""
+    arrays = arrays_of(table)
+    n = r[arrays[0].count]
+    problem = _count_problem(n, count_what)
     if problem:
-        yield damage(problem)
-        return
-    for array in arrays_of("images"):
-        problem = array.problem(r, n)
-        if problem:
-            yield damage(problem)
+        return False, [problem]
+    return True, [p for a in arrays if (p := a.problem(r, n))]
+
+
+def _image_damage(r: dict) -> Iterator[Damage]:
+    _, problems = _array_problems(r, "images", "keypoint count")
+    for problem in problems:
+        yield Damage("images", (r["id"],), _name(r), problem, r["source"], r["camera"], r["frame"])
 
 
 def _structure_damage(store: FeatureStore, source: str | None, camera: str | None,
@@ -135,15 +136,10 @@ def _structure_damage(store: FeatureStore, source: str | None, camera: str | Non
         if r["source"] is None:
             yield damage("belongs to no stored image")
             continue
-        n = r["n_points"]
-        problem = _count_problem(n, "point count")
-        if problem:
-            yield damage(problem)
+        counted, problems = _array_problems(r, "structures", "point count")
+        yield from map(damage, problems)
+        if not counted:
             continue
-        for array in arrays_of("structures"):
-            problem = array.problem(r, n)
-            if problem:
-                yield damage(problem)
         try:
             neighbours = [int(i) for i in json.loads(r["neighbour_ids_json"])]
         except (TypeError, ValueError):

@@ -110,7 +110,7 @@ EOF
 ) || fail "tqdm progress bar (visloc.progress): $(tail -n 1 <<<"$err")"
 
 # the lint scripts/test.sh runs, with the floor's ruff
-if ! out=$("$venv/bin/ruff" check --output-format concise visloc db dashboard bench tests scripts 2>&1); then
+if ! out=$("$venv/bin/ruff" check --output-format concise visloc db dashboard bench tests scripts benchmarks 2>&1); then
     grep -E "^[^ ].*:[0-9]+:[0-9]+: " <<<"$out" | sed 's/^/check_min_versions: FAIL ruff /'
     fail "ruff check (floor's ruff): $(tail -n 1 <<<"$out")"
 fi

@@ -7,7 +7,7 @@
 ``run`` calls the ``visloc`` command as a user would: ``visloc evaluate-drives`` on the data root
 (default ../shared/data/kitti: every drive, each protocol it supports, both modes, the RTS
 smoother); ``visloc evaluate`` in the paper's mode again with other query sampling and process
-noise; ``visloc bench`` per drive; ``visloc track`` per drive and setup; scripts/refined_diagnostics.py per
+noise; ``visloc bench`` per drive; ``visloc track`` per drive and setup; benchmarks/refined_diagnostics.py per
 drive; and
 scripts/paper_haversine_check.py. Every run writes its JSON to out/results/ and
 out/results/manifest.json records the commands. ``page`` reduces those JSON
@@ -143,11 +143,11 @@ def evaluations(drives: list, root: str, out: Path, store: Path, command, manife
 
 
 def diagnostics(drives: list, root: str, out: Path, store: Path, manifest: dict) -> None:
-    """scripts/refined_diagnostics.py per drive and the paper's Haversine check."""
+    """benchmarks/refined_diagnostics.py per drive and the paper's Haversine check."""
     for folder in drives:
         drive = folder.name.removesuffix("_sync")
         name = f"diagnostics_{drive}"
-        args = ["scripts/refined_diagnostics.py", root, "--drive", drive, "--db", str(store), "--every", "3",
+        args = ["benchmarks/refined_diagnostics.py", root, "--drive", drive, "--db", str(store), "--every", "3",
                 "--json", str(out / f"{name}.json")]
         print(f"results: {name}: python {' '.join(args)}", flush=True)
         subprocess.run([sys.executable, *args], cwd=REPO, check=True)

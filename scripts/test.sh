@@ -6,6 +6,6 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 bash scripts/install_chromium.sh
-.venv/bin/ruff check visloc db dashboard bench tests scripts
+.venv/bin/ruff check visloc db dashboard bench tests scripts benchmarks
 # every core (pytest-xdist; tests sharing a module-scoped fixture stay on one worker), and the 25 slowest tests
 exec .venv/bin/python -m pytest -n auto --dist loadgroup --durations=25 "$@"

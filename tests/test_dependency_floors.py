@@ -99,7 +99,7 @@ def test_the_installed_version_meets_the_floor(name):
 
 def third_party_imports(folders: tuple[str, ...]) -> dict[str, str]:
     """Top-level module -> a file importing it, for the modules neither stdlib nor the repo's own."""
-    local = {"visloc"} | {p.stem for d in ("tests", "scripts") for p in (REPO / d).glob("*.py")}
+    local = {"visloc"} | {p.stem for d in ("tests", "scripts", "benchmarks") for p in (REPO / d).glob("*.py")}
     found: dict[str, str] = {}
     for folder in folders:
         for path in sorted((REPO / folder).rglob("*.py")):

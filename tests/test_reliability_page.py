@@ -9,6 +9,7 @@ from fault_table import FAULT_MODULES, all_faults
 from helpers import REPO
 
 sys.path.insert(0, str(REPO / "scripts"))
+sys.path.insert(0, str(REPO / "benchmarks"))
 import reliability  # noqa: E402
 
 
@@ -31,7 +32,7 @@ def test_every_fault_in_the_tables_is_collected_as_a_test():
 
 def test_the_performance_notes_are_what_their_json_renders():
     """The checksums' measured cost on docs/performance.md is rendered from docs/results/checksum_cost.json (written by
-    scripts/checksum_cost.py), so it cannot drift from what was measured."""
+    benchmarks/checksum_cost.py), so it cannot drift from what was measured."""
     import json
 
     import checksum_cost
@@ -43,7 +44,7 @@ def test_the_performance_notes_are_what_their_json_renders():
 
 def test_the_saved_run_timings_are_what_their_json_renders():
     """The saved-run opening times on docs/performance.md are rendered from docs/results/saved_run_open.json (written by
-    scripts/saved_run_open.py), and every run file the results hold was timed."""
+    benchmarks/saved_run_open.py), and every run file the results hold was timed."""
     import json
 
     import saved_run_open
@@ -57,7 +58,7 @@ def test_the_saved_run_timings_are_what_their_json_renders():
 
 def test_the_dashboard_feedback_timings_are_what_their_json_renders():
     """The live dashboard's timings on docs/performance.md are rendered from docs/results/dashboard_feedback.json
-    (written by scripts/dashboard_feedback.py), with every drive of the results store in both modes."""
+    (written by benchmarks/dashboard_feedback.py), with every drive of the results store in both modes."""
     import json
 
     import dashboard_feedback
@@ -72,7 +73,7 @@ def test_the_dashboard_feedback_timings_are_what_their_json_renders():
 
 def test_the_point_following_figures_are_what_their_json_renders():
     """docs/performance.md's table of ``visloc track --follow-points`` against the full path is rendered from
-    docs/results/track_following.json (written by scripts/track_following.py), every drive with its three runs."""
+    docs/results/track_following.json (written by benchmarks/track_following.py), every drive with its three runs."""
     import json
 
     import track_following
@@ -90,7 +91,7 @@ def test_the_point_following_figures_are_what_their_json_renders():
 
 def test_the_sharding_figures_are_what_their_json_renders():
     """docs/sharding.md's tables (ingest on a local cluster against one file, the synthetic city) are rendered
-    from docs/results/shard_scale.json, written by scripts/shard_scale.py: every drive, a city of a million
+    from docs/results/shard_scale.json, written by benchmarks/shard_scale.py: every drive, a city of a million
     images in at least a thousand tiles."""
     import json
 
@@ -104,7 +105,7 @@ def test_the_sharding_figures_are_what_their_json_renders():
 
 def test_the_one_file_ingest_speedup_is_what_its_json_renders():
     """The one-file ingest on every core against one process (docs/performance.md) is rendered from
-    docs/results/ingest_cores.json (written by scripts/ingest_cores.py): both cameras of a drive, every round's
+    docs/results/ingest_cores.json (written by benchmarks/ingest_cores.py): both cameras of a drive, every round's
     two stores identical row for row."""
     import json
 
@@ -120,7 +121,7 @@ def test_the_one_file_ingest_speedup_is_what_its_json_renders():
 
 def test_the_command_line_start_times_are_what_their_json_renders():
     """How soon the command line answers (docs/performance.md) is rendered from docs/results/cli_startup.json
-    (written by scripts/cli_startup.py), each command against a bare interpreter of the same rounds."""
+    (written by benchmarks/cli_startup.py), each command against a bare interpreter of the same rounds."""
     import json
 
     import cli_startup

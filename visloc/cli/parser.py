@@ -138,6 +138,16 @@ def _add_database_choice(p: argparse.ArgumentParser, camera_help: str,
     p.add_argument("--db-source", default=None, help=source_help)
 
 
+def _add_json(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument("--json", type=Path, default=None, help=f"write {what} as JSON")
+
+
+def _add_outputs(p: argparse.ArgumentParser, what: str) -> None:
+    """--json (``what`` it writes) and the trajectory files."""
+    _add_json(p, what)
+    _add_exports(p)
+
+
 def _add_exports(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("trajectory files (truth, measurements, estimates with covariance)")
     g.add_argument("--geojson", type=Path, default=None, metavar="FILE",
@@ -154,9 +164,12 @@ class _HelpFormatter(argparse.HelpFormatter):
         return super()._fill_text(text, width, indent)
 
 
-def _command(sub, name: str, help: str, description: str) -> argparse.ArgumentParser:
-    return sub.add_parser(name, help=help, description=description, epilog=examples(name),
-                          formatter_class=_HelpFormatter)
+def _command(sub, name: str, help: str, description: str, module: str = "commands") -> argparse.ArgumentParser:
+    """The subcommand ``name``; what it does is ``visloc.cli.<module>.cmd_<name>``, loaded when it runs."""
+    p = sub.add_parser(name, help=help, description=description, epilog=examples(name),
+                       formatter_class=_HelpFormatter)
+    p.set_defaults(func=_runs(module, "cmd_" + name.replace("-", "_")))
+    return p
 
 
 
@@ -186,7 +199,6 @@ def build_parser() -> argparse.ArgumentParser:
                         "of --workers processes)")
     _add_bad_frames(p)
     _add_sift(p)
-    p.set_defaults(func=_runs("commands", "cmd_ingest"))
 
     p = _command(sub, "localize", help="localize one query series against a store; print the paper's Tables 2 and 3",
                        description="Run one series of queries (one every --dt-s seconds) against the database and "
@@ -198,12 +210,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--start-frame", type=int, default=0, help="query frame of the first step, t-5 (default %(default)s)")
     _add_options(p, "steps")
     _add_sampling(p)
-    p.add_argument("--json", type=Path, default=None, help="also write the steps as JSON")
-    _add_exports(p)
+    _add_outputs(p, "the steps")
     _add_method(p, PAPER_RETRIEVAL, auto_exclusion=True)
     _add_mode(p)
     _add_sift(p)
-    p.set_defaults(func=_runs("commands", "cmd_localize"))
 
     p = _command(sub, "evaluate", help="the paper's evaluation protocol on a drive (KITTI or CSV)",
                        description="Every series of --steps queries one --dt-s apart that fits in the drive; "
@@ -221,7 +231,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_options(p, "steps")
     p.add_argument("--start-frames", default=None, help="only series starting at these query frames, e.g. 0,20,40")
     _add_sampling(p)
-    p.add_argument("--json", type=Path, default=None, help="write the results as JSON")
+    _add_json(p, "the results")
     p.add_argument("--plot", type=Path, default=None, help="error plot PNG (default: the JSON path with .png)")
     _add_exports(p)
     _add_options(p, "workers")
@@ -234,7 +244,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mode(p)
     _add_sift(p)
     _add_bad_frames(p)
-    p.set_defaults(func=_runs("commands", "cmd_evaluate"))
 
     p = _command(sub, "evaluate-drives", help="the evaluation on every drive of a data root, every protocol and mode",
                        description="Every KITTI drive under ROOT (a drive dropped into the folder is picked up), "
@@ -255,13 +264,12 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mode(p, choose_mode=False)
     _add_sift(p)
     _add_bad_frames(p)
-    p.set_defaults(func=_runs("commands", "cmd_evaluate_drives"))
 
     p = _command(sub, "dashboard", help="browser dashboard: scrub through a drive, tune the method live",
                        description="Serve the viser dashboard for a store built by 'visloc ingest' or 'visloc "
                                    "evaluate'. Prints the URL actually served (viser moves to the next free port "
                                    "when --port is taken). A missing or bad store is reported in the page. With "
-                                   "--run it shows saved runs instead, without their store.")
+                                   "--run it shows saved runs instead, without their store.", module="serving")
     _add_db(p)
     p.add_argument("--run", action="append", type=Path, default=None, metavar="JSON",
                    help="open a run that evaluate, evaluate-drives or track wrote (its --json, or drives.json); "
@@ -280,7 +288,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--query-source", default=None,
                    help="query drive/dataset to show first (default: the database's drive, or another drive "
                         "when the store holds several and the cameras do not tell)")
-    p.set_defaults(func=_runs("serving", "cmd_dashboard"))
 
     p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",
                        description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "
@@ -295,8 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="store of the fast path, SIFT at --fast-scale (default %(default)s)")
     add_param_flags(p, BenchParams, BENCH)
     _add_options(p, "workers", preset=COMMAND_OPTIONS.replace(workers=BENCH_WORKERS))
-    p.add_argument("--json", type=Path, default=None, help="also write every number as JSON")
-    p.set_defaults(func=_runs("commands", "cmd_bench"))
+    _add_json(p, "every number")
 
     p = _command(sub, "track", help="localize every frame of a drive in order, at the camera's rate",
                        description="Localize every frame of a drive in order, as a vehicle would: SIFT, retrieval, "
@@ -315,25 +321,21 @@ def build_parser() -> argparse.ArgumentParser:
     _add_options(p, "frames")
     add_param_flags(p.add_argument_group("the run"), TrackParams, TRACK, automatic={"exclusion_s": EXCLUSION_AUTO_HELP})
     _add_options(p, "workers")
-    p.add_argument("--json", type=Path, default=None, help="write the summary and every frame as JSON")
-    _add_exports(p)
+    _add_outputs(p, "the summary and every frame")
     add_param_flags(p.add_argument_group("filter (its time step: the frame interval)"), FilterParams, PAPER_FILTER,
                     exclude=("dt_s",))
     _add_mode(p, choose_mode=False)
     _add_sift(p)
     _add_bad_frames(p)
-    p.set_defaults(func=_runs("commands", "cmd_track"))
 
     p = _command(sub, "upgrade", help="migrate a store of an older schema version in place",
                        description="Bring a store written by an older visloc to this version's schema, keeping every "
                                    "image and cached count. Reading commands (info, dashboard) never migrate; ingest "
                                    "and the other commands that write do it on their own.")
     _add_db(p)
-    p.set_defaults(func=_runs("commands", "cmd_upgrade"))
 
     p = _command(sub, "info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
     _add_db(p)
-    p.set_defaults(func=_runs("commands", "cmd_info"))
 
     p = _command(sub, "check", help="is a store whole? (exit 0 when it is, 2 when not)",
                  description="Check a store without changing it: SQLite's own integrity check, every table and column "
@@ -342,7 +344,6 @@ def build_parser() -> argparse.ArgumentParser:
                              "damaged image (drive, camera, frame, what is wrong) and a summary. Re-running 'visloc "
                              "ingest' of a drive repairs its damaged images.")
     _add_db(p)
-    p.set_defaults(func=_runs("commands", "cmd_check"))
     return parser
 
 

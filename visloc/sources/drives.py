@@ -211,6 +211,14 @@ def _read_timestamps(path: Path) -> list[float]:
     return out
 
 
+def oxts_records(folder: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A KITTI drive folder's OXTS records as numbers, (N, fields) in ``OXTS_FIELDS`` order, and their Unix
+    timestamps (UTC, as every timestamp visloc reads), s."""
+    files = sorted((Path(folder) / "oxts" / "data").glob("*.txt"))
+    records = np.array([[float(v) for v in read_text(path).split()] for path in files])
+    return records, np.array(_read_timestamps(Path(folder) / "oxts" / "timestamps.txt"))
+
+
 def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, float, float | None]:
     """(lat_deg, lon_deg, alt_m, heading_deg, roll_rad, pitch_rad, yaw_rad, position_accuracy_m) of one
     OXTS record; the accuracy (field 24, ``pos_accuracy``) is None when absent, not finite or not > 0."""

@@ -1,7 +1,7 @@
 """What the store's checksums cost, measured on the real drives: writing (ingest) and reading (every run).
 
-    python scripts/checksum_cost.py [--db out/results/visloc.sqlite] [--root ../shared/data/kitti]
-    python scripts/checksum_cost.py --page     # the performance page from docs/results/checksum_cost.json
+    python benchmarks/checksum_cost.py [--db out/results/visloc.sqlite] [--root ../shared/data/kitti]
+    python benchmarks/checksum_cost.py --page     # the performance page from docs/results/checksum_cost.json
 
 For each drive and camera a store holds (every drive of the data root, when the store was built by
 ``scripts/results.py run``):
@@ -22,7 +22,6 @@ Writes docs/results/checksum_cost.json; ``--page`` renders its section of docs/p
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import os
@@ -33,21 +32,18 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "scripts"))
 
-from page_sections import replace_section  # noqa: E402
+from measuring import REPO, Section  # noqa: E402
+
+SECTION = Section("checksum-cost", "checksum_cost", REPO / "docs" / "performance.md")
+OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
 from visloc.db import FeatureStore  # noqa: E402
 from visloc.db.integrity import drive_blobs, scan  # noqa: E402
 from visloc.features.sift import extract_sift, make_sift  # noqa: E402
 from visloc.sources.drives import default_data_root, file_digest, read_image  # noqa: E402
 from visloc.store.workspace import Workspace  # noqa: E402
 
-OUT = REPO / "docs" / "results" / "checksum_cost.json"
 RESULTS = REPO / "out" / "results"
-PAGE = REPO / "docs" / "performance.md"
-BEGIN, END = "<!-- checksum-cost: begin (python scripts/checksum_cost.py --page) -->", "<!-- checksum-cost: end -->"
 
 
 def _timed(fn, repeats: int = 1) -> float:
@@ -129,7 +125,7 @@ def measure(db: Path) -> dict:
                                   "share": entry["read"]["checksums_ms"] / (wall_s * 1e3)}
         drives.append(entry)
     shown = os.path.relpath(db, REPO) if Path(db).resolve().is_relative_to(REPO) else str(db)
-    return {"store": shown, "command": f"python scripts/checksum_cost.py --db {shown}", "drives": drives}
+    return {"store": shown, "command": f"python benchmarks/checksum_cost.py --db {shown}", "drives": drives}
 
 
 def render(result: dict) -> str:
@@ -166,21 +162,15 @@ def render(result: dict) -> str:
 
 
 def update_page(text: str) -> str:
-    return replace_section(PAGE, BEGIN, END, text)
+    return SECTION.updated_page(text)
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
-    parser.add_argument("--root", type=Path, default=default_data_root())
-    parser.add_argument("--page", action="store_true", help="only render its section of docs/performance.md from the JSON")
-    a = parser.parse_args()
-    if not a.page:
-        result = measure(a.db)
-        OUT.write_text(json.dumps(result, indent=1) + "\n")
-        print(f"wrote {OUT}", file=sys.stderr)
-    PAGE.write_text(update_page(render(json.loads(OUT.read_text()))))
-    return 0
+    def arguments(parser):
+        parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
+        parser.add_argument("--root", type=Path, default=default_data_root())
+
+    return SECTION.main(__doc__, lambda a: measure(a.db), render, arguments)
 
 
 if __name__ == "__main__":

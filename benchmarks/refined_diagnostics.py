@@ -1,6 +1,6 @@
 """Where the refined measurement's error comes from, on one KITTI drive: the evidence behind the method notes.
 
-    python scripts/refined_diagnostics.py [ROOT] --drive 2011_09_26_drive_0005 --db out/results/visloc.sqlite \
+    python benchmarks/refined_diagnostics.py [ROOT] --drive 2011_09_26_drive_0005 --db out/results/visloc.sqlite \
         [--every 2] --json out/diagnostics_0005.json
 
 Same-camera protocol (queries and database from one camera, 1 s exclusion, full-scan retrieval).
@@ -19,7 +19,6 @@ of each query is the stored GPS position (or the integrated track), with its sta
 from __future__ import annotations
 
 import argparse
-import datetime as dt
 import json
 import math
 import sys
@@ -28,24 +27,13 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-
+from measuring import REPO  # noqa: F401 (puts this checkout's engine first on the path)
 from visloc import InputError, Workspace  # noqa: E402
 from visloc.params import REFINED, MatchParams, RetrievalParams  # noqa: E402
 from visloc.pose.refined import PoseMeasurer  # noqa: E402
 from visloc.retrieval.retrievers import WindowRetriever  # noqa: E402
-from visloc.sources.drives import default_data_root, resolve_drive  # noqa: E402
-
-
-def oxts(folder: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 30) OXTS records and (N,) their timestamps, s."""
-    records = np.array([[float(v) for v in p.read_text().split()] for p in sorted((folder / "oxts" / "data").glob("*.txt"))])
-    stamps = []
-    for line in (folder / "oxts" / "timestamps.txt").read_text().split("\n"):
-        if line.strip():
-            day, _, frac = line.strip().partition(".")
-            stamps.append(dt.datetime.strptime(day, "%Y-%m-%d %H:%M:%S").timestamp() + float("0." + frac))
-    return records, np.array(stamps)
+from visloc.sources.drives import default_data_root, oxts_records, resolve_drive  # noqa: E402
+from visloc.stats import summary_of  # noqa: E402
 
 
 def velocity_track(gps_east_north_m: np.ndarray, records: np.ndarray, stamps_s: np.ndarray) -> np.ndarray:
@@ -59,9 +47,7 @@ def velocity_track(gps_east_north_m: np.ndarray, records: np.ndarray, stamps_s: 
 
 
 def stats(values) -> dict:
-    v = np.asarray(values, float)
-    return {"n": int(v.size), "median": float(np.median(v)), "mean": float(v.mean()), "p90": float(np.percentile(v, 90)),
-            "max": float(v.max())} if v.size else {"n": 0}
+    return summary_of(values, ("median", "mean", "p90", "max"), count=True)
 
 
 def main() -> int:
@@ -81,7 +67,7 @@ def main() -> int:
     except InputError as exc:
         print(f"refined_diagnostics: {exc}", file=sys.stderr)
         return 2
-    records, stamps = oxts(folder)
+    records, stamps = oxts_records(folder)
     yaw = records[db.frames, 5]
     tracks = {"gps": db.east_north_m, "velocity": velocity_track(db.east_north_m, records, stamps)[db.frames]}
     cache = ws.pair_cache(db, queries, MatchParams())

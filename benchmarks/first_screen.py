@@ -1,7 +1,7 @@
 """Time a newcomer's first run: ``bash scripts/main.sh`` in a fresh clone, from nothing to a usable
 dashboard.
 
-    .venv/bin/python scripts/first_screen.py [--json out/first_screen.json] [--port 8090]
+    .venv/bin/python benchmarks/first_screen.py [--json out/first_screen.json] [--port 8090]
 
 Clones this checkout's HEAD into a temporary folder (with ``../shared`` linked beside it, as on
 a fresh machine), runs ``scripts/main.sh`` there with its output going to a log file, not a
@@ -25,7 +25,8 @@ import threading
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
+from measuring import REPO, load_1min  # noqa: E402
+
 CHROMIUM = Path("/usr/bin/chromium")
 URL_LINE = re.compile(r"visloc dashboard: (http://\S+)")
 
@@ -102,7 +103,7 @@ def main() -> int:
                 os.killpg(proc.pid, signal.SIGINT)
                 proc.wait(120)
             done.set()
-        load = os.getloadavg()[0]
+        load = load_1min()
         report = {"times_s": times, "load_1min_end": load, "cores": os.cpu_count(),
                   "log": [{"t_s": round(t, 1), "line": line} for t, line in events]}
         a.json.parent.mkdir(parents=True, exist_ok=True)

@@ -1,8 +1,8 @@
 """How soon the command line answers: ``visloc --help``, a command's help, ``--version`` and a refused argument,
 against a bare Python interpreter, and a command that opens a store for comparison.
 
-    python scripts/cli_startup.py [--rounds 20]
-    python scripts/cli_startup.py --page   # its section of docs/performance.md from the JSON
+    python benchmarks/cli_startup.py [--rounds 20]
+    python benchmarks/cli_startup.py --page   # its section of docs/performance.md from the JSON
 
 Each round runs every command once, in a fresh process, in an order rotated by one each round (so that none
 always runs first); each command's wall time is measured from outside (start to exit). Reported: medians, and
@@ -14,7 +14,6 @@ Writes docs/results/cli_startup.json; ``--page`` renders its section of docs/per
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import subprocess
@@ -23,15 +22,12 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO / "scripts"))
 
-from page_sections import replace_section  # noqa: E402
+from measuring import REPO, Section, load_1min  # noqa: E402
 
-OUT = REPO / "docs" / "results" / "cli_startup.json"
-PAGE = REPO / "docs" / "performance.md"
-BEGIN = "<!-- cli-startup: begin (python scripts/cli_startup.py --page) -->"
-END = "<!-- cli-startup: end -->"
+SECTION = Section("cli-startup", "cli_startup", REPO / "docs" / "performance.md")
+OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
+
 BARE = "python -c pass"
 
 
@@ -53,7 +49,7 @@ def measure(rounds: int) -> dict:
         cmds = commands(visloc, Path(tmp))
         labels = list(cmds)
         times: dict[str, list[float]] = {label: [] for label in labels}
-        load = [os.getloadavg()[0]]
+        load = [load_1min()]
         for r in range(rounds + 1):  # the first round warms the file cache and is not counted
             order = labels[r % len(labels):] + labels[: r % len(labels)]
             for label in order:
@@ -61,7 +57,7 @@ def measure(rounds: int) -> dict:
                 subprocess.run(cmds[label], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, cwd=tmp)
                 if r:
                     times[label].append(time.perf_counter() - start)
-        load.append(os.getloadavg()[0])
+        load.append(load_1min())
     ratios = {label: [t / b for t, b in zip(times[label], times[BARE])] for label in labels}
     return {
         "rounds": rounds, "python": sys.version.split()[0], "cpu_count": os.cpu_count(),
@@ -79,7 +75,7 @@ def render(result: dict) -> str:
     store = result["commands"]["visloc info --db missing.sqlite (opens a store)"]["median_ratio_to_bare"]
     return f"""{BEGIN}
 The command line answers its help, `--version` and an argument it refuses without loading OpenCV, numpy, faiss,
-viser or the store: those load once a command runs. Measured by `python scripts/cli_startup.py --rounds
+viser or the store: those load once a command runs. Measured by `python benchmarks/cli_startup.py --rounds
 {result['rounds']}` (each command in a fresh process, wall time from outside; medians over the rounds, and the
 median of each round's ratio to a bare interpreter in the same round; load {result['load_1min_start_end'][0]:.1f}
 at the start, {result['load_1min_start_end'][1]:.1f} at the end):
@@ -94,7 +90,7 @@ importing the pipeline it is about to run.
 
 
 def update_page(section: str) -> str:
-    return replace_section(PAGE, BEGIN, END, section)
+    return SECTION.updated_page(section)
 
 
 def main() -> int:
@@ -103,10 +99,10 @@ def main() -> int:
     parser.add_argument("--page", action="store_true", help="render docs/performance.md's section from the JSON")
     a = parser.parse_args()
     if a.page:
-        PAGE.write_text(update_page(render(json.loads(OUT.read_text()))))
+        SECTION.render_page(render)
         return 0
     result = measure(a.rounds)
-    OUT.write_text(json.dumps(result, indent=1) + "\n")
+    SECTION.write(result)
     print(render(result))
     return 0
 

@@ -1,8 +1,8 @@
 """Sharded stores measured: ingest on a local Dask cluster against today's single file, and a synthetic city.
 
-    python scripts/shard_scale.py [--root ../shared/data/kitti] [--frames 100] [--repeats 3] [--images 1000000]
-    python scripts/shard_scale.py --only ingest --only city   # measure those parts, keep the JSON's others
-    python scripts/shard_scale.py --page   # its section of docs/sharding.md from the JSON
+    python benchmarks/shard_scale.py [--root ../shared/data/kitti] [--frames 100] [--repeats 3] [--images 1000000]
+    python benchmarks/shard_scale.py --only ingest --only city   # measure those parts, keep the JSON's others
+    python benchmarks/shard_scale.py --page   # its section of docs/sharding.md from the JSON
 
 1. Ingest, on every drive of the data root: the first ``--frames`` frames of image_00 (SIFT, global vectors,
    structure, self-check), one command after the other on this machine, each into a new store:
@@ -39,15 +39,12 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO / "scripts"))
 
-from page_sections import replace_section  # noqa: E402
+from measuring import REPO, Section, load_1min  # noqa: E402
 
-OUT = REPO / "docs" / "results" / "shard_scale.json"
-PAGE = REPO / "docs" / "sharding.md"
-BEGIN = "<!-- shard-scale: begin (python scripts/shard_scale.py --page) -->"
-END = "<!-- shard-scale: end -->"
+SECTION = Section("shard-scale", "shard_scale", REPO / "docs" / "sharding.md")
+OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
+
 VISLOC = [sys.executable, "-m", "visloc"]
 RUNS = {"file_1": ["--workers", "1"], "file_1_one_core": ["--workers", "1"],
         "tiles_1": ["--tile-m", "250", "--workers", "1"], "tiles_2": ["--tile-m", "250", "--workers", "2"]}
@@ -91,9 +88,9 @@ def measure_ingest(root: Path, frames: int, repeats: int) -> list[dict]:
     configuration once (so that a change of load meets all of them), in an order rotated by one from
     round to round (so that no configuration always runs first); per configuration the median time, and
     each ratio as the median of the rounds' ratios (paths compared within the same round)."""
-    from visloc.sources.drives import open_source
+    from visloc.sources.drives import kitti_drives, open_source
 
-    drives = sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync"))
+    drives = [name.removesuffix("_sync") for name in kitti_drives(root)]
     counts = {drive: min(frames, len(open_source(root, drive=drive, camera="image_00"))) for drive in drives}
     rounds: dict[str, list[dict]] = {drive: [] for drive in drives}
     for k in range(repeats):
@@ -213,12 +210,12 @@ def _tiles_read(cmd: list[str]) -> dict:
 
 
 def measure_reads(root: Path) -> list[dict]:
-    from visloc.sources.drives import open_source
+    from visloc.sources.drives import kitti_drives, open_source
     from visloc.db.shards import table_bytes
     from visloc.store.sharded import merged_store
 
     out = []
-    for drive in sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync")):
+    for drive in [name.removesuffix("_sync") for name in kitti_drives(root)]:
         n = len(open_source(root, drive=drive, camera="image_00"))
         with tempfile.TemporaryDirectory() as tmp:
             city = Path(tmp) / "city"
@@ -324,25 +321,23 @@ def main() -> int:
         result = dict(old)
         parts = a.only or PARTS
         if "ingest" in parts:
-            before = os.getloadavg()[0]
+            before = load_1min()
             result["ingest"] = measure_ingest(a.root, a.frames, a.repeats)
-            result["ingest_load_1min"] = [before, os.getloadavg()[0]]
+            result["ingest_load_1min"] = [before, load_1min()]
         if "city" in parts:
-            before = os.getloadavg()[0]
+            before = load_1min()
             with tempfile.TemporaryDirectory() as tmp:
                 result["city"] = measure_city(a.images, Path(tmp) / "city")
-            result["city_load_1min"] = [before, os.getloadavg()[0]]
+            result["city_load_1min"] = [before, load_1min()]
         if "reads" in parts:
-            before = os.getloadavg()[0]
+            before = load_1min()
             result["reads"] = measure_reads(a.root)
-            result["reads_load_1min"] = [before, os.getloadavg()[0]]
+            result["reads_load_1min"] = [before, load_1min()]
         if {"ingest", "city"} <= set(parts):
             result.pop("load_1min_before", None), result.pop("load_1min_after", None)  # measured over both, once
         result["cores"] = os.cpu_count()
-        OUT.write_text(json.dumps(result, indent=1) + "\n")
-        print(f"wrote {OUT.relative_to(REPO)}")
-    PAGE.write_text(replace_section(PAGE, BEGIN, END, render(json.loads(OUT.read_text()))))
-    print(f"rendered {PAGE.relative_to(REPO)}")
+        SECTION.write(result)
+    SECTION.render_page(render)
     return 0
 
 

@@ -1,7 +1,7 @@
 """Following map points between full localizations (``visloc track --follow-points``), measured against the full path.
 
-    python scripts/track_following.py [--root ../shared/data/kitti] [--db out/results/visloc.sqlite]
-    python scripts/track_following.py --page   # its section of docs/performance.md from the JSON
+    python benchmarks/track_following.py [--root ../shared/data/kitti] [--db out/results/visloc.sqlite]
+    python benchmarks/track_following.py --page   # its section of docs/performance.md from the JSON
 
 For every drive of the data root, queries and database from its image_00 with the 1 s exclusion window (the
 evaluation protocol), three ``visloc track`` commands on every frame, one after the other on this machine:
@@ -20,23 +20,18 @@ docs/results/track_following.json; ``--page`` renders its section of docs/perfor
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO / "scripts"))
 
-from page_sections import replace_section  # noqa: E402
+from measuring import REPO, Section, load_1min  # noqa: E402
 
-OUT = REPO / "docs" / "results" / "track_following.json"
-PAGE = REPO / "docs" / "performance.md"
-BEGIN = "<!-- track-following: begin (python scripts/track_following.py --page) -->"
-END = "<!-- track-following: end -->"
+SECTION = Section("track-following", "track_following", REPO / "docs" / "performance.md")
+OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
+
 RUNS = {"full": [], "follow": ["--follow-points"], "follow_paced": ["--follow-points", "--pace-hz", "10"]}
 VISLOC = [sys.executable, "-m", "visloc"]
 
@@ -58,8 +53,10 @@ def _digest(run: dict) -> dict:
 
 
 def measure(root: Path, db: Path) -> dict:
-    drives = sorted(p.name.removesuffix("_sync") for p in root.glob("*/*_sync") if (p / "image_00").is_dir())
-    out = {"root": str(root), "store": str(db), "load_1min_before": os.getloadavg()[0], "drives": {}}
+    from visloc.sources.drives import kitti_drives, resolve_drive
+
+    drives = [name.removesuffix("_sync") for name in kitti_drives(root) if (resolve_drive(root, name) / "image_00").is_dir()]
+    out = {"root": str(root), "store": str(db), "load_1min_before": load_1min(), "drives": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for drive in drives:
             runs = {name: _digest(_track(root, drive, db, flags, Path(tmp) / f"{drive}_{name}.json"))
@@ -67,7 +64,7 @@ def measure(root: Path, db: Path) -> dict:
             print(f"{drive}: " + "; ".join(f"{n} p95 {r['latency_ms']['p95']:.0f} ms, error {r['error_mean_m']:.3f} m"
                                           for n, r in runs.items()), flush=True)
             out["drives"][drive] = runs
-    out["load_1min_after"] = os.getloadavg()[0]
+    out["load_1min_after"] = load_1min()
     return out
 
 
@@ -77,7 +74,7 @@ def _ms(x: dict | None, key: str) -> str:
 
 def render(result: dict) -> str:
     lines = [BEGIN, "`visloc track --follow-points` against localizing every frame in full, measured by "
-             "`python scripts/track_following.py` (every frame of each drive, queries and database from image_00, "
+             "`python benchmarks/track_following.py` (every frame of each drive, queries and database from image_00, "
              "1 s exclusion window; targets: p95 ≤ 50 ms, ≥ 20 frames/s as fast as possible, ≤ 50 % of one core "
              "at 10 Hz, mean error within 10 % or 0.02 m of the full path's):", "",
              "| drive | run | latency p50 / p95 / max (ms) | tracked frames: share, p95 (ms) | relocalized: p95 (ms) "
@@ -116,18 +113,15 @@ def render(result: dict) -> str:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-    ap.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
-    ap.add_argument("--page", action="store_true", help="only render docs/performance.md's section from the JSON")
-    a = ap.parse_args()
-    if not a.page:
+    def arguments(parser):
+        parser.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
+        parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
+
+    def measure_into_store(a):
         a.db.parent.mkdir(parents=True, exist_ok=True)
-        OUT.write_text(json.dumps(measure(a.root, a.db), indent=1) + "\n")
-        print(f"wrote {OUT.relative_to(REPO)}")
-    PAGE.write_text(replace_section(PAGE, BEGIN, END, render(json.loads(OUT.read_text()))))
-    print(f"rendered {PAGE.relative_to(REPO)}")
-    return 0
+        return measure(a.root, a.db)
+
+    return SECTION.main(__doc__, measure_into_store, render, arguments)
 
 
 if __name__ == "__main__":

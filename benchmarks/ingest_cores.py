@@ -1,8 +1,8 @@
 """A one-file ingest on every core: structure and the self-check in worker processes, against the same steps
 in one process (how a one-file ingest built them before), on drive 0001's two gray cameras.
 
-    python scripts/ingest_cores.py [--root ../shared/data/kitti] [--drive 2011_09_26_drive_0001] [--rounds 3]
-    python scripts/ingest_cores.py --page   # its section of docs/performance.md from the JSON
+    python benchmarks/ingest_cores.py [--root ../shared/data/kitti] [--drive 2011_09_26_drive_0001] [--rounds 3]
+    python benchmarks/ingest_cores.py --page   # its section of docs/performance.md from the JSON
 
 Each round ingests the drive's cameras into a new store twice, in a fresh process each, in an order that
 alternates from round to round:
@@ -33,15 +33,12 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO / "scripts"))
 
-from page_sections import replace_section  # noqa: E402
+from measuring import REPO, Section, load_1min  # noqa: E402
 
-OUT = REPO / "docs" / "results" / "ingest_cores.json"
-PAGE = REPO / "docs" / "performance.md"
-BEGIN = "<!-- ingest-cores: begin (python scripts/ingest_cores.py --page) -->"
-END = "<!-- ingest-cores: end -->"
+SECTION = Section("ingest-cores", "ingest_cores", REPO / "docs" / "performance.md")
+OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
+
 CONFIGS = ("one_process", "every_core")
 PHASES = ("sift", "global_vectors", "structure", "self_check")
 TIMING_COLUMNS = {"sift_ms", "created_at", "build_ms", "checked_at", "path", "skipped_at"}
@@ -99,7 +96,7 @@ def table_rows(store: Path) -> dict[str, list]:
 def measure(root: Path, drive: str, cameras: list[str], rounds: int, workers: int) -> dict:
     runs: dict[str, list[dict]] = {c: [] for c in CONFIGS}
     identical = []
-    load = [os.getloadavg()[0]]
+    load = [load_1min()]
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(rounds):
             order = CONFIGS if r % 2 == 0 else CONFIGS[::-1]
@@ -115,7 +112,7 @@ def measure(root: Path, drive: str, cameras: list[str], rounds: int, workers: in
             identical.append(a == b)
             for path in stores.values():
                 path.unlink()
-    load.append(os.getloadavg()[0])
+    load.append(load_1min())
     seconds = {c: [run["seconds"] for run in runs[c]] for c in CONFIGS}
     ratios = [one / every for one, every in zip(seconds["one_process"], seconds["every_core"])]
     return {
@@ -140,7 +137,7 @@ def render(result: dict) -> str:
     ratios = ", ".join(f"{r:.2f}" for r in result["speedups"])
     return f"""{BEGIN}
 A one-file ingest builds each camera's structure and self-check in one worker process per core, as a sharded
-ingest does on its cluster. Measured by `python scripts/ingest_cores.py --rounds {result['rounds']}`: drive
+ingest does on its cluster. Measured by `python benchmarks/ingest_cores.py --rounds {result['rounds']}`: drive
 {result['drive']}, cameras {', '.join(result['cameras'])} ({result['workers']} workers on {result['cpu_count']}
 cores), each configuration in a fresh process into a new store, in alternating order (medians, seconds; load
 {result['load_1min_start_end'][0]:.1f} at the start, {result['load_1min_start_end'][1]:.1f} at the end):
@@ -155,7 +152,7 @@ The two stores are {same}.
 
 
 def update_page(section: str) -> str:
-    return replace_section(PAGE, BEGIN, END, section)
+    return SECTION.updated_page(section)
 
 
 def main() -> int:
@@ -170,7 +167,7 @@ def main() -> int:
     parser.add_argument("--db", type=Path, help=argparse.SUPPRESS)
     a = parser.parse_args()
     if a.page:
-        PAGE.write_text(update_page(render(json.loads(OUT.read_text()))))
+        SECTION.render_page(render)
         return 0
     from visloc import default_data_root
 
@@ -180,7 +177,7 @@ def main() -> int:
         print(json.dumps(ingest_once(a.run, root, a.drive, cameras, a.db, a.workers)))
         return 0
     result = measure(root, a.drive, cameras, a.rounds, a.workers)
-    OUT.write_text(json.dumps(result, indent=1) + "\n")
+    SECTION.write(result)
     print(render(result))
     return 0
 

@@ -1,7 +1,7 @@
 """How long a saved run takes to open in the dashboard (``visloc dashboard --run FILE``), measured.
 
-    python scripts/saved_run_open.py [--results out/results]
-    python scripts/saved_run_open.py --page    # the performance page from docs/results/saved_run_open.json
+    python benchmarks/saved_run_open.py [--results out/results]
+    python benchmarks/saved_run_open.py --page    # the performance page from docs/results/saved_run_open.json
 
 For every run file the results hold (``track_*.json`` and each drive's ``evaluate`` JSON named in
 ``drives.json``), medians of 5 in this process: reading it (``visloc.load_run``) and the viewer's
@@ -13,8 +13,6 @@ of 3. Writes docs/results/saved_run_open.json; ``--page`` renders its section of
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import re
 import subprocess
@@ -24,19 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "scripts"))
 
 import viser  # noqa: E402
 
 import visloc  # noqa: E402
-from page_sections import replace_section  # noqa: E402
+from measuring import REPO, Section  # noqa: E402
+
+SECTION = Section("saved-run-open", "saved_run_open", REPO / "docs" / "performance.md")
+OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
 from visloc.dashboard.runview import RunViewer  # noqa: E402
 
-OUT = REPO / "docs" / "results" / "saved_run_open.json"
-PAGE = REPO / "docs" / "performance.md"
-BEGIN, END = "<!-- saved-run-open: begin (python scripts/saved_run_open.py --page) -->", "<!-- saved-run-open: end -->"
 URL = re.compile(r"visloc dashboard: http://\S+")
 
 
@@ -93,7 +88,7 @@ def measure(results: Path) -> dict:
     finally:
         server.stop()
     shown = os.path.relpath(results, REPO) if results.resolve().is_relative_to(REPO) else str(results)
-    return {"command": f"python scripts/saved_run_open.py --results {shown}", "runs": runs}
+    return {"command": f"python benchmarks/saved_run_open.py --results {shown}", "runs": runs}
 
 
 def render(result: dict) -> str:
@@ -119,20 +114,14 @@ def render(result: dict) -> str:
 
 
 def update_page(text: str) -> str:
-    return replace_section(PAGE, BEGIN, END, text)
+    return SECTION.updated_page(text)
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--results", type=Path, default=REPO / "out" / "results")
-    parser.add_argument("--page", action="store_true", help="only render its section of docs/performance.md from the JSON")
-    a = parser.parse_args()
-    if not a.page:
-        result = measure(a.results)
-        OUT.write_text(json.dumps(result, indent=1) + "\n")
-        print(f"wrote {OUT}", file=sys.stderr)
-    PAGE.write_text(update_page(render(json.loads(OUT.read_text()))))
-    return 0
+    def arguments(parser):
+        parser.add_argument("--results", type=Path, default=REPO / "out" / "results")
+
+    return SECTION.main(__doc__, lambda a: measure(a.results), render, arguments)
 
 
 if __name__ == "__main__":

@@ -2,7 +2,7 @@
 thread) against how it was done before (one product of all rows, with the process's BLAS threads), on real SIFT
 descriptors (drive 0001's right gray camera, each frame against the frame two ahead).
 
-    python scripts/matching_blocks.py [--root ../shared/data/kitti] [--drive 2011_09_26_drive_0001] [--rounds 5]
+    python benchmarks/matching_blocks.py [--root ../shared/data/kitti] [--drive 2011_09_26_drive_0001] [--rounds 5]
 
 Every pair's four arrays (nearest index, both squared distances, cosine) must come out identical both ways.
 Each round times every pair both ways, in an order that alternates from round to round, in one process with
@@ -23,9 +23,8 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_info
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
 
+from measuring import REPO  # noqa: E402
 import visloc.retrieval.matching as matching  # noqa: E402
 from visloc.features.sift import extract_sift, make_sift  # noqa: E402
 from visloc.params import PAPER_SIFT  # noqa: E402

@@ -1,7 +1,7 @@
 """How fast the live dashboard answers, measured on the real drives (the server's own work, no browser).
 
-    python scripts/dashboard_feedback.py [--db out/results/visloc.sqlite] [--tau1 0.72]
-    python scripts/dashboard_feedback.py --page   # its section of docs/performance.md from the JSON
+    python benchmarks/dashboard_feedback.py [--db out/results/visloc.sqlite] [--tau1 0.72]
+    python benchmarks/dashboard_feedback.py --page   # its section of docs/performance.md from the JSON
 
 For each drive of the store (the other camera as database when there is one, the paper's setup) and
 each mode (paper, refined), the dashboard app is started on it as ``visloc dashboard`` starts it (read
@@ -16,8 +16,6 @@ minutes); the machine's load is recorded beside it. Writes docs/results/dashboar
 
 from __future__ import annotations
 
-import argparse
-import json
 import os
 import shutil
 import sys
@@ -25,20 +23,16 @@ import tempfile
 import time
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "scripts"))
 
 import viser  # noqa: E402
 
 import visloc  # noqa: E402
-from page_sections import replace_section  # noqa: E402
+from measuring import REPO, Section, load_1min  # noqa: E402
+
+SECTION = Section("dashboard-feedback", "dashboard_feedback", REPO / "docs" / "performance.md")
+OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
 from visloc.dashboard.app import DashboardApp  # noqa: E402
 
-OUT = REPO / "docs" / "results" / "dashboard_feedback.json"
-PAGE = REPO / "docs" / "performance.md"
-BEGIN = "<!-- dashboard-feedback: begin (python scripts/dashboard_feedback.py --page) -->"
-END = "<!-- dashboard-feedback: end -->"
 LIMIT_S = 1800.0
 MODES = (visloc.PAPER_METHOD.name, visloc.REFINED_METHOD.name)
 
@@ -83,7 +77,7 @@ def measure_pair(store: Path, db: visloc.Dataset, queries: visloc.Dataset, mode:
         return {"database": db.name, "queries": queries.name, "mode": mode, "queries_per_run": len(s.run.records),
                 "drive_drawn_s": drawn - start, "first_step_s": first - start, "first_run_s": whole - start,
                 "tau1": tau1, "first_rematched_step_s": first_again - changed,
-                "rematched_run_s": whole_again - changed, "load_1min": os.getloadavg()[0]}
+                "rematched_run_s": whole_again - changed, "load_1min": load_1min()}
     finally:
         app.close()
         server.stop()
@@ -138,7 +132,7 @@ def measure(store: Path, tau1: float) -> dict:
                     r["first_step_without_counts_s"] = seconds
             print(f"{q.name} against {db.name}, no cached counts: first step {seconds:.1f} s", file=sys.stderr)
     shown = os.path.relpath(store, REPO) if store.resolve().is_relative_to(REPO) else str(store)
-    return {"command": f"python scripts/dashboard_feedback.py --db {shown} --tau1 {tau1:g}", "pairs": rows}
+    return {"command": f"python benchmarks/dashboard_feedback.py --db {shown} --tau1 {tau1:g}", "pairs": rows}
 
 
 def render(result: dict) -> str:
@@ -172,21 +166,15 @@ def render(result: dict) -> str:
 
 
 def update_page(text: str) -> str:
-    return replace_section(PAGE, BEGIN, END, text)
+    return SECTION.updated_page(text)
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
-    parser.add_argument("--tau1", type=float, default=0.72, help="the τ1 moved to (default %(default)s)")
-    parser.add_argument("--page", action="store_true", help="only render its section of docs/performance.md")
-    a = parser.parse_args()
-    if not a.page:
-        result = measure(a.db, a.tau1)
-        OUT.write_text(json.dumps(result, indent=1) + "\n")
-        print(f"wrote {OUT}", file=sys.stderr)
-    PAGE.write_text(update_page(render(json.loads(OUT.read_text()))))
-    return 0
+    def arguments(parser):
+        parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
+        parser.add_argument("--tau1", type=float, default=0.72, help="the τ1 moved to (default %(default)s)")
+
+    return SECTION.main(__doc__, lambda a: measure(a.db, a.tau1), render, arguments)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,90 @@
+"""What every measuring script in ``benchmarks/`` shares: the repository (and its engine, first on the path),
+the machine's load, the JSON a script writes and the docs section it renders from that JSON.
+
+A script measures, writes ``docs/results/NAME.json`` and renders its section of a docs page between two HTML
+comments; ``--page`` renders again from the JSON alone, so a page cannot drift from what was measured:
+
+    from measuring import REPO, Section, load_1min
+
+    SECTION = Section("track-following", "track_following", REPO / "docs" / "performance.md")
+    ...
+    SECTION.main(__doc__, measure, render)      # or the pieces: SECTION.write(result), SECTION.render_page(render)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))  # the engine of this checkout, whatever is installed
+
+
+def load_1min() -> float:
+    """The machine's load average over the last minute (2 cores here: above 2, runs queue)."""
+    return os.getloadavg()[0]
+
+
+def replace_section(page: Path, begin: str, end: str, text: str) -> str:
+    """``page``'s text with the section from ``begin`` to ``end`` replaced by ``text`` (which carries both)."""
+    content = page.read_text()
+    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.DOTALL)
+    if not pattern.search(content):
+        raise SystemExit(f"{page}: no section between {begin} and {end}")
+    return pattern.sub(lambda _: text, content)
+
+
+@dataclass(frozen=True)
+class Section:
+    """A measuring script's JSON (``docs/results/<script>.json``) and its section ``marker`` of ``page``."""
+
+    marker: str
+    script: str
+    page: Path
+
+    @property
+    def out(self) -> Path:
+        return REPO / "docs" / "results" / f"{self.script}.json"
+
+    @property
+    def begin(self) -> str:
+        return f"<!-- {self.marker}: begin (python benchmarks/{self.script}.py --page) -->"
+
+    @property
+    def end(self) -> str:
+        return f"<!-- {self.marker}: end -->"
+
+    def write(self, result: dict) -> None:
+        self.out.write_text(json.dumps(result, indent=1) + "\n")
+        print(f"wrote {self.out.relative_to(REPO)}")
+
+    def updated_page(self, rendered: str) -> str:
+        """The page's text with this section replaced by ``rendered`` (which carries its markers)."""
+        return replace_section(self.page, self.begin, self.end, rendered)
+
+    def render_page(self, render: Callable[[dict], str]) -> None:
+        """Render the section from the JSON into the page."""
+        self.page.write_text(self.updated_page(render(json.loads(self.out.read_text()))))
+        print(f"rendered {self.page.relative_to(REPO)}")
+
+    def main(self, doc: str, measure: Callable[[argparse.Namespace], dict], render: Callable[[dict], str],
+             add_arguments: Callable[[argparse.ArgumentParser], None] | None = None) -> int:
+        """The usual command line: measure (with the script's own arguments), write the JSON, render the
+        page; ``--page``: only render the page from the JSON."""
+        parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+        if add_arguments is not None:
+            add_arguments(parser)
+        parser.add_argument("--page", action="store_true", help=f"only render its section of "
+                                                                f"{self.page.relative_to(REPO)} from the JSON")
+        a = parser.parse_args()
+        if not a.page:
+            self.write(measure(a))
+        self.render_page(render)
+        return 0
