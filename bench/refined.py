@@ -15,7 +15,7 @@ import numpy as np
 
 from visloc.params import PAPER_FILTER, TrackParams
 from visloc.progress import progress_reporter
-from visloc.sources.drives import Sequence
+from visloc.sources.drives import Drive
 from visloc.protocols.track import TrackRun, run_track, track_filter, track_localizer
 from visloc.store.workspace import Workspace
 
@@ -33,7 +33,7 @@ def _path_summary(run: TrackRun) -> dict:
                           for f in run.frames]}
 
 
-def refined_fast(ws: Workspace, queries: Sequence, db_camera: str, stride: int, say) -> dict:
+def refined_fast(ws: Workspace, queries: Drive, db_camera: str, stride: int, say) -> dict:
     """Both refined paths on every ``stride``-th frame of ``queries`` against ``db_camera`` of the same drive."""
     db = ws.load_database(queries.source, db_camera)
     out: dict = {"queries": queries.name, "database": f"{db.source}/{db.camera}", "stride": stride,

@@ -109,7 +109,7 @@ def reingest_check_cost(ws: Workspace, source: str, camera: str) -> dict:
 def measure(db: Path) -> dict:
     ws = Workspace(db, read_only=True)
     drives = []
-    for d in ws.datasets():
+    for d in ws.drives():
         source, camera = d.name.split("/")
         if not Path(ws.load_database(source, camera).images[0].path).is_file():
             print(f"{d.name}: its images are not where they were ingested from; skipped", file=sys.stderr)

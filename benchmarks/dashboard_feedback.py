@@ -53,7 +53,7 @@ def on_page(app: DashboardApp, condition) -> bool:
         return run is not None and view is not None and bool(view.records) and condition(run, view)
 
 
-def measure_pair(store: Path, db: visloc.Dataset, queries: visloc.Dataset, mode: str, tau1: float,
+def measure_pair(store: Path, db: visloc.StoredDrive, queries: visloc.StoredDrive, mode: str, tau1: float,
                  port: int) -> dict:
     server = viser.ViserServer(port=port, verbose=False)
     start = time.perf_counter()
@@ -83,7 +83,7 @@ def measure_pair(store: Path, db: visloc.Dataset, queries: visloc.Dataset, mode:
         server.stop()
 
 
-def first_step_fresh(store: Path, db: visloc.Dataset, queries: visloc.Dataset, port: int) -> float:
+def first_step_fresh(store: Path, db: visloc.StoredDrive, queries: visloc.StoredDrive, port: int) -> float:
     """Seconds from the start to the first matched step on ``store`` (a copy without cached counts)."""
     server = viser.ViserServer(port=port, verbose=False)
     start = time.perf_counter()
@@ -104,9 +104,9 @@ def without_counts(store: Path, folder: Path) -> Path:
     return copy
 
 
-def pairs(store: Path) -> list[tuple[visloc.Dataset, visloc.Dataset]]:
+def pairs(store: Path) -> list[tuple[visloc.StoredDrive, visloc.StoredDrive]]:
     """Per drive: the other camera as database when there is one (the paper's setup), else the same camera."""
-    datasets = visloc.Workspace(store, read_only=True).datasets()
+    datasets = visloc.Workspace(store, read_only=True).drives()
     out = []
     for source in sorted({d.source for d in datasets}):
         mine = {d.camera: d for d in datasets if d.source == source}

@@ -266,7 +266,7 @@ class DashboardApp:
             return
         try:
             workspace = visloc.Workspace(path, read_only=True)  # the page never changes a store
-            datasets = workspace.datasets()
+            datasets = workspace.drives()
             if not datasets:
                 raise visloc.InputError(f"{path}: holds no images yet (build it with 'visloc ingest')")
         except visloc.VislocError as exc:

@@ -232,7 +232,7 @@ def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.Drive
                             "at three quarters of its size, as a vehicle would." if matches.method.camera_rate else ""))
 
 
-def store_html(path: str, datasets: list[visloc.Dataset], sift: visloc.SiftParams | None) -> str:
+def store_html(path: str, datasets: list[visloc.StoredDrive], sift: visloc.SiftParams | None) -> str:
     """The store panel: the file, its datasets (``source/camera``) and its SIFT settings."""
     items = "".join(f"<li>{text(d.name)}: {d.n_images} images over {d.duration_s:.1f} s, "
                     f"{d.mean_keypoints:.0f} keypoints/image{'' if d.has_calibration else ', no calibration'}</li>"

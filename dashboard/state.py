@@ -127,7 +127,7 @@ class Shown:
     store_request: tuple[int, str] | None = None  # the last store request acted on
     store_path: str | None = None
     workspace: visloc.Workspace | None = None
-    datasets: list[visloc.Dataset] = field(default_factory=list)
+    datasets: list[visloc.StoredDrive] = field(default_factory=list)
     data_key: tuple | None = None  # (store path, database name, queries name) of the loaded data
     loading_key: tuple | None = None
     db: visloc.GeoDatabase | None = None

@@ -17,6 +17,11 @@ mkdir -p "$out"
 bash scripts/setup.sh
 before_src="$out/source_$ref"
 [ -d "$before_src" ] || git worktree add --detach "$before_src" "$ref" >/dev/null
+# db/, dashboard/ and bench/ install as visloc.db, ... from this checkout (pyproject.toml's package-dir): linked
+# into the earlier checkout's visloc/, its own are imported instead of this checkout's
+for folder in db dashboard bench; do
+    [ -e "$before_src/visloc/$folder" ] || ln -s "../$folder" "$before_src/visloc/$folder"
+done
 trap 'git worktree remove --force "$before_src"' EXIT
 status=0
 for run in "2011_09_26_drive_0001 image_00 image_01" "2011_09_26_drive_0005 image_00 image_00"; do

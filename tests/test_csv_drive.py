@@ -169,7 +169,7 @@ def test_a_csv_with_attitude_but_no_calibration_runs_the_paper_mode_only(both, t
     store = tmp_path / "s.sqlite"
     result = run_cli("ingest", drive / "geotags.csv", "--db", store, "--workers", "1")
     assert result.returncode == 0, result.stderr
-    (dataset,) = Workspace(store).datasets()
+    (dataset,) = Workspace(store).drives()
     assert (dataset.n_images, dataset.has_calibration, dataset.has_extrinsics, dataset.n_without_attitude) == (
         12, False, False, 0)
     db, _ = load(store, "uncalibrated", "camera")

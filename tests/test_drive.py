@@ -55,9 +55,9 @@ def test_query_indices_follow_start_and_interval():
 
 def test_workspace_describes_the_store(workspace):
     ws, db, queries = workspace
-    names = [d.name for d in ws.datasets()]
+    names = [d.name for d in ws.drives()]
     assert names == ["dbdrive/camera", "querydrive/camera"]
-    assert all(d.n_images == 14 and d.duration_s == pytest.approx(6.5) for d in ws.datasets())
+    assert all(d.n_images == 14 and d.duration_s == pytest.approx(6.5) for d in ws.drives())
     assert ws.sift_params == SiftParams()
     assert len(queries.keypoints_f32) == 14 and queries.keypoints_f32[0].shape[1] == 6
     assert np.allclose(queries.heading_deg, 90.0)

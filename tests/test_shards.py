@@ -162,11 +162,11 @@ def test_a_command_reads_the_catalogue_of_the_drives_it_uses_only(tmp_path, csv_
     assert _ingest(north, city, "--workers", "2").returncode == 0
     assert _ingest(north, alone, "--workers", "1").returncode == 0
     ws = Workspace(city)
-    assert len(ws.dataset_keys()) == 2 and ws.catalogue_datasets == frozenset()  # the manifest says what it holds
+    assert len(ws.drive_keys()) == 2 and ws.catalogue_datasets == frozenset()  # the manifest says what it holds
     settings_only = ws._file
     assert _all_ids(settings_only) == [] and len(_all_ids(merged_store(city, features=False))) == 24
     assert settings_only.is_file()  # catalogues of other drives, or of all, are kept beside each other
-    (north_key,) = Workspace(alone).dataset_keys()
+    (north_key,) = Workspace(alone).drive_keys()
     db = ws.load_database(*north_key)
     assert ws.catalogue_datasets == {north_key}
     assert _all_ids(ws._file) == [im.image_id for im in db.images]  # its 12 images, none of the other drive
@@ -174,7 +174,7 @@ def test_a_command_reads_the_catalogue_of_the_drives_it_uses_only(tmp_path, csv_
         assert set(manifest.owner_tiles(*north_key).values()) < {t.key for t in manifest.tiles()}
     expected = Workspace(alone).load_database(*north_key)
     assert np.array_equal(db.east_north_m, expected.east_north_m) and len(db) == 12
-    assert ws.image_count() == 24 and {d.name for d in ws.datasets()} == {f"{s}/{c}" for s, c in ws.dataset_keys()}
+    assert ws.image_count() == 24 and {d.name for d in ws.drives()} == {f"{s}/{c}" for s, c in ws.drive_keys()}
     assert len(ws.catalogue_datasets) == 2  # a summary of every drive reads them all
 
     here = run_cli("localize", north, "--db", city, "--steps", "4")
@@ -203,14 +203,14 @@ def test_a_changed_store_replaces_the_catalogue_made_of_it_before(tmp_path, csv_
     assert len(_all_ids(second)) == 24
 
     reader = Workspace(city)  # a reader open while the store is extended again reads on
-    key = reader.dataset_keys()[0]
+    key = reader.drive_keys()[0]
     assert reader.image_count() == 24 and len(reader.load_database(*key)) == 12
     before = reader._file
     shutil.copytree(csv_drive.parent, tmp_path / "latest")  # the same place: the same tiles change
     assert _ingest(tmp_path / "latest" / "geotags.csv", city, "--workers", "2").returncode == 0
     Workspace(city).load_database(*key)  # another command's catalogue of that drive replaces the reader's
     assert not before.exists()
-    assert len(reader.load_database(*key)) == 12 and len(reader.datasets()) == 3
+    assert len(reader.load_database(*key)) == 12 and len(reader.drives()) == 3
 
 
 @pytest.mark.slow
@@ -224,7 +224,7 @@ def test_a_query_reads_only_the_tiles_of_the_images_it_looks_at(tmp_path, csv_dr
     with Manifest(city, read_only=True) as manifest:
         n_tiles = len(manifest.tiles())
     one = Workspace(single, read_only=True)
-    (dataset,) = one.datasets()
+    (dataset,) = one.drives()
     expected = one.load_database(dataset.source, dataset.camera)
     ws = Workspace(city, tile_cache_mb=1.0)
     db = ws.load_database(dataset.source, dataset.camera)
@@ -354,7 +354,7 @@ def test_structure_is_read_from_the_tile_that_owns_each_view(city_0001, kitti_ro
         n_rows, n_with_points = conn.execute("SELECT count(*), count(points_f64) FROM structures").fetchone()
     assert n_rows > 0 and n_with_points == 0
     single, tiles = Workspace(folder / "kitti.sqlite", read_only=True), Workspace(city_0001)
-    dataset = next(d for d in tiles.datasets() if d.camera == "image_01")  # the one file's database camera
+    dataset = next(d for d in tiles.drives() if d.camera == "image_01")  # the one file's database camera
     one = single.load_structure(single.load_database(dataset.source, dataset.camera))
     lazy = tiles.load_structure(tiles.load_database(dataset.source, dataset.camera))
     assert tiles.tile_cache_stats.tiles_read == 0  # no tile read before a view is asked for

@@ -45,12 +45,12 @@ _EXPORTS = {
                              "params_that_differ", "run_figures", "run_files", "steps_of_records", "worst_steps"),
     "visloc.retrieval.matching": ("MatchCancelled", "PairCountCache", "correspondences", "nearest_two"),
     "visloc.retrieval.retrievers": ("Retrieval", "retrieve"),
-    "visloc.sources.drives": ("Sequence", "default_data_root", "load_gray", "open_csv", "open_kitti", "open_source"),
+    "visloc.sources.drives": ("Drive", "default_data_root", "load_gray", "open_csv", "open_kitti", "open_source"),
     "visloc.sources.queries": ("extract_queries",),
     "visloc.store.build": ("ingest_sequence",),
     "visloc.store.database": ("GeoDatabase", "QuerySet"),
     "visloc.store.ingest": ("IngestReport",),
-    "visloc.store.workspace": ("Dataset", "Workspace"),
+    "visloc.store.workspace": ("StoredDrive", "Workspace"),
     "visloc.tracking.kalman": ("covariance_ellipse_m", "run_filter"),
     "visloc.tracking.localizer": ("Localizer", "StepResult"),
     "visloc.tracking.methods": ("build_localizer",),
@@ -74,7 +74,7 @@ def __dir__() -> list[str]:
 
 __all__ = [
     # drives and the store
-    "Dataset", "GeoDatabase", "IngestReport", "QuerySet", "Sequence", "Workspace", "default_data_root",
+    "StoredDrive", "GeoDatabase", "IngestReport", "QuerySet", "Drive", "Workspace", "default_data_root",
     "ingest_sequence", "load_gray", "open_csv", "open_kitti", "open_source",
     # parameters and methods
     "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",

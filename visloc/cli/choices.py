@@ -68,7 +68,7 @@ def choose_database(ws: Workspace, query_source: str, *, db_source: str | None =
     ``db_camera``, when given, win; else the query's own source if the store holds it (with
     ``db_camera``), or the only source that fits; the source's only camera, or the first of ``prefer``
     it holds. Anything else is ambiguous: an ``InputError`` listing what the store holds."""
-    datasets = ws.dataset_keys()  # (source, camera) pairs: a sharded store's catalogue is not read for them
+    datasets = ws.drive_keys()  # (source, camera) pairs: a sharded store's catalogue is not read for them
     held = ", ".join(f"{s}/{c}" for s, c in datasets) or "nothing"
     if not datasets:
         raise InputError(f"{ws.path}: holds no images yet (build it with 'visloc ingest')")
@@ -100,7 +100,7 @@ def choose_database(ws: Workspace, query_source: str, *, db_source: str | None =
 def only_camera(path: Path | str) -> str | None:
     """The camera of a store holding exactly one (source, camera); None otherwise or if unreadable."""
     try:
-        datasets = (Workspace(path, read_only=True).dataset_keys()
+        datasets = (Workspace(path, read_only=True).drive_keys()
                     if Path(path).is_file() or Workspace.is_sharded(path) else [])
     except InputError:
         return None

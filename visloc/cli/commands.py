@@ -27,7 +27,7 @@ from visloc.protocols.records import QueryTruth, records_of
 from visloc.results.report import (evaluation_json, is_paper_protocol, record_json, save_error_plot, series_tables,
                            summary_text, track_text, write_json)
 from visloc.tracking.runs import run_queries
-from visloc.sources.drives import Sequence, default_data_root, open_source
+from visloc.sources.drives import Drive, default_data_root, open_source
 from visloc.protocols.suite import database_row, drive_protocols, drives_of, pooled_rows, protocol_row, table_text
 from visloc.protocols.track import run_track, track_filter, track_localizer
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
@@ -89,7 +89,7 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
             "shortlist_index": ws.load_database_index(db, method.shortlist)}
 
 
-def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,
+def _ingest(ws: Workspace, seq: Drive, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,
             structure: bool = True, repair: bool = False, cluster=None):
     if ws.sharded:  # read by this command, never written: it holds the drive, or says how to add it
         return require_stored(ws, seq)
@@ -109,7 +109,7 @@ def _ingest(ws: Workspace, seq: Sequence, sift: SiftParams, a: argparse.Namespac
 _NOTES_SHOWN: set[str] = set()
 
 
-def _open_source(*args, **kwargs) -> Sequence:
+def _open_source(*args, **kwargs) -> Drive:
     """``open_source``, telling the user once what reading it changed (e.g. intrinsics scaled to the images)."""
     seq = open_source(*args, **kwargs)
     for note in seq.notes:
@@ -148,7 +148,7 @@ def cmd_ingest(a: argparse.Namespace) -> int:
     return 0
 
 
-def _print_ingest(a: argparse.Namespace, seq: Sequence, report) -> None:
+def _print_ingest(a: argparse.Namespace, seq: Drive, report) -> None:
     filled = f", attitude filled in for {report.n_attitudes_filled}" if report.n_attitudes_filled else ""
     bad = report.n_bad_skipped
     bad = f", {bad} bad frame{'s' if bad > 1 else ''} skipped (visloc info lists them)" if bad else ""
@@ -210,7 +210,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Sequence | None, query_seq: Sequence,
+def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Drive | None, query_seq: Drive,
                       methods: list[Method], sift: SiftParams, *, wanted: set[int] | None = None, label: str = "",
                       db_key: tuple[str, str] | None = None):
     """Ingest both sources (skipping what is stored), evaluate each method on them, keep the counts.
@@ -422,7 +422,7 @@ def cmd_info(a: argparse.Namespace) -> int:
     if ws.sharded:
         print(sharded_summary(a.db))
     print(f"SIFT settings: {sift.as_dict() if sift else 'none yet'}")
-    for d in ws.datasets():
+    for d in ws.drives():
         calib = "P_rect known" if d.has_calibration else "no calibration"
         calib += ", extrinsics known" if d.has_extrinsics else ", no extrinsics"
         calib += f", {d.n_without_attitude} without attitude" if d.n_without_attitude else ", attitudes known"

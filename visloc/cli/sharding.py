@@ -12,13 +12,13 @@ from visloc.cli.stopping import interrupted_status, interrupted_text
 from visloc.db.shards import is_sharded
 from visloc.errors import InputError
 from visloc.progress import progress_reporter
-from visloc.sources.drives import Sequence
+from visloc.sources.drives import Drive
 from visloc.store.cluster import open_cluster
 from visloc.store.sharded import DEFAULT_HALO_M, prepare_store, publish_tiles, sharded_grid, staging_path
 from visloc.store.workspace import Workspace
 
 
-def ingest_sharded(a: argparse.Namespace, sequences: list[Sequence], ingest_one: Callable) -> int:
+def ingest_sharded(a: argparse.Namespace, sequences: list[Drive], ingest_one: Callable) -> int:
     """Ingest ``sequences`` into the sharded store ``a.db`` on a Dask cluster (``ingest_one(workspace,
     sequence, cluster)`` ingests one into its working store and prints its report), then cut the tiles."""
     folder = Path(a.db)
@@ -63,7 +63,7 @@ def print_tiles_read(ws: Workspace) -> None:
               f"{stats.peak_bytes / 1e6:.1f} MB held)")
 
 
-def require_stored(ws: Workspace, seq: Sequence) -> None:
+def require_stored(ws: Workspace, seq: Drive) -> None:
     """A reading command's drive must be in the sharded store whole (its frames stored, or skipped as
     unreadable at ingest): a sharded store is extended by 'visloc ingest --db FOLDER' only."""
     skipped = len(ws.skipped_frames(seq.source, seq.camera))

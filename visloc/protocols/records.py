@@ -14,7 +14,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from visloc.sources.drives import Sequence as Drive
+from visloc.sources.drives import Drive
 from visloc.store.database import GeoDatabase, QuerySet, same_drive
 from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
 from visloc.tracking.localizer import StepResult

@@ -34,7 +34,7 @@ from visloc.sources.queries import extract_queries
 from visloc.pose.structure import seeded_structure_cache
 from visloc.tracking.follower import FollowedStep, PointFollower, first_fix
 from visloc.tracking.runs import steps_of
-from visloc.sources.drives import Sequence
+from visloc.sources.drives import Drive
 from visloc.pose.uncertainty import SIDES, calibration
 from visloc.stats import LATENCY_FIGURES, summary_of
 from visloc.store.workspace import Workspace
@@ -42,7 +42,7 @@ from visloc.store.workspace import Workspace
 WINDOW_S = 20.0  # the exact path's retrieval window, the paper's
 
 
-def track_filter(seq: Sequence, params: TrackParams, base: FilterParams = PAPER_FILTER) -> FilterParams:
+def track_filter(seq: Drive, params: TrackParams, base: FilterParams = PAPER_FILTER) -> FilterParams:
     """``base`` with the time step of one localized frame: the median frame interval times the stride."""
     t = seq.timestamps_s
     if len(t) < 2:
@@ -183,7 +183,7 @@ class TrackRun:
         return out
 
 
-def _frame_record(seq: Sequence, i: int, r: StepResult, latency: float, db: GeoDatabase,
+def _frame_record(seq: Drive, i: int, r: StepResult, latency: float, db: GeoDatabase,
                   truth_shares_map: bool) -> TrackFrame:
     fr, m = seq.frames[i], r.measurement
     truth = (fr.lat_deg, fr.lon_deg)
@@ -234,7 +234,7 @@ def _stored_structure(localizer: Localizer) -> dict | None:
     return stored if isinstance(stored, dict) else None
 
 
-def run_track(localizer: Localizer, seq: Sequence, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
+def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
               indices: list[int] | None = None, path_params: dict | None = None,
               progress: Callable[[int, int], None] | None = None,
               cancelled: Callable[[], bool] | None = None, pose: RefinedParams | None = None) -> TrackRun:

@@ -1,6 +1,6 @@
 """Image sequences with geotags: KITTI raw drives and a generic folder + CSV.
 
-A ``Sequence`` is a list of ``Frame`` (image file, timestamp, geotag) from one
+A ``Drive`` is a list of ``Frame`` (image file, timestamp, geotag) from one
 camera, plus the camera's rectified projection matrix when known. Nothing here
 computes anything; it reads files and checks that they agree.
 
@@ -81,7 +81,7 @@ class Frame:
 
 
 @dataclass(frozen=True)
-class Sequence:
+class Drive:
     source: str  # drive or dataset name
     camera: str
     frames: tuple[Frame, ...]
@@ -243,7 +243,7 @@ def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, fl
     return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw, accuracy
 
 
-def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
+def open_kitti(root: Path, drive: str | None, camera: str) -> Drive:
     """One camera of a KITTI raw drive, every frame checked for an image and an OXTS record."""
     if camera not in KITTI_CAMERAS:
         raise InputError(f"--camera {camera!r}: must be one of {', '.join(KITTI_CAMERAS)}")
@@ -279,7 +279,7 @@ def open_kitti(root: Path, drive: str | None, camera: str) -> Sequence:
     calib = read_kitti_calibration(folder.parent / "calib_cam_to_cam.txt", camera)
     extrinsics = read_kitti_extrinsics(folder.parent, camera) if calib is not None else None
     size = read_kitti_image_size(folder.parent / "calib_cam_to_cam.txt", camera) if calib is not None else None
-    return Sequence(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib, image_size_px=size,
+    return Drive(source=folder.name, camera=camera, frames=tuple(frames), P_rect=calib, image_size_px=size,
                     T_camera_imu=extrinsics)
 
 
@@ -379,7 +379,7 @@ def _rows(csv_path: Path) -> list[tuple[int, dict[str, str]]]:
         raise InputError(f"{csv_path}:{reader.reader.line_num}: not readable as CSV ({exc})") from None
 
 
-def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera") -> Sequence:
+def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera") -> Drive:
     """A drive brought as images plus a CSV of geotags, and ``calibration.json`` beside it when present
     (see the module docstring), its frames ordered by time."""
     csv_path = Path(csv_path)
@@ -403,14 +403,14 @@ def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera
     source = source or csv_path.parent.name
     calibration_path = csv_path.parent / CALIBRATION_FILE
     if not calibration_path.is_file():
-        return Sequence(source=source, camera=camera, frames=frames)
+        return Drive(source=source, camera=camera, frames=frames)
     calib = read_calibration(calibration_path)
-    return Sequence(source=source, camera=camera, frames=frames, P_rect=calib.P_rect,
+    return Drive(source=source, camera=camera, frames=frames, P_rect=calib.P_rect,
                     image_size_px=(calib.width_px, calib.height_px), T_camera_imu=calib.T_camera_imu,
                     distortion=calib.distortion)
 
 
-def open_source(path: Path | None, *, drive: str | None = None, camera: str = "image_01") -> Sequence:
+def open_source(path: Path | None, *, drive: str | None = None, camera: str = "image_01") -> Drive:
     """A CSV file gives a generic sequence; a folder is read as a KITTI raw root (None: the default
     data root, ``default_data_root()``)."""
     path = default_data_root() if path is None else Path(path)
@@ -419,11 +419,11 @@ def open_source(path: Path | None, *, drive: str | None = None, camera: str = "i
     return fit_calibration(open_kitti(path, drive, camera))
 
 
-def fit_calibration(sequence: Sequence) -> Sequence:
+def fit_calibration(sequence: Drive) -> Drive:
     """``sequence`` with a calibration that fits its images, judged from the first image's header.
 
     Images of the calibration's size: unchanged. Images resized from it (the same aspect ratio, to a
-    pixel): the intrinsics scaled to their size, and a note saying so (``Sequence.notes``). Any other
+    pixel): the intrinsics scaled to their size, and a note saying so (``Drive.notes``). Any other
     size: ``InputError`` naming the image, both sizes and the calibration."""
     if sequence.image_size_px is None or sequence.P_rect is None or not sequence.frames:
         return sequence

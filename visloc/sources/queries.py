@@ -12,10 +12,10 @@ import cv2
 
 from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
 from visloc.params import SiftParams
-from visloc.sources.drives import Sequence, load_gray
+from visloc.sources.drives import Drive, load_gray
 
 
-def extract_queries(sequence: Sequence, indices: Iterable[int], sift: SiftParams, *,
+def extract_queries(sequence: Drive, indices: Iterable[int], sift: SiftParams, *,
                     engine: "cv2.SIFT | None" = None, paced_hz: float = 0.0) -> Iterator[Query]:
     """The frames ``indices`` of ``sequence`` as queries, lazily: each image is read (not timed) and
     described by SIFT (timed: ``Query.sift_ms``) when the query is reached. Queries have no key.

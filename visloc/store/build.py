@@ -19,7 +19,7 @@ from visloc.params import FAST, REFINED, FastParams, RefinedParams, SiftParams
 from visloc.pose.refined import StructureCache, one_blas_thread
 from visloc.pose.selfcheck import pose_record, self_check, self_check_settings_json
 from visloc.pose.structure import VARIANTS, seeded_structure_cache, structure_settings_json, view_structures
-from visloc.sources.drives import Sequence
+from visloc.sources.drives import Drive
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport
 from visloc.store.processes import local_processes
@@ -28,7 +28,7 @@ from visloc.store.workspace import Workspace, global_vectors_name
 Progress = Callable[[int, int], None] | None
 
 
-def ingest_sequence(ws: Workspace, sequence: Sequence, sift: SiftParams, *, workers: int | None = None,
+def ingest_sequence(ws: Workspace, sequence: Drive, sift: SiftParams, *, workers: int | None = None,
                     limit: int | None = None, progress: Progress = None, structure_progress: Progress = None,
                     structure: bool = True, skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
                     vectors_progress: Progress = None, self_check_progress: Progress = None,

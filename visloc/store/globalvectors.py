@@ -50,7 +50,7 @@ class GlobalVectors:
     def global_vectors_by_image(self, params: FastParams = FAST) -> tuple[str, dict[int, np.ndarray]]:
         """(the names joined, image id -> global vector) of every dataset's global vectors made with ``params``."""
         names, vectors = [], {}
-        for d in self.datasets():
+        for d in self.drives():
             name = global_vectors_name(d.source, d.camera, params)
             if self.has_global_index(name):
                 image_ids, index = self.load_global_index(name)

@@ -30,7 +30,7 @@ from visloc.errors import InputError
 from visloc.features.sift import extract_sift, make_sift, undistort_keypoints
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, check_image_size, header_size_px, require_max_image_mp
 from visloc.params import SiftParams
-from visloc.sources.drives import Frame, Sequence, file_digest, read_image
+from visloc.sources.drives import Frame, Drive, file_digest, read_image
 from visloc.store.processes import stop_now, wait_or_broken
 
 SIFT_SETTINGS_KEY = "sift"
@@ -145,7 +145,7 @@ def _extract_frame(item: WorkItem) -> Extracted:
     return frame, keypoints, features.descriptors_u8, sift_ms, size, (sha256, n_bytes)
 
 
-def _undistortion(sequence: Sequence) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _undistortion(sequence: Drive) -> tuple[np.ndarray | None, np.ndarray | None]:
     if sequence.distortion is None:
         return None, None
     if sequence.P_rect is None:
@@ -157,7 +157,7 @@ class WorkerDiedError(InputError):
     """A SIFT worker process ended without a result (killed, or out of memory)."""
 
 
-def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Sequence,
+def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Drive,
                max_image_mp: float, cluster=None) -> Iterator[tuple[Frame, Extracted | InputError]]:
     """(frame, its extraction or the ``InputError`` that says why it has none), in ``todo``'s order.
 
@@ -217,7 +217,7 @@ def _extracted(todo: list[Frame], params: SiftParams, workers: int, sequence: Se
 
 def ingest(
     store: FeatureStore,
-    sequence: Sequence,
+    sequence: Drive,
     params: SiftParams,
     *,
     workers: int | None = None,
@@ -333,7 +333,7 @@ class _Stale:
         return self.damaged | self.changed | self.unrecorded
 
 
-def _stale(store: FeatureStore, sequence: Sequence, stored: dict[int, StoredSource], repair: bool) -> _Stale:
+def _stale(store: FeatureStore, sequence: Drive, stored: dict[int, StoredSource], repair: bool) -> _Stale:
     """Which stored frames of ``sequence`` must be described again; damaged structure, global vectors
     and encoders of its camera are dropped here (the build steps make them again)."""
     damage = list(scan(store, source=sequence.source, camera=sequence.camera))
@@ -362,14 +362,14 @@ def _same_features(store: FeatureStore, image_id: int, keypoints: np.ndarray, de
             and np.array_equal(stored_keypoints, np.asarray(keypoints, np.float32)))
 
 
-def _replace(store: FeatureStore, sequence: Sequence, batch: list) -> None:
+def _replace(store: FeatureStore, sequence: Drive, batch: list) -> None:
     """Replace stored images in place; drop what was made from those not ``restored`` to their first bytes."""
     ids = replace_images(store, [(record, keypoints, descriptors) for record, keypoints, descriptors, _ in batch])
     changed = [image_id for image_id, (*_, restored) in zip(ids, batch) if not restored]
     forget_derived(store, sequence.source, sequence.camera, changed)
 
 
-def _refuse_mixed_undistortion(store: FeatureStore, sequence: Sequence) -> None:
+def _refuse_mixed_undistortion(store: FeatureStore, sequence: Drive) -> None:
     """Keypoints stored without calibration were not undistorted: refuse to add undistorted ones beside
     them (or to give them a pinhole calibration they do not fit)."""
     if sequence.distortion is None:
@@ -380,7 +380,7 @@ def _refuse_mixed_undistortion(store: FeatureStore, sequence: Sequence) -> None:
                          "not undistorted; ingest it into a new store to use the calibration's distortion")
 
 
-def backfill_accuracies(store: FeatureStore, sequence: Sequence) -> int:
+def backfill_accuracies(store: FeatureStore, sequence: Drive) -> int:
     """Fill the stated geotag accuracy that a store built before schema version 3 lacks, from
     ``sequence``; features are untouched. Returns the number of images filled."""
     lacking = store.frames_without_accuracy(sequence.source, sequence.camera)
@@ -389,7 +389,7 @@ def backfill_accuracies(store: FeatureStore, sequence: Sequence) -> int:
     return store.set_position_accuracies(sequence.source, sequence.camera, accuracies) if accuracies else 0
 
 
-def backfill_poses(store: FeatureStore, sequence: Sequence) -> int:
+def backfill_poses(store: FeatureStore, sequence: Drive) -> int:
     """Fill attitudes and camera extrinsics that a store built before schema version 2 lacks (or that a
     CSV drive gained since it was stored).
 

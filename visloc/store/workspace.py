@@ -33,7 +33,7 @@ from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
 from visloc.pose.selfcheck import lever_gain_from, record_pose, self_check_settings_json
-from visloc.sources.drives import Sequence
+from visloc.sources.drives import Drive
 from visloc.pose.structure import (ViewStructure, structure_settings_json)
 from visloc.pose.uncertainty import LeverGain
 from visloc.store.globalvectors import GlobalVectors, global_vectors_name  # noqa: F401 (named here too)
@@ -42,7 +42,7 @@ STORE_SCHEMA_VERSION = SCHEMA_VERSION  # the store schema this visloc reads and 
 
 
 @dataclass(frozen=True)
-class Dataset:
+class StoredDrive:
     """One (source, camera) held by a store."""
 
     source: str
@@ -155,14 +155,14 @@ class Workspace(GlobalVectors):
         with self._store() as store:
             return store.image_count()
 
-    def dataset_keys(self) -> list[tuple[str, str]]:
+    def drive_keys(self) -> list[tuple[str, str]]:
         """(source, camera) of every dataset the store holds, without reading their images."""
         if self._catalogue is not None:
             return held_datasets(self.path)
         with self._store() as store:
             return sorted((r["source"], r["camera"]) for r in store.sources())
 
-    def datasets(self) -> list[Dataset]:
+    def drives(self) -> list[StoredDrive]:
         """Every dataset the store holds, summed up (for a sharded store, its whole catalogue is read)."""
         if self._catalogue is not None:
             self._catalogue.cover_all()
@@ -175,7 +175,7 @@ class Workspace(GlobalVectors):
         for r in rows:
             key = (r["source"], r["camera"])
             cam = cameras.get(key)
-            out.append(Dataset(r["source"], r["camera"], int(r["n_images"]),
+            out.append(StoredDrive(r["source"], r["camera"], int(r["n_images"]),
                                float(r["last_timestamp_s"] - r["first_timestamp_s"]), float(r["mean_keypoints"] or 0.0),
                                has_calibration=cam is not None and cam.P_rect is not None,
                                has_extrinsics=cam is not None and cam.T_camera_imu is not None,
@@ -196,7 +196,7 @@ class Workspace(GlobalVectors):
         with self._store() as store:
             return len(store.stored_frames(source, camera))
 
-    def add_features(self, sequence: Sequence, sift: SiftParams, *, workers: int | None = None,
+    def add_features(self, sequence: Drive, sift: SiftParams, *, workers: int | None = None,
                      limit: int | None = None, progress: Callable[[int, int], None] | None = None,
                      skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
                      repair: bool = False, cluster=None) -> IngestReport:
@@ -285,7 +285,7 @@ class Workspace(GlobalVectors):
         check_sift_settings(store, sift)
         images = tuple(store.images(source, camera))
         if not images:
-            have = ", ".join(f"{s}/{c}" for s, c in self.dataset_keys()) or "nothing"
+            have = ", ".join(f"{s}/{c}" for s, c in self.drive_keys()) or "nothing"
             raise EmptyStoreError(f"{store.label}: no images of {source}/{camera} (it holds {have})")
         if self._tiles is not None:
             return (images, *self._tiles.features([im.image_id for im in images],
@@ -391,7 +391,7 @@ class Workspace(GlobalVectors):
         if self._tiles is not None:
             ids = [int(i) for i in image_ids]
             owners: dict[int, str] = {}
-            for source, camera in self.dataset_keys():
+            for source, camera in self.drive_keys():
                 owners.update(owner_tiles(self.path, source, camera))
             yield from zip(ids, self._tiles.features(ids, owners)[1])
             return

@@ -40,7 +40,7 @@ from visloc.pose.structure import ViewStructure, choose_variant
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
-from visloc.sources.drives import Sequence, load_gray
+from visloc.sources.drives import Drive, load_gray
 from visloc.stats import CHI2_2DOF_999
 from visloc.tracking.localizer import Localizer, StepResult
 
@@ -260,7 +260,7 @@ class PointFollower:
         return points.subset(np.array([ok_view[v] for v in points.view_of.tolist()], bool))
 
     @staticmethod
-    def _direction(seq: Sequence) -> float:
+    def _direction(seq: Drive) -> float:
         t = seq.timestamps_s
         return 1.0 if len(t) < 2 or t[-1] >= t[0] else -1.0
 
@@ -274,7 +274,7 @@ class PointFollower:
             return m, None
         return m, _at_pose(points.subset(inliers.query_rows), inliers.T_world_camera, m.east_north_m)
 
-    def steps(self, seq: Sequence, indices: Iterable[int],
+    def steps(self, seq: Drive, indices: Iterable[int],
               cancelled: Callable[[], bool] | None = None) -> Iterator[FollowedStep]:
         """The frames ``indices`` of ``seq`` in order, from the localizer's current state (see the module
         docstring); ``cancelled()`` is asked after each frame and raises ``MatchCancelled`` when true."""
