@@ -161,9 +161,6 @@ def render(result: dict) -> str:
     ])
 
 
-def update_page(text: str) -> str:
-    return SECTION.updated_page(text)
-
 
 def main() -> int:
     def arguments(parser):

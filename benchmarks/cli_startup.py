@@ -89,9 +89,6 @@ importing the pipeline it is about to run.
 {END}"""
 
 
-def update_page(section: str) -> str:
-    return SECTION.updated_page(section)
-
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

@@ -151,9 +151,6 @@ The two stores are {same}.
 {END}"""
 
 
-def update_page(section: str) -> str:
-    return SECTION.updated_page(section)
-
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])

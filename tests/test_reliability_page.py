@@ -39,7 +39,7 @@ def test_the_performance_notes_are_what_their_json_renders():
 
     rendered = checksum_cost.render(json.loads(checksum_cost.OUT.read_text()))
     assert rendered in (REPO / "docs" / "performance.md").read_text()
-    assert checksum_cost.update_page(rendered) == (REPO / "docs" / "performance.md").read_text()
+    assert checksum_cost.SECTION.updated_page(rendered) == (REPO / "docs" / "performance.md").read_text()
 
 
 def test_the_saved_run_timings_are_what_their_json_renders():

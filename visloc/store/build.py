@@ -89,6 +89,15 @@ def build_global_vectors(ws: Workspace, source: str, camera: str, params: FastPa
     return len(todo)
 
 
+def _pending(db, done: set[int], progress) -> tuple[list[int], list[int]]:
+    """(the image ids of ``db`` in its order, the rows of those not in ``done``); ``progress`` is told how many."""
+    ids_of = [im.image_id for im in db.images]
+    todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
+    if progress:
+        progress(0, len(todo))
+    return ids_of, todo
+
+
 def build_structure(ws: Workspace, source: str, camera: str, params: RefinedParams = REFINED,
                     progress: Progress = None, cluster=None) -> int:
     """Triangulate every image of (source, camera) the store holds no structure for (made with
@@ -106,10 +115,7 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
     geometry = db.geometry()
     if geometry.camera is None:
         return 0
-    ids_of = [im.image_id for im in db.images]
-    todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
-    if progress:
-        progress(0, len(todo))
+    ids_of, todo = _pending(db, done, progress)
     if cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, structure_records, ws.save_structure, ws, source, camera, params, todo, 4, progress)
     for n, k in enumerate(todo, 1):
@@ -195,10 +201,7 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     index = ws.load_database_index(db)
     if geometry.camera is None or index is None:
         return 0
-    ids_of = [im.image_id for im in db.images]
-    todo = [k for k, image_id in enumerate(ids_of) if image_id not in done]
-    if progress:
-        progress(0, len(todo))
+    ids_of, todo = _pending(db, done, progress)
     if cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, self_check_records, ws.add_self_checks, ws, source, camera, params, todo, 16,
                            progress)

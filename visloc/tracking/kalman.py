@@ -110,8 +110,24 @@ def update(x: np.ndarray, P: np.ndarray, z: np.ndarray, R: np.ndarray) -> tuple[
     return x, P, Innovation(y=y, S=S, K=K, mahalanobis=mahalanobis)
 
 
+class PositionOfState:
+    """The position part of a constant-velocity state ``x`` (east, north, their velocities) and of its
+    covariance ``P``."""
+
+    x: np.ndarray
+    P: np.ndarray
+
+    @property
+    def position_m(self) -> np.ndarray:
+        return self.x[:2]
+
+    @property
+    def position_cov_m2(self) -> np.ndarray:
+        return self.P[:2, :2]
+
+
 @dataclass(frozen=True)
-class FilterStep:
+class FilterStep(PositionOfState):
     """One step of the filter: prior, posterior and the innovation (None without a measurement)."""
 
     x_prior: np.ndarray
@@ -125,14 +141,6 @@ class FilterStep:
     maneuver: bool = False  # the measurement fitted only the maneuver prediction, and was applied with it
     retracted_previous: bool = False  # the previous step's measurement was taken out: this one fitted the track
     #                                   without it (x_prior, P_prior predict from the step before it)
-
-    @property
-    def position_m(self) -> np.ndarray:
-        return self.x[:2]
-
-    @property
-    def position_cov_m2(self) -> np.ndarray:
-        return self.P[:2, :2]
 
 
 class ConstantVelocityKalman:
@@ -281,17 +289,9 @@ def run_filter(measurements_m: list[np.ndarray | None], params: FilterParams, *,
 
 
 @dataclass(frozen=True)
-class SmoothedStep:
+class SmoothedStep(PositionOfState):
     x: np.ndarray  # (4,) smoothed state
     P: np.ndarray  # (4, 4) its covariance
-
-    @property
-    def position_m(self) -> np.ndarray:
-        return self.x[:2]
-
-    @property
-    def position_cov_m2(self) -> np.ndarray:
-        return self.P[:2, :2]
 
 
 def rts_smooth(steps: list[FilterStep], dt_s: float) -> list[SmoothedStep]:
