@@ -113,7 +113,7 @@ def build_store(path: Path, spec: SyntheticSpec, *, batch_size: int = 2000, prog
     start = time.perf_counter()
     if path.exists():
         ws = Workspace(path)
-        if ws.setting("synthetic") == spec.key() and ws.has_global_index(VECTORS_NAME):
+        if ws.setting("synthetic") == spec.key() and ws.global_vectors.has_global_index(VECTORS_NAME):
             return 0.0
     path.unlink(missing_ok=True)
     for suffix in ("-wal", "-shm"):
@@ -138,9 +138,9 @@ def build_store(path: Path, spec: SyntheticSpec, *, batch_size: int = 2000, prog
     for first in range(0, image_ids.size, batch_size):
         chunk = image_ids[first : first + batch_size]
         vecs = np.stack([encoder.encode(d) for _, d in ws.iter_descriptors(chunk)])
-        ws.add_global_vectors(VECTORS_NAME, chunk.tolist(), vecs)
+        ws.global_vectors.add_global_vectors(VECTORS_NAME, chunk.tolist(), vecs)
         ws.save_structure([_structure(int(i), first + k, spec) for k, i in enumerate(chunk)])
-    ws.save_global_encoder(VECTORS_NAME, encoder)  # last: its presence marks a finished store
+    ws.global_vectors.save_global_encoder(VECTORS_NAME, encoder)  # last: its presence marks a finished store
     ws.record_setting("synthetic", spec.key())
     return time.perf_counter() - start
 
@@ -152,7 +152,7 @@ def lost_query(path: Path, spec: SyntheticSpec, places: list[int], shortlist_siz
     """
     t0 = time.perf_counter()
     ws = Workspace(path)
-    ids, index = ws.load_global_index(VECTORS_NAME)
+    ids, index = ws.global_vectors.load_global_index(VECTORS_NAME)
     vectors, encoder = index.vectors_f32, index.encoder
     load_s = time.perf_counter() - t0
     rss_after_load_mb = peak_rss_mb()

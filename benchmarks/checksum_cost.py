@@ -81,7 +81,7 @@ def read_cost(ws: Workspace, source: str, camera: str) -> dict:
     def load():
         db = ws.load_database(source, camera)
         ws.load_structure(db)
-        ws.load_database_index(db)
+        ws.global_vectors.load_database_index(db)
 
     load()  # warm the page cache: both sides read the same bytes from memory
     with FeatureStore(ws.path, read_only=True) as store:

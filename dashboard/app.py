@@ -299,7 +299,7 @@ class DashboardApp:
             d, q = by_name[db_name], by_name[q_name]
             db, queries = workspace.load_database(d.source, d.camera), workspace.load_queries(q.source, q.camera)
             fast = visloc.REFINED_FAST_METHOD
-            stored, index = workspace.load_structure(db, fast.pose), workspace.load_database_index(db, fast.shortlist)
+            stored, index = workspace.load_structure(db, fast.pose), workspace.global_vectors.load_database_index(db, fast.shortlist)
             with self._lock:
                 if cancelled() or s.loading_key != data_key:
                     return

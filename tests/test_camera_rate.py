@@ -64,7 +64,7 @@ def test_stored_structure_equals_structure_computed_afresh(store):
 def test_stored_global_vectors_are_the_stored_encoders_vectors(store):
     ws = Workspace(store)
     db = ws.load_database(SOURCE, "image_00")
-    index = ws.load_database_index(db)
+    index = ws.global_vectors.load_database_index(db)
     assert index is not None and index.vectors_f32.shape[0] == N_FRAMES
     np.testing.assert_array_equal(index.vectors_f32, index.encoder.encode_many(db.descriptors_u8))
 
@@ -141,7 +141,7 @@ def test_a_schema_3_store_migrates_keeping_every_image_and_count_and_gains_struc
     conn.close()
     ws = Workspace(path)  # migrated in place
     db = ws.load_database(SOURCE, "image_00")
-    assert ws.load_structure(db) == {} and ws.load_database_index(db) is None
+    assert ws.load_structure(db) == {} and ws.global_vectors.load_database_index(db) is None
     # what ingest does after SIFT, for a store that lacks it
     assert build_global_vectors(ws, SOURCE, "image_00") == N_FRAMES
     assert build_structure(ws, SOURCE, "image_00") == N_FRAMES

@@ -158,7 +158,7 @@ def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path)
         watcher.start()
         report = ingest_sequence(ws, seq, SiftParams(), limit=limit, cluster=cluster, structure=False)
         watcher.join(timeout=5)
-        publish_tiles(city, cluster, ws.global_vectors_by_image())
+        publish_tiles(city, cluster, ws.global_vectors.global_vectors_by_image())
         alive = list(cluster.worker_pids().values())
     assert killed and killed[0] not in alive, "no worker was killed mid-ingest"
     assert described_at_kill[0] < limit, "the worker was killed after every frame was described"

@@ -86,7 +86,7 @@ def stored_for(ws: Workspace, db, method: Method) -> dict:
     if not method.camera_rate:
         return {"stored": ws.load_structure(db, method.pose)}
     return {"stored": ws.load_structure(db, method.pose),
-            "shortlist_index": ws.load_database_index(db, method.shortlist)}
+            "shortlist_index": ws.global_vectors.load_database_index(db, method.shortlist)}
 
 
 def _ingest(ws: Workspace, seq: Drive, sift: SiftParams, a: argparse.Namespace, limit: int | None = None,

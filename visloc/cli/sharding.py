@@ -47,7 +47,7 @@ def ingest_sharded(a: argparse.Namespace, sequences: list[Drive], ingest_one: Ca
             print(f"visloc: {interrupted_text(exc)}; {a.db} keeps {ws.stored_frame_count(seq.source, seq.camera)} "
                   f"images of {seq.name} (run the same command again to go on)", file=sys.stderr)
             return interrupted_status(exc)
-        report = publish_tiles(folder, cluster, ws.global_vectors_by_image(), progress=progress_reporter("tiles", "tiles"))
+        report = publish_tiles(folder, cluster, ws.global_vectors.global_vectors_by_image(), progress=progress_reporter("tiles", "tiles"))
     print(f"{a.db}: {report.n_tiles} tiles of {tile_m:g} m ({report.n_written} written, {report.n_skipped} complete "
           f"already), {report.n_images} images, {report.n_copies / max(report.n_images, 1):.1f} copies each with "
           f"the {halo_m:g} m halo")

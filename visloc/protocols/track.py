@@ -71,7 +71,7 @@ def track_localizer(ws: Workspace, db: GeoDatabase, query_camera: CameraModel | 
         return loc, store_sift
     loc = build_localizer(method, db, PAPER_MATCH, retrieval, filter_params, query_camera=query_camera,
                           query_what=query_what, stored=structures,
-                          shortlist_index=ws.load_database_index(db, method.shortlist))
+                          shortlist_index=ws.global_vectors.load_database_index(db, method.shortlist))
     return loc, store_sift.replace(image_scale=params.query_image_scale, n_features=params.query_max_keypoints)
 
 

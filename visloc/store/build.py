@@ -69,21 +69,21 @@ def build_global_vectors(ws: Workspace, source: str, camera: str, params: FastPa
     encoder trained first."""
     name = global_vectors_name(source, camera, params)
     ids = ws.image_ids(source, camera)
-    have = ws.stored_vector_ids(name)
+    have = ws.global_vectors.stored_vector_ids(name)
     todo = [int(i) for i in ids if int(i) not in have]
     if not todo:
         return 0
     if progress:  # training the encoder comes first: the count moves once encoding starts
         progress(0, len(todo))
-    if ws.has_global_index(name):
-        encoder = ws.load_global_encoder(name)
+    if ws.global_vectors.has_global_index(name):
+        encoder = ws.global_vectors.load_global_encoder(name)
     else:
         descriptors = [d for _, d in ws.iter_descriptors(ids.tolist())]
         encoder = train_encoder(descriptors, params.n_words, params.pca_dim, params.train_descriptors, params.seed)
-        ws.save_global_encoder(name, encoder)
+        ws.global_vectors.save_global_encoder(name, encoder)
     for start in range(0, len(todo), 256):
         chunk = todo[start : start + 256]
-        ws.add_global_vectors(name, chunk, np.stack([encoder.encode(d) for _, d in ws.iter_descriptors(chunk)]))
+        ws.global_vectors.add_global_vectors(name, chunk, np.stack([encoder.encode(d) for _, d in ws.iter_descriptors(chunk)]))
         if progress:
             progress(start + len(chunk), len(todo))
     return len(todo)
@@ -198,7 +198,7 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
         return 0
     db = ws.load_database(source, camera)
     geometry = db.geometry()
-    index = ws.load_database_index(db)
+    index = ws.global_vectors.load_database_index(db)
     if geometry.camera is None or index is None:
         return 0
     ids_of, todo = _pending(db, done, progress)
@@ -223,7 +223,7 @@ def self_check_records(path: str, source: str, camera: str, params: RefinedParam
     db, geometry = _database_for(path, source, camera, run)
     if ("cache", run) not in _loaded:
         ws = Workspace(path, read_only=True)
-        _loaded[("cache", run)] = (seeded_structure_cache(ws.load_structure(db, params)), ws.load_database_index(db))
+        _loaded[("cache", run)] = (seeded_structure_cache(ws.load_structure(db, params)), ws.global_vectors.load_database_index(db))
     cache, index = _loaded[("cache", run)]
     settings = self_check_settings_json(params)
     ids_of = [im.image_id for im in db.images]

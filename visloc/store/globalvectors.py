@@ -1,7 +1,11 @@
-"""The part of ``Workspace`` that keeps global vectors: each dataset's encoder (codebook and PCA) and
-one vector per image, which the camera-rate path and a sharded store's global index search."""
+"""A store's global vectors (``Workspace.global_vectors``): each drive's encoder (codebook and PCA) and one
+vector per image, which the camera-rate path and a sharded store's global index search."""
 
 from __future__ import annotations
+
+from collections.abc import Callable
+from contextlib import AbstractContextManager
+from pathlib import Path
 
 import numpy as np
 
@@ -13,8 +17,16 @@ from visloc.store.database import GeoDatabase
 
 
 class GlobalVectors:
-    """Global-vector methods of ``Workspace``, which gives them ``path``, ``_store`` (a short-lived
-    connection to the store), ``_cover`` (a sharded store's catalogue to hold a dataset) and ``datasets``."""
+    """The global vectors of the store at ``path``. ``open_store()``: a short-lived connection to it;
+    ``cover(source, camera)``: a sharded store's catalogue holds that drive from then on; ``drives()``: the
+    drives it holds (``Workspace`` gives its own)."""
+
+    def __init__(self, path: Path, open_store: Callable[[], AbstractContextManager],
+                 cover: Callable[[str, str], None], drives: Callable[[], list]):
+        self.path = path
+        self._store = open_store
+        self._cover = cover
+        self._drives = drives
 
     def stored_vector_ids(self, name: str) -> set[int]:
         """The images that have a global vector called ``name``."""
@@ -50,7 +62,7 @@ class GlobalVectors:
     def global_vectors_by_image(self, params: FastParams = FAST) -> tuple[str, dict[int, np.ndarray]]:
         """(the names joined, image id -> global vector) of every dataset's global vectors made with ``params``."""
         names, vectors = [], {}
-        for d in self.drives():
+        for d in self._drives():
             name = global_vectors_name(d.source, d.camera, params)
             if self.has_global_index(name):
                 image_ids, index = self.load_global_index(name)

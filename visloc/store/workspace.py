@@ -59,7 +59,7 @@ class StoredDrive:
         return f"{self.source}/{self.camera}"
 
 
-class Workspace(GlobalVectors):
+class Workspace:
     """A store file. ``create=True`` makes a new store when the file does not exist yet;
     ``read_only=True`` never changes the file (no migration, no cached counts saved, works on a
     read-only medium): every method that would write raises ``InputError`` instead."""
@@ -81,6 +81,7 @@ class Workspace(GlobalVectors):
             # opening for writing migrates a store of an older schema version in place: from which, if it did
             self.migrated_from: int | None = store.migrated_from
             self.checksums_filled: int = store.checksums_filled  # arrays whose checksums that migration computed
+        self.global_vectors = GlobalVectors(self.path, self._store, self._cover, self.drives)
 
     @property
     def _file(self) -> Path:
