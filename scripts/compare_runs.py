@@ -19,7 +19,9 @@ from pathlib import Path
 
 TIMED = {"latency_ms", "measurement_ms", "measurement_latency_ms", "structure_build_ms", "wall_s", "sustained_hz",
          "stages_ms", "latency_p50_ms", "latency_p95_ms", "build_ms", "sift_ms", "retrieval_ms", "geometry_ms",
-         "filter_ms"}
+         "filter_ms",
+         # a track's (visloc track --json): the processor it used and what its stages and relocalizations took
+         "cpu_s", "cpu_share_of_one_core", "flow_ms", "points_ms", "per_s", "total_ms"}
 
 
 def differences(before, after, path: str = "") -> list[str]:
