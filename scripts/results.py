@@ -33,6 +33,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from visloc.errors import InputError  # noqa: E402
 from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
+from visloc.stats import summary_of  # noqa: E402
 from results_camera_rate import digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
 from filter_replay import render_filter_replay, replay  # noqa: E402
 from results_peer import digest_peer, render_peer  # noqa: E402
@@ -161,15 +162,6 @@ def diagnostics(drives: list, root: str, out: Path, store: Path, manifest: dict)
 
 # -- page: JSON -> digest -------------------------------------------------------------------------
 
-def _stats(values, names=("median", "mean", "p90", "max")) -> dict:
-    v = np.asarray([x for x in values if x is not None], float)
-    if v.size == 0:
-        return {n: None for n in names}
-    fn = {"median": np.median, "mean": np.mean, "p90": lambda a: np.percentile(a, 90), "max": np.max,
-          "min": np.min}
-    return {n: float(fn[n](v)) for n in names}
-
-
 def digest_evaluation(report: dict) -> dict:
     steps = [s for series in report["series"] for s in series]
     finals = [series[-1]["estimate_error_m"] for series in report["series"]]
@@ -182,7 +174,7 @@ def digest_evaluation(report: dict) -> dict:
             "measurement_nees", "structure_build_ms")
     return {**{k: report.get(k) for k in keep},
             "exclusion_s": report["params"]["retrieval"]["exclusion_s"],
-            "measurement_error_all_steps_m": _stats(s["measurement_error_m"] for s in steps),
+            "measurement_error_all_steps_m": summary_of(s["measurement_error_m"] for s in steps),
             "series_final_below_2m": sum(1 for f in finals if f is not None and f < 2.0),
             "query_interval_s": float(np.median(gaps)) if gaps else None}
 

@@ -14,6 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
+from visloc.stats import summary_of
+
 PEER_VARIANT, PEER_THRESHOLD = "counts", "12.0"  # the peer's default variant and its PnP threshold, px
 
 
@@ -22,12 +24,6 @@ def protocol_key(query_camera: str, db_camera: str) -> str | None:
     if (query_camera, db_camera) == ("image_00", "image_01"):
         return "stereo"
     return f"same_{query_camera}" if query_camera == db_camera else None
-
-
-def _stats(values) -> dict:
-    v = np.asarray(values, float)
-    return {"n": int(v.size), "mean": float(v.mean()), "median": float(np.median(v)),
-            "p90": float(np.percentile(v, 90)), "max": float(v.max())}
 
 
 def digest_peer(peer_dir: Path, out: Path) -> dict:
@@ -65,7 +61,7 @@ def digest_peer(peer_dir: Path, out: Path) -> dict:
         digest[params["drive"]] = {
             "peer_file": f"peer/results/{path.name}", "evaluation_file": ours_path.name,
             "protocol": key, "peer_versions": peer.get("versions", {}), "frames": frames,
-            "peer_error_m": _stats(peer_e), "visloc_error_m": _stats(ours_e),
+            "peer_error_m": summary_of(peer_e, count=True), "visloc_error_m": summary_of(ours_e, count=True),
             "peer_failures": sum(not r["peer_ok"] for r in frames),
             "visloc_better": sum(o < p for o, p in zip(ours_e, peer_e))}
     return digest
