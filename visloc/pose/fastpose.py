@@ -191,7 +191,7 @@ class FastPoseMeasurer:
             int(c): int(n) for c, n in zip(retrieval.candidates, retrieval.counts)})
         if not usable:
             return end.fallback(f"no candidate has {self.min_matches} matches to stored structure the query allows "
-                            f"(best {best})", **base)
+                                f"(best {best})", **base)
         posed = pose_from_views(query_xy, usable, pairs_of, lambda i: (lookups[i], 0.0), neighbours_used,
                                 self.db_east_north_m, self.geometry, self.query_camera, self.params)
         return end.posed(posed, **base)
