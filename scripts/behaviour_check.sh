@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
-# Check that this checkout evaluates exactly as an earlier commit did: `visloc evaluate --json` on the
-# shared drives, in both modes, by the earlier code and by this one, then every number compared
-# (scripts/compare_runs.py; wall-clock timings left out).
+# Check that this checkout evaluates and tracks exactly as an earlier commit did: `visloc evaluate --json`
+# on every series of the shared drives in every mode (paper, refined, refined-fast), and `visloc track
+# --json` over each drive's first 80 frames in full and following points, by the earlier code and by this
+# one, then every number compared (scripts/compare_runs.py; wall-clock timings left out).
 #
 #   bash scripts/behaviour_check.sh [COMMIT]     (default f6c001b, the last commit before the pipeline
 #                                                 was rebuilt from parts)
@@ -24,19 +25,25 @@ for folder in db dashboard bench; do
 done
 trap 'git worktree remove --force "$before_src"' EXIT
 status=0
-for run in "2011_09_26_drive_0001 image_00 image_01" "2011_09_26_drive_0005 image_00 image_00"; do
+compare() {  # name, then the visloc arguments (without --json): run by both, compared
+    local name=$1; shift
+    # the earlier code, imported from its worktree (run from there, so this checkout's modules are not seen)
+    (cd "$before_src" && PYTHONPATH="$before_src" "$OLDPWD/.venv/bin/python" -m visloc "$@" \
+        --json "$out/${name}_before.json" >"$out/${name}_before.log" 2>&1)
+    .venv/bin/visloc "$@" --json "$out/${name}_after.json" >"$out/${name}_after.log" 2>&1
+    .venv/bin/python scripts/compare_runs.py "$out/${name}_before.json" "$out/${name}_after.json" || status=1
+}
+for run in "2011_09_26_drive_0001 image_00 image_01" "2011_09_26_drive_0005 image_00 image_00" \
+           "2011_10_03_drive_0027 image_00 image_00"; do
     set -- $run
     drive=$1 query=$2 database=$3
-    [ -d "$DATA/2011_09_26/${drive}_sync" ] || { echo "behaviour_check: $drive not in $DATA, skipped"; continue; }
-    for mode in paper refined; do
-        args=(evaluate "$DATA" --drive "$drive" --query-camera "$query" --db-camera "$database"
-              --db "$out/visloc.sqlite" --mode "$mode" --smooth)
-        # the earlier code, imported from its worktree (run from there, so this checkout's modules are not seen)
-        (cd "$before_src" && PYTHONPATH="$before_src" "$OLDPWD/.venv/bin/python" -m visloc "${args[@]}" \
-            --json "$out/${drive}_${mode}_before.json" >"$out/${drive}_${mode}_before.log" 2>&1)
-        .venv/bin/visloc "${args[@]}" --json "$out/${drive}_${mode}_after.json" >"$out/${drive}_${mode}_after.log" 2>&1
-        .venv/bin/python scripts/compare_runs.py "$out/${drive}_${mode}_before.json" \
-            "$out/${drive}_${mode}_after.json" || status=1
+    [ -n "$(find "$DATA" -maxdepth 2 -name "${drive}_sync" -type d)" ] || { echo "behaviour_check: $drive not in $DATA, skipped"; continue; }
+    for mode in paper refined refined-fast; do
+        compare "${drive}_${mode}" evaluate "$DATA" --drive "$drive" --query-camera "$query" --db-camera "$database" \
+            --db "$out/visloc.sqlite" --mode "$mode" --smooth
     done
+    track=(track "$DATA" --drive "$drive" --camera image_00 --db "$out/visloc.sqlite" --frames 80)
+    compare "${drive}_track" "${track[@]}"
+    compare "${drive}_track_following" "${track[@]}" --follow-points --no-background-relocalization
 done
 exit $status
