@@ -82,7 +82,7 @@ class Frame:
 
 @dataclass(frozen=True)
 class Drive:
-    source: str  # drive or dataset name
+    source: str  # the drive's name, as the store's images.source column and the --db-source flags name it
     camera: str
     frames: tuple[Frame, ...]
     P_rect: np.ndarray | None = None  # (3, 4) rectified projection matrix, pixels
