@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 
-from measuring import REPO, Section  # noqa: E402
+from measuring import REPO, Section, median_s  # noqa: E402
 
 SECTION = Section("checksum-cost", "checksum_cost", REPO / "docs" / "performance.md")
 OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
@@ -45,14 +45,6 @@ from visloc.store.workspace import Workspace  # noqa: E402
 
 RESULTS = REPO / "out" / "results"
 
-
-def _timed(fn, repeats: int = 1) -> float:
-    best = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        best.append(time.perf_counter() - start)
-    return float(np.median(best))
 
 
 def ingest_cost(ws: Workspace, source: str, camera: str, n_images: int = 40) -> dict:
@@ -86,8 +78,8 @@ def read_cost(ws: Workspace, source: str, camera: str) -> dict:
     load()  # warm the page cache: both sides read the same bytes from memory
     with FeatureStore(ws.path, read_only=True) as store:
         blobs = drive_blobs(store, source, camera)
-    load_s = _timed(load, 5)
-    crc_s = _timed(lambda: [zlib.crc32(b) for b in blobs], 5)
+    load_s = median_s(load, 5)
+    crc_s = median_s(lambda: [zlib.crc32(b) for b in blobs], 5)
     return {"megabytes": sum(len(b) for b in blobs) / 1e6, "load_ms": load_s * 1e3, "checksums_ms": crc_s * 1e3,
             "share": crc_s / load_s}
 
@@ -102,7 +94,7 @@ def reingest_check_cost(ws: Workspace, source: str, camera: str) -> dict:
             file_digest(p)
 
     check()
-    seconds = _timed(check, 3)
+    seconds = median_s(check, 3)
     return {"n_images": len(paths), "seconds": seconds, "ms_per_image": seconds * 1e3 / len(paths)}
 
 

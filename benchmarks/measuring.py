@@ -32,6 +32,19 @@ def load_1min() -> float:
     return os.getloadavg()[0]
 
 
+def median_s(fn: Callable[[], object], repeats: int = 1) -> float:
+    """The median wall time of ``repeats`` calls of ``fn``, s."""
+    import statistics
+    import time
+
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return float(statistics.median(times))
+
+
 def replace_section(page: Path, begin: str, end: str, text: str) -> str:
     """``page``'s text with the section from ``begin`` to ``end`` replaced by ``text`` (which carries both)."""
     content = page.read_text()

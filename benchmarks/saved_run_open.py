@@ -26,7 +26,7 @@ import numpy as np
 import viser  # noqa: E402
 
 import visloc  # noqa: E402
-from measuring import REPO, Section  # noqa: E402
+from measuring import REPO, Section, median_s  # noqa: E402
 
 SECTION = Section("saved-run-open", "saved_run_open", REPO / "docs" / "performance.md")
 OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
@@ -41,14 +41,6 @@ def run_paths(results: Path) -> list[Path]:
     evaluations = [p for _, p in visloc.run_files(drives)] if drives.exists() else []
     return tracks + evaluations
 
-
-def _median_s(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
 
 
 def command_to_url_s(path: Path, port: int) -> float:
@@ -73,12 +65,12 @@ def measure(results: Path) -> dict:
     try:
         for path in run_paths(results):
             run = visloc.load_run(path)
-            load_s = _median_s(lambda: visloc.load_run(path), 5)
+            load_s = median_s(lambda: visloc.load_run(path), 5)
 
             def first_screen():
                 RunViewer(server, [(path.stem, path)]).close()
 
-            first_screen_s = _median_s(first_screen, 5)
+            first_screen_s = median_s(first_screen, 5)
             to_url_s = float(np.median([command_to_url_s(path, 8698) for _ in range(3)]))
             runs.append({"file": os.path.relpath(path, REPO), "kind": run.kind, "steps": run.n_steps,
                          "series": len(run.series), "megabytes": path.stat().st_size / 1e6, "load_s": load_s,
