@@ -48,7 +48,8 @@ from visloc.params import (BENCH, BENCH_WORKERS, PAPER_EVAL_RETRIEVAL, PAPER_FIL
 from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import build_global_index
 from visloc.tracking.runs import run_queries
-from visloc.sources.drives import load_gray, open_source
+from visloc.sources.drives import load_gray
+from visloc.sources.opening import open_source
 from visloc.store.workspace import Workspace
 from visloc.store.build import build_global_vectors, build_structure, ingest_sequence
 

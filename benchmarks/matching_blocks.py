@@ -28,7 +28,8 @@ from measuring import REPO  # noqa: E402
 import visloc.retrieval.matching as matching  # noqa: E402
 from visloc.features.sift import extract_sift, make_sift  # noqa: E402
 from visloc.params import PAPER_SIFT  # noqa: E402
-from visloc.sources.drives import load_gray, open_source  # noqa: E402
+from visloc.sources.drives import load_gray  # noqa: E402
+from visloc.sources.opening import open_source  # noqa: E402
 
 FIELDS = ("index1", "dist1_sq", "dist2_sq", "cosine1")
 

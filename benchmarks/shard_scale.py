@@ -88,7 +88,8 @@ def measure_ingest(root: Path, frames: int, repeats: int) -> list[dict]:
     configuration once (so that a change of load meets all of them), in an order rotated by one from
     round to round (so that no configuration always runs first); per configuration the median time, and
     each ratio as the median of the rounds' ratios (paths compared within the same round)."""
-    from visloc.sources.drives import kitti_drives, open_source
+    from visloc.sources.drives import kitti_drives
+    from visloc.sources.opening import open_source
 
     drives = [name.removesuffix("_sync") for name in kitti_drives(root)]
     counts = {drive: min(frames, len(open_source(root, drive=drive, camera="image_00"))) for drive in drives}
@@ -210,7 +211,8 @@ def _tiles_read(cmd: list[str]) -> dict:
 
 
 def measure_reads(root: Path) -> list[dict]:
-    from visloc.sources.drives import kitti_drives, open_source
+    from visloc.sources.drives import kitti_drives
+    from visloc.sources.opening import open_source
     from visloc.db.shards import table_bytes
     from visloc.store.sharded import merged_store
 

@@ -42,7 +42,7 @@ class DashboardApp:
     def __init__(self, server: viser.ViserServer, store_path: Path, *, db_camera: str | None = "image_01",
                  query_camera: str | None = "image_00", db_source: str | None = None,
                  query_source: str | None = None, allowed: Allowed | None = None,
-                 tune_from: tuple[Path, visloc.LiveSettings] | None = None):
+                 tune_from: tuple[Path, visloc.LiveSettings] | None = None, tiles=None):
         self.server = server
         # the stores the page may open: by default the start store's folder (``visloc dashboard --allow``)
         self.allowed = allowed or Allowed.of([Path(store_path).parent], store_path)
@@ -57,7 +57,7 @@ class DashboardApp:
         self._image_jobs = LatestJobRunner(on_error=lambda name, exc: self._show_error(f"{name}: {exc}"))
         flat_scene(server.scene)
         self.gui = build_gui(server, str(store_path))
-        self.page = Page(server, self.gui)
+        self.page = Page(server, self.gui, tiles)  # tiles: web-map tiles under the map (a TileSource), or None
         self.session = SessionView(self.gui.session)  # how many tabs, and which one changed what
         server.on_client_connect(self._tab_opened)
         server.on_client_disconnect(self._tab_closed)
@@ -115,8 +115,8 @@ class DashboardApp:
         g.prev_next.on_click(lambda e: (self.session.changed(e, "Move", g.prev_next.value),
                                         self._move_step(-1 if "Previous" in g.prev_next.value else 1)))
         g.reset.on_click(lambda e: (self.session.changed(e, "Paper's parameters", "pressed"), self._reset_to_paper()))
-        g.geojson.on_click(lambda e: self._download(e.client, "geojson"))
-        g.csv.on_click(lambda e: self._download(e.client, "csv"))
+        for kind in ("geojson", "csv", "mcap"):  # the Export buttons
+            getattr(g, kind).on_click(lambda e, kind=kind: self._download(e.client, kind))
 
     # -- the shared session's tabs, the 3D view's layers and each tab's scale ----------------------------
 
@@ -140,7 +140,7 @@ class DashboardApp:
         self.session.closed(client)
 
     def _download(self, client: viser.ClientHandle | None, kind: str) -> None:
-        """Send the run shown to the tab that asked, as GeoJSON or CSV."""
+        """Send the run shown to the tab that asked, as GeoJSON, CSV or MCAP."""
         with self._lock:
             run, db = self.shown.run, self.shown.db
             if client is None or run is None or not run.records or db is None:
@@ -311,7 +311,7 @@ class DashboardApp:
                 self.gui.start.max = max(0.1, round(duration_s, 1))
                 if self.gui.start.value > self.gui.start.max:
                     self.gui.start.value = 0.0
-                self.page.draw_static(db.frame.to_local(queries.lat_deg, queries.lon_deg), db.east_north_m)
+                self.page.draw_static(db.frame.to_local(queries.lat_deg, queries.lon_deg), db.east_north_m, db.frame)
             self.request_apply()
 
         self._jobs.submit("loading", load)

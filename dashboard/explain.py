@@ -27,6 +27,8 @@ HINTS = {
     "geojson": "The current run's ground truth, measurements and estimates (with 2σ ellipses) as a GeoJSON "
                "file for GIS tools",
     "csv": "The current run, one row per step: truth, measurement, estimate, covariance (m²), errors (m)",
+    "mcap": "The current run as an MCAP file for Foxglove: location fixes with their covariance (Map panel), the "
+            "tracks and 2σ ellipses as 3D scene entities (3D panel, frame visloc_local), each step's figures",
 }
 
 # the step table's rows: what each means (shown on hover and in the help fold)

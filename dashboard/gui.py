@@ -109,6 +109,7 @@ class Handles:
     magnify: viser.GuiDropdownHandle  # "Ellipses drawn": true size, ×10, ×100
     geojson: viser.GuiButtonHandle
     csv: viser.GuiButtonHandle
+    mcap: viser.GuiButtonHandle
     store: viser.GuiDropdownHandle
     store_path: viser.GuiTextHandle
     open: viser.GuiButtonHandle
@@ -220,6 +221,7 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
     with gui.add_folder("Export this run"):
         geojson = gui.add_button("Download GeoJSON", hint=h["geojson"], disabled=True)
         csv = gui.add_button("Download CSV", hint=h["csv"], disabled=True)
+        mcap = gui.add_button("Download MCAP", hint=h["mcap"], disabled=True)
     with gui.add_folder("Data", expand_by_default=False):
         store = gui.add_dropdown("Store file", [store_path], initial_value=store_path, hint=h["store"])
         store_path_box = gui.add_text("Other store", "", hint=h["store_path"])
@@ -251,7 +253,7 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
     panel.dock_below(gui.main_panel)
     return Handles(status=status, progress=progress, session=session, step=step, prev_next=prev_next, play=play,
                    speed=speed, follow=follow, latlon=latlon, mode=mode, rate=rate, start=start, params=params,
-                   reset=reset, tuned_from=tuned_from, layers=layers, magnify=magnify, geojson=geojson, csv=csv, store=store, store_path=store_path_box, open=open_button,
+                   reset=reset, tuned_from=tuned_from, layers=layers, magnify=magnify, geojson=geojson, csv=csv, mcap=mcap, store=store, store_path=store_path_box, open=open_button,
                    store_message=store_message, db=db, queries=queries, store_info=store_info, step_badge=step_badge,
                    figure=figure, numbers=numbers, counts_plot=counts_plot, error_plot=error_plot,
                    run_summary=run_summary, map_badge=map_badge, map=map_image, timelines=timelines)

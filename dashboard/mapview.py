@@ -103,11 +103,13 @@ def _polyline(img: np.ndarray, view: View, points_m: np.ndarray, color, thick: i
 
 
 def draw_view(view: View, title: str, truth_track_m: np.ndarray, db_m: np.ndarray,
-              records: list[visloc.StepRecord], k: int | None) -> np.ndarray:
+              records: list[visloc.StepRecord], k: int | None, tiles=None) -> np.ndarray:
     """One map view: database images, the truth track, measurements (refined ones with their own 2σ
     ellipses, light orange), estimates with theirs (the filter's covariance, blue),
-    step ``k`` highlighted; ``title`` and a north arrow above, a scale bar below."""
-    img = np.full((view.height_px, view.width_px, 3), 255, np.uint8)
+    step ``k`` highlighted; ``title`` and a north arrow above, a scale bar below; on ``tiles``'s web map
+    (``visloc.dashboard.tiles.TileLayer``) when given, with its attribution or why it has none."""
+    under = None if tiles is None else tiles.under(view.center_m, view.px_per_m, view.width_px, view.height_px)
+    img = np.full((view.height_px, view.width_px, 3), 255, np.uint8) if under is None else under
     for p in view.px(db_m):
         cv2.circle(img, tuple(int(v) for v in p), 2, DATABASE_RGB, -1, cv2.LINE_AA)
     _polyline(img, view, truth_track_m, TRUTH_RGB, 2)
@@ -136,19 +138,21 @@ def draw_view(view: View, title: str, truth_track_m: np.ndarray, db_m: np.ndarra
             _ellipse(img, view, rec.estimate_m, rec.estimate_cov_m2, CURRENT_RGB, 2)
             cv2.circle(img, tuple(int(v) for v in view.px(rec.estimate_m)[0]), 5, ESTIMATE_RGB, -1, cv2.LINE_AA)
         cv2.circle(img, tuple(int(v) for v in view.px(rec.truth_m)[0]), 9, CURRENT_RGB, 2, cv2.LINE_AA)
+    if tiles is not None:
+        _label(img, tiles.caption[:90], (6, view.height_px - 8), scale=0.42, color=(90, 90, 90))
     cv2.rectangle(img, (0, 0), (view.width_px - 1, view.height_px - 1), (200, 200, 200), 1)
     return np.concatenate([_header(view, title), img, _footer(view)], axis=0)
 
 
 def map_image(truth_track_m: np.ndarray, db_m: np.ndarray, records: list[visloc.StepRecord], k: int | None,
-              *, note: str | None = None, width_px: int = MAP_WIDTH_PX) -> np.ndarray:
-    """The Map tab's picture (RGB): the whole run above a close-up around step ``k``; ``note`` (e.g.
-    "previous run, re-matching") greys the picture and says so on it."""
+              *, note: str | None = None, width_px: int = MAP_WIDTH_PX, tiles=None) -> np.ndarray:
+    """The Map tab's picture (RGB): the whole run above a close-up around step ``k``, on ``tiles`` when
+    given; ``note`` (e.g. "previous run, re-matching") greys the picture and says so on it."""
     truth_track_m = np.asarray(truth_track_m, float).reshape(-1, 2)
     db_m = np.asarray(db_m, float).reshape(-1, 2)
     everything = np.concatenate([truth_track_m, db_m] + [positions([r.estimate_m for r in records])])
     overview = View.fitting(everything, width_px, VIEW_HEIGHT_PX)
-    whole = draw_view(overview, "Whole run", truth_track_m, db_m, records, k)
+    whole = draw_view(overview, "Whole run", truth_track_m, db_m, records, k, tiles)
     views = [whole]
     if k is not None and 0 <= k < len(records):
         center = np.asarray(records[k].truth_m, float)
@@ -157,7 +161,7 @@ def map_image(truth_track_m: np.ndarray, db_m: np.ndarray, records: list[visloc.
         wide_m, tall_m = width_px / scale, VIEW_HEIGHT_PX / scale  # what the picture shows, edge to edge
         views.append(draw_view(View(center, scale, width_px, VIEW_HEIGHT_PX),
                                f"Around step {k + 1} ({wide_m:.3g} m by {tall_m:.3g} m)", truth_track_m, db_m,
-                               records, k))
+                               records, k, tiles))
     img = np.concatenate(views, axis=0)
     if note:
         img = (0.55 * img + 0.45 * 235).astype(np.uint8)  # dimmed: not the run the controls ask for

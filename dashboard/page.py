@@ -19,7 +19,16 @@ from visloc.dashboard.viewkit import KeptScene, ScaleFollower, apply_layers, dra
 
 
 def run_file(run: Run, frame: visloc.LocalFrame, name: str, fmt: str) -> bytes:
-    """The run's trajectories (truth, measurements, estimates with covariance) as a "geojson" or "csv" file."""
+    """The run's trajectories (truth, measurements, estimates with covariance) as a "geojson", "csv" or
+    "mcap" file."""
+    if fmt == "mcap":
+        import tempfile
+        from pathlib import Path
+
+        with tempfile.TemporaryDirectory(prefix="visloc-mcap-") as folder:
+            path = Path(folder) / f"{name}.mcap"
+            visloc.write_run_mcap(path, [run.records], frame, name=name)
+            return path.read_bytes()
     return visloc.trajectory_text([run.records], frame, name=name, fmt=fmt).encode("utf-8")
 
 
@@ -39,7 +48,7 @@ def draw_timelines(plots: dict, steps: list[visloc.SavedStep], k: int, other=Non
 
 
 class Page:
-    def __init__(self, server: viser.ViserServer, gui: Handles):
+    def __init__(self, server: viser.ViserServer, gui: Handles, tile_source=None):
         self.server, self.gui = server, gui
         self.scene = KeptScene(server.scene)  # every node kept by name, for the layer checkboxes
         self.scale = ScaleFollower(server, self.scene)  # each tab's scale bar and north arrow
@@ -48,6 +57,8 @@ class Page:
         self.truth_track_m = np.zeros((0, 2))  # every query's truth, for the map
         self.db_m = np.zeros((0, 2))
         self.pictures_shown = False  # a step's pictures are on the page (not the first placeholder)
+        self.tile_source = tile_source  # web-map tiles under the map (``visloc.dashboard.tiles.TileSource``), or None
+        self.tiles = None  # that source on the drive shown (``TileLayer``)
 
     # -- messages ----------------------------------------------------------------------------------
 
@@ -60,9 +71,13 @@ class Page:
 
     # -- the data, the run, the step -----------------------------------------------------------------
 
-    def draw_static(self, truth_m: np.ndarray, db_m: np.ndarray) -> None:
-        """The drive before any run: grid, database images, the truth track; the view on them."""
+    def draw_static(self, truth_m: np.ndarray, db_m: np.ndarray, frame: visloc.LocalFrame | None = None) -> None:
+        """The drive before any run: grid, database images, the truth track; the view on them (``frame``: the
+        database's local frame, where the map's tiles go)."""
+        from visloc.dashboard.tiles import TileLayer
+
         self.truth_track_m, self.db_m = np.asarray(truth_m, float), np.asarray(db_m, float)
+        self.tiles = TileLayer(self.tile_source, frame) if self.tile_source is not None and frame else None
         every = np.concatenate([self.truth_track_m, self.db_m])
         extent_m = float(max(every.max(axis=0) - every.min(axis=0)))
         self.largest_m, self.farthest_m = max(extent_m / 4, 1.0), max(1.5 * extent_m, 50.0)
@@ -74,7 +89,7 @@ class Page:
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         for client in self.server.get_clients().values():  # look_at last: viser moves it with a new position
             client.camera.position, client.camera.look_at = position, look_at
-        self.gui.map.image = mapview.map_image(self.truth_track_m, self.db_m, [], None)
+        self.gui.map.image = mapview.map_image(self.truth_track_m, self.db_m, [], None, tiles=self.tiles)
 
     def factor(self, magnification: float):
         """How many times larger each ellipse is drawn (``runpanels.drawn_factor``), as a function of its covariance."""
@@ -93,7 +108,7 @@ class Page:
             scene.draw_run(self.scene, run.records, self.factor(magnification))
             self.apply_layers()
         g.run_summary.content = ("" if run.partial else panels.run_summary_markdown(run.records, run.matches))
-        g.geojson.disabled = g.csv.disabled = n == 0
+        g.geojson.disabled = g.csv.disabled = g.mcap.disabled = n == 0
 
     def draw_step(self, run: Run, k: int, db: visloc.GeoDatabase, queries: visloc.QuerySet, *, follow: bool,
                   latlon: bool, note: str | None, magnification: float = 1.0) -> None:
@@ -121,7 +136,7 @@ class Page:
         g.error_plot.title = "Error per step (m), the paper's Figure 4" + suffix
         draw_timelines(g.timelines, visloc.steps_of_records(run.records, t0_s), k)
         g.map.image = mapview.map_image(self.truth_track_m, self.db_m, run.records, k,
-                                        note="previous run - re-matching" if note else None)
+                                        note="previous run - re-matching" if note else None, tiles=self.tiles)
         if not self.pictures_shown:
             g.figure.image = panels.placeholder(f"Reading the images of step {k + 1}…".replace("…", "..."))
 

@@ -18,7 +18,7 @@ from visloc.params import PAPER_MATCH, REFINED
 from visloc.pose.refined import pose_measurement
 from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import Retrieval
-from visloc.sources.drives import open_source
+from visloc.sources.opening import open_source
 from visloc.stats import CHI2_2DOF_999
 from visloc.pose.structure import VARIANTS, ViewStructure, choose_variant, view_structures
 from visloc.store.build import build_global_vectors, build_structure

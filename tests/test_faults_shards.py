@@ -123,7 +123,7 @@ def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path)
     (``--features-only``) on both sides: the kill comes while frames are described, and the structure a
     cluster builds is compared with one file's in test_shards."""
     from visloc.params import SiftParams
-    from visloc.sources.drives import open_source
+    from visloc.sources.opening import open_source
     from visloc.store.build import ingest_sequence
     from visloc.store.cluster import open_cluster
     from visloc.store.workspace import Workspace

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from visloc.errors import InputError
-from visloc.sources.drives import load_gray, open_csv, open_kitti, open_source
+from visloc.sources.drives import load_gray, open_csv, open_kitti
+from visloc.sources.opening import open_source
 
 from helpers import make_fake_kitti, write_csv_drive
 

@@ -41,11 +41,14 @@ _EXPORTS = {
     "visloc.protocols.track": ("TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer"),
     "visloc.results.export": ("trajectory_csv", "trajectory_geojson", "trajectory_text", "write_trajectory"),
     "visloc.results.figures": ("correspondence_figure",),
+    "visloc.results.mcap_export": ("write_run_mcap",),
     "visloc.results.saved": ("LiveSettings", "SavedRun", "SavedStep", "flat_params", "live_settings", "load_run",
                              "params_that_differ", "run_figures", "run_files", "steps_of_records", "worst_steps"),
     "visloc.retrieval.matching": ("MatchCancelled", "PairCountCache", "correspondences", "nearest_two"),
     "visloc.retrieval.retrievers": ("Retrieval", "retrieve"),
-    "visloc.sources.drives": ("Drive", "default_data_root", "load_gray", "open_csv", "open_kitti", "open_source"),
+    "visloc.sources.drives": ("Drive", "default_data_root", "load_gray", "open_csv", "open_kitti"),
+    "visloc.sources.opening": ("open_source",),
+    "visloc.sources.logs": ("is_log", "log_topics", "open_log"),
     "visloc.sources.queries": ("extract_queries",),
     "visloc.store.build": ("ingest_sequence",),
     "visloc.store.database": ("GeoDatabase", "QuerySet"),
@@ -75,7 +78,7 @@ def __dir__() -> list[str]:
 __all__ = [
     # drives and the store
     "StoredDrive", "GeoDatabase", "IngestReport", "QuerySet", "Drive", "Workspace", "default_data_root",
-    "ingest_sequence", "load_gray", "open_csv", "open_kitti", "open_source",
+    "ingest_sequence", "load_gray", "open_csv", "open_kitti", "open_source", "is_log", "log_topics", "open_log",
     # parameters and methods
     "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",
     "PAPER_SIFT", "REFINED", "REFINED_FAST_METHOD", "REFINED_METHOD", "TRACK", "FastParams", "FilterParams",
@@ -87,7 +90,7 @@ __all__ = [
     "run_filter", "Localizer", "StepResult", "build_localizer", "run_queries",
     # runs and results
     "DriveMatches", "RecordGeotags", "StepRecord", "drive_query_indices", "drive_summary", "evaluate", "match_drive",
-    "record_geotags", "track_drive", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
+    "record_geotags", "write_run_mcap", "track_drive", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
     "trajectory_csv", "trajectory_geojson", "trajectory_text", "write_trajectory", "correspondence_figure",
     # saved runs, read back
     "SavedRun", "SavedStep", "flat_params", "load_run", "params_that_differ", "run_figures", "run_files",

@@ -1,7 +1,8 @@
 """What a command uses when the user leaves it out, and the store file's life around a command.
 
 * cameras: ``--camera`` given for a CSV drive is refused (a CSV drive has one camera, stored as
-  ``camera``); a KITTI camera left out is the preferred one the drive holds;
+  ``camera``); a KITTI camera left out is the preferred one the drive holds; a log's, its only image
+  topic;
 * the database: a flag given wins; else the store's only source (or the query's own) and the
   source's only camera; an ambiguous choice is one line listing what the store holds;
 * the exclusion window: left out, 1 s when the database holds images of the queries' own drive,
@@ -19,9 +20,11 @@ from pathlib import Path
 
 from visloc.store.database import GeoDatabase, same_drive
 from visloc.errors import InputError
+from visloc.params import COMMAND_OPTIONS
 from visloc.results.export import GEOJSON_SUFFIXES, write_trajectory
 from visloc.cli.outputs import require_writable_output
 from visloc.sources.drives import default_data_root, resolve_drive
+from visloc.sources.logs import is_log
 from visloc.store.workspace import Workspace
 
 CSV_CAMERA = "camera"  # the one camera of a CSV drive, as the store names it (visloc.sources.drives.open_csv)
@@ -30,6 +33,17 @@ PAPER_DATABASE_CAMERA = {"image_00": ("image_01",)}  # the paper's protocol: lef
 
 def is_csv(source: Path | str | None) -> bool:
     return source is not None and Path(source).suffix.lower() == ".csv"
+
+
+def log_options(a: argparse.Namespace) -> dict:
+    """What the flags say of a log's topics and fixes (None: not given), for ``open_source``."""
+    options = {key: getattr(a, key, None) for key in LOG_OPTIONS}
+    if options["max_fix_gap_s"] == COMMAND_OPTIONS.max_fix_gap_s:  # the default: a drive that is no log takes it too
+        options["max_fix_gap_s"] = None
+    return options
+
+
+LOG_OPTIONS = ("fix_topic", "camera_info_topic", "imu_topic", "max_fix_gap_s")
 
 
 def refuse_camera_for_csv(source: Path | str | None, flag: str, value: str | Sequence[str] | None) -> None:
@@ -44,6 +58,8 @@ def refuse_camera_for_csv(source: Path | str | None, flag: str, value: str | Seq
 def kitti_only_camera(source: Path | str | None, flag: str, value: str | None, default: str) -> str:
     """A camera flag: refused for a CSV drive (whose one camera this returns), else its value or ``default``."""
     refuse_camera_for_csv(source, flag, value)
+    if is_log(source):
+        return value  # None: the log's only image topic
     return CSV_CAMERA if is_csv(source) else value or default
 
 
@@ -55,6 +71,8 @@ def kitti_camera(root: Path | str | None, drive: str | None, camera: str | None,
         return camera
     if is_csv(root):
         return CSV_CAMERA
+    if is_log(root):
+        return None  # the log's only image topic
     try:
         folder = resolve_drive(default_data_root() if root is None else Path(root), drive)
     except InputError:
@@ -196,19 +214,35 @@ def exclusion_for(asked_s: float | None, db: GeoDatabase, timestamps_s, lat_deg,
 def require_exports(a: argparse.Namespace, store: Path | None = None) -> None:
     """``--geojson`` and ``--csv``: the right suffix and a writable place, before any work (``store``: of a
     command that makes the store's missing folder, where the files may go)."""
-    for flag, path, suffixes in (("--geojson", a.geojson, GEOJSON_SUFFIXES), ("--csv", a.csv, (".csv",))):
+    for flag, path, suffixes in (("--geojson", a.geojson, GEOJSON_SUFFIXES), ("--csv", a.csv, (".csv",)),
+                                 ("--mcap", a.mcap, (".mcap",))):
         if path is not None and Path(path).suffix.lower() not in suffixes:
             raise InputError(f"{flag} {path}: the file name must end in {' or '.join(suffixes)}")
         require_output(path, flag, store)
+    if a.mcap_images and a.mcap is None:
+        raise InputError("--mcap-images: give the file with --mcap")
 
 
-def write_exports(a: argparse.Namespace, run, frame, name: str) -> None:
-    """The run's trajectories to the files ``--geojson`` and ``--csv`` name (``run``: series of records,
-    or a track's frames)."""
+def write_exports(a: argparse.Namespace, run, frame, name: str, *, queries=None, db=None) -> None:
+    """The run's trajectories to the files ``--geojson``, ``--csv`` and ``--mcap`` name (``run``: series of
+    records, or a track's frames; ``queries``, the query drive, and ``db``, the database, give the images
+    ``--mcap-images`` asks for)."""
     for path in (a.geojson, a.csv):
         if path is not None:
             write_trajectory(path, run, frame, name=name)
             print(f"wrote {path}")
+    if a.mcap is not None:
+        from visloc.results.mcap_export import write_run_mcap
+
+        images = None
+        if a.mcap_images and queries is not None and db is not None:
+            query_files = {f.frame: f.image_path for f in queries.frames}
+            db_files = {int(f): image.path for f, image in zip(db.frames, db.images)}
+
+            def images(point):
+                return query_files.get(point.frame), db_files.get(point.best_db_frame)
+        n = write_run_mcap(a.mcap, run, frame, name=name, images=images)
+        print(f"wrote {a.mcap} ({n} messages)")
 
 
 def start_indices(a: argparse.Namespace, query_seq, schedule: list[list[int]]) -> set[int] | None:

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 
 from visloc.bench.run import run_bench
-from visloc.cli.choices import (PAPER_DATABASE_CAMERA, require_exports, write_exports, choose_database, exclusion_for, kitti_camera, kitti_only_camera,
+from visloc.cli.choices import (PAPER_DATABASE_CAMERA, log_options, require_exports, write_exports, choose_database, exclusion_for, kitti_camera, kitti_only_camera,
                             make_folder_of, refuse_camera_for_csv, require_output, start_indices, store_for_writing)
 from visloc.errors import InputError, ParameterError
 from visloc.protocols.evaluation import evaluate, series_schedule
@@ -27,7 +27,8 @@ from visloc.protocols.records import QueryTruth, records_of
 from visloc.results.report import (evaluation_json, is_paper_protocol, record_json, save_error_plot, series_tables,
                            summary_text, track_text, write_json)
 from visloc.tracking.runs import run_queries
-from visloc.sources.drives import Drive, default_data_root, open_source
+from visloc.sources.drives import Drive, default_data_root
+from visloc.sources.opening import open_source
 from visloc.protocols.suite import database_row, drive_protocols, drives_of, pooled_rows, protocol_row, table_text
 from visloc.protocols.track import run_track, track_filter, track_localizer
 from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
@@ -37,6 +38,7 @@ from visloc.store.sharded import sharded_summary
 from visloc.db.shards import is_sharded
 from visloc.store.check import check_sharded, check_store
 from visloc.cli.stopping import interrupted_status, interrupted_text
+from visloc.cli.describing import describe_drive
 
 
 # -- arguments -> parameters ------------------------------------------------------------------
@@ -125,7 +127,7 @@ def cmd_ingest(a: argparse.Namespace) -> int:
     sift = sift_params(a)
     refuse_camera_for_csv(a.source, "--camera", a.camera)
     cameras = a.camera or [kitti_camera(a.source, a.drive, None)]
-    sequences = [_open_source(a.source, drive=a.drive, camera=camera) for camera in cameras]
+    sequences = [_open_source(a.source, drive=a.drive, camera=camera, **log_options(a)) for camera in cameras]
     if a.tile_m is not None or is_sharded(a.db):
         return ingest_sharded(a, sequences, lambda ws, seq, cluster: _print_ingest(
             a, seq, _ingest(ws, seq, sift, a, a.limit, structure=not a.features_only, repair=True, cluster=cluster)))
@@ -169,7 +171,8 @@ def cmd_localize(a: argparse.Namespace) -> int:
     method = method_of(a)
     require_writable_output(a.json, "--json")
     require_exports(a)
-    seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
+    seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"),
+                       **log_options(a))
     ws = Workspace(a.db, tile_cache_mb=a.tile_cache_mb)  # reading: a missing store is an error, never created
     db = ws.load_database(*choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
                                            prefer=PAPER_DATABASE_CAMERA.get(seq.camera, ())), sift)
@@ -206,7 +209,8 @@ def cmd_localize(a: argparse.Namespace) -> int:
                                        "filter": filt.as_dict(), "sift": sift.as_dict(), "mode": method.name,
                                        "refined": None if method.pose is None else method.pose.as_dict()}})
         print(f"\nwrote {a.json}")
-    write_exports(a, [records], db.frame, f"{seq.name} against {db.source}/{db.camera}, mode {method.name}")
+    write_exports(a, [records], db.frame, f"{seq.name} against {db.source}/{db.camera}, mode {method.name}",
+                  queries=seq, db=db)
     return 0
 
 
@@ -265,9 +269,10 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         refuse_camera_for_csv(a.root, "--db-camera", a.db_camera)
         # the paper's protocol (right database for left queries) where the drive has both, else the query camera
         db_camera = kitti_camera(a.root, a.drive, a.db_camera, (*PAPER_DATABASE_CAMERA.get(query_camera, ()),
-                                                               query_camera))
-        db_seq = _open_source(a.root, drive=a.drive, camera=db_camera)
-    query_seq = _open_source(a.root, drive=a.drive, camera=query_camera)
+                                                               query_camera)) or query_camera
+        db_seq = _open_source(a.root, drive=a.drive, camera=db_camera, camera_flag="--db-camera", **log_options(a))
+    query_seq = _open_source(a.root, drive=a.drive, camera=query_camera, camera_flag="--query-camera",
+                             **log_options(a))
     # check the series before any slow work
     schedule = series_schedule(query_seq.timestamps_s, filt.dt_s, a.steps, a.sampling)
     if not schedule:
@@ -291,7 +296,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         save_error_plot(summary, plot, title, paper=is_paper_protocol(summary))
         print(f"wrote {plot}")
     write_exports(a, result.series, result.frame, f"{queries.source}/{queries.camera} against "
-                                                   f"{db.source}/{db.camera}, mode {method.name}")
+                                                   f"{db.source}/{db.camera}, mode {method.name}", queries=query_seq,
+                  db=db)
     return 0
 
 
@@ -363,7 +369,8 @@ def cmd_track(a: argparse.Namespace) -> int:
     method = with_method_flags(a, REFINED_METHOD if a.exact else REFINED_FAST_METHOD, base.init_var)
     require_output(a.json, "--json", a.db)
     require_exports(a, a.db)
-    seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"))
+    seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"),
+                       **log_options(a))
     filt = track_filter(seq, params, base)
     indices = list(range(0, len(seq), params.stride))
     if a.frames is not None:
@@ -371,8 +378,9 @@ def cmd_track(a: argparse.Namespace) -> int:
     with store_for_writing(a.db):
         ws = Workspace(a.db, create=True, tile_cache_mb=a.tile_cache_mb)
         if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
-            db_camera = kitti_only_camera(a.source, "--db-camera", a.db_camera, seq.camera)
-            _ingest(ws, _open_source(a.source, drive=a.drive, camera=db_camera), sift, a)
+            db_camera = kitti_only_camera(a.source, "--db-camera", a.db_camera, seq.camera) or seq.camera
+            _ingest(ws, _open_source(a.source, drive=a.drive, camera=db_camera, camera_flag="--db-camera",
+                                     **log_options(a)), sift, a)
             source = seq.source
         else:
             source, db_camera = choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
@@ -390,7 +398,7 @@ def cmd_track(a: argparse.Namespace) -> int:
     if a.json:
         write_json(a.json, run.as_json())
         print(f"wrote {a.json}")
-    write_exports(a, run.frames, db.frame, f"{seq.name} against {db.source}/{db.camera}, track")
+    write_exports(a, run.frames, db.frame, f"{seq.name} against {db.source}/{db.camera}, track", queries=seq, db=db)
     return 0
 
 
@@ -416,6 +424,8 @@ def cmd_check(a: argparse.Namespace) -> int:
 
 
 def cmd_info(a: argparse.Namespace) -> int:
+    if a.source is not None:
+        return describe_drive(a)
     ws = Workspace(a.db, read_only=True)  # reading never changes the file
     sift = ws.sift_params
     print(f"{a.db}: {ws.image_count()} images")

@@ -93,14 +93,28 @@ def _add_mode(p: argparse.ArgumentParser, *, choose_mode: bool = True, exclude: 
                     FastParams, presets=_method_presets("shortlist"), exclude=exclude)
 
 
+SOURCE_HELP = ("a drive: a vehicle's log (a ROS 1 .bag, an .mcap file or a rosbag2 folder), a KITTI raw root "
+               "(default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
+
+
 def _add_source(p: argparse.ArgumentParser, camera_help: str, camera_default: str, *, multiple: bool = False) -> None:
     # --camera defaults to None, resolved by the command: given for a CSV drive it is an error
-    p.add_argument("source", nargs="?", type=Path, default=None,
-                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
+    p.add_argument("source", nargs="?", type=Path, default=None, help=SOURCE_HELP)
     p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001 (needed if the root holds several)")
     p.add_argument("--camera", action="append" if multiple else "store", default=None,
-                   help=camera_help + f"{' (repeatable)' if multiple else ''}; KITTI only, a CSV drive has one "
-                        f"camera (default {camera_default})")
+                   help=camera_help + f"{' (repeatable)' if multiple else ''}: a KITTI camera (default "
+                        f"{camera_default}) or a log's image topic (default its only one); a CSV drive has one camera")
+    _add_log_topics(p)
+
+
+def _add_log_topics(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("a log's topics (default: the log's only one of each kind)")
+    g.add_argument("--fix-topic", default=None, metavar="TOPIC", help="sensor_msgs/NavSatFix topic of the geotags")
+    g.add_argument("--camera-info-topic", default=None, metavar="TOPIC",
+                   help="sensor_msgs/CameraInfo topic of the images (default: the one beside the image topic)")
+    g.add_argument("--imu-topic", default=None, metavar="TOPIC",
+                   help="sensor_msgs/Imu topic whose orientation gives the attitude (the refined mode needs it)")
+    _add_options(g, "max_fix_gap_s")
 
 
 def _add_sampling(p: argparse.ArgumentParser) -> None:
@@ -153,6 +167,11 @@ def _add_exports(p: argparse.ArgumentParser) -> None:
     g.add_argument("--geojson", type=Path, default=None, metavar="FILE",
                    help="write them as GeoJSON for GIS tools (FILE ends in .geojson or .json)")
     g.add_argument("--csv", type=Path, default=None, metavar="FILE", help="write them as CSV, one row per step")
+    g.add_argument("--mcap", type=Path, default=None, metavar="FILE",
+                   help="write the run as MCAP for Foxglove (FILE ends in .mcap): location fixes with their "
+                        "covariance, the tracks and ellipses as 3D scene entities, each step's figures")
+    g.add_argument("--mcap-images", action="store_true",
+                   help="with --mcap: also each query's image and its best match's (a larger file)")
 
 
 class _HelpFormatter(argparse.HelpFormatter):
@@ -219,11 +238,12 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Every series of --steps queries one --dt-s apart that fits in the drive; "
                                    "per-step mean measurement and estimate errors (Figure 4), final error, latency. "
                                    "Ingests both cameras into --db first (skipping what is stored).")
-    p.add_argument("root", nargs="?", type=Path, default=None,
-                   help="KITTI raw root (default $VISLOC_DATA or ../shared/data/kitti) or a CSV of geotagged images")
+    p.add_argument("root", nargs="?", type=Path, default=None, help=SOURCE_HELP)
     p.add_argument("--drive", default=None, help="KITTI drive, e.g. 2011_09_26_drive_0001")
     _add_db(p, tile_cache=True)
-    p.add_argument("--query-camera", default=None, help="KITTI camera of the queries (default image_00, left gray)")
+    p.add_argument("--query-camera", default=None, help="camera of the queries: KITTI's (default image_00, left "
+                                                        "gray) or a log's image topic (default its only one)")
+    _add_log_topics(p)
     _add_database_choice(p, "KITTI camera of the database (default image_01, right gray; the query camera on a drive "
                             "without image_01); with --db-source, a camera in the store",
                          "evaluate against this drive/dataset already in the store (e.g. another CSV drive ingested "
@@ -288,6 +308,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--query-source", default=None,
                    help="query drive/dataset to show first (default: the database's drive, or another drive "
                         "when the store holds several and the cameras do not tell)")
+    p.add_argument("--tiles", default=None, metavar="URL",
+                   help="draw a web map under the top-down map: an XYZ tile URL with {z}, {x} and {y}, or 'osm' for "
+                        "OpenStreetMap's (mind its tile usage policy: a person viewing, no bulk downloads); "
+                        "tiles are kept on disk (default: no tiles)")
+    p.add_argument("--tiles-attribution", default=None, metavar="TEXT",
+                   help="the tiles' attribution, drawn on the map (default: OpenStreetMap's for 'osm', else the "
+                        "server's name)")
 
     p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",
                        description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "
@@ -334,7 +361,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "and the other commands that write do it on their own.")
     _add_db(p)
 
-    p = _command(sub, "info", help="what a store holds", description="Images, drives, cameras and SIFT settings of a store.")
+    p = _command(sub, "info", help="what a store holds, or what visloc reads from a drive",
+                 description="Images, drives, cameras and SIFT settings of a store. Given a drive (a log, a KITTI "
+                             "root or a CSV), what visloc reads from it instead: its frames, geotags, calibration "
+                             "and attitudes, and for a log its topics, the ones chosen and the largest gap between "
+                             "the fixes a geotag was interpolated from.")
+    _add_source(p, "camera", "image_01")
     _add_db(p)
 
     p = _command(sub, "check", help="is a store whole? (exit 0 when it is, 2 when not)",

@@ -24,11 +24,19 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
         tune = (a.tune_from, live_settings(load_run(run_files(a.tune_from)[0][1])))
     db_source, db_camera = _split(tune[1].database if tune else None)
     q_source, q_camera = _split(tune[1].queries if tune else None)
+    tiles = None
+    if a.tiles is not None:  # a bad URL is refused here, before anything is served
+        from visloc.dashboard.tiles import TileSource
+        from visloc.sources.logs import cache_root
+
+        tiles = TileSource(a.tiles, cache_root() / "tiles", attribution=a.tiles_attribution)
+    elif a.tiles_attribution is not None:
+        raise InputError("--tiles-attribution: give the tiles with --tiles")
     only = only_camera(a.db)  # a store of one camera shows it first; a missing or bad store is reported in the page
     serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera or db_camera or only or "image_01",
           query_camera=a.query_camera or q_camera or only or "image_00", db_source=a.db_source or db_source,
           query_source=a.query_source or q_source, allow=a.allow, tune_from=tune,
-          announce=lambda text: print(text, flush=True))
+          announce=lambda text: print(text, flush=True), tiles=tiles)
     return 0
 
 

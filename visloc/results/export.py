@@ -48,6 +48,7 @@ class TrajectoryPoint:
     estimate_cov_m2: list[list[float]] | None
     measurement_error_m: float | None  # geodesic, against the truth
     estimate_error_m: float | None
+    best_db_frame: int | None = None  # the database frame of the best match (of the first view, for a track)
 
 
 def _cov(value) -> list[list[float]] | None:
@@ -62,14 +63,14 @@ def _cov(value) -> list[list[float]] | None:
 def points_from_records(series: Sequence[Sequence[StepRecord]]) -> list[TrajectoryPoint]:
     return [TrajectoryPoint(k, r.step, r.query_frame, r.query_timestamp_s, r.truth_m, r.measurement_m,
                             r.measurement_source, _cov(r.measurement_cov_m2), r.estimate_m, _cov(r.estimate_cov_m2),
-                            r.measurement_error_m, r.estimate_error_m)
+                            r.measurement_error_m, r.estimate_error_m, r.best_db_frame)
             for k, records in enumerate(series) for r in records]
 
 
 def points_from_track(frames: Sequence[TrackFrame]) -> list[TrajectoryPoint]:
     return [TrajectoryPoint(0, n, f.frame, f.timestamp_s, f.truth_m, f.measurement_m, f.measurement_source,
                             _cov(f.measurement_cov_m2), f.estimate_m, _cov(f.estimate_cov_m2),
-                            f.measurement_error_m, f.error_m)
+                            f.measurement_error_m, f.error_m, f.view_frames[0] if f.view_frames else None)
             for n, f in enumerate(frames)]
 
 
@@ -92,7 +93,8 @@ def _lon_lat(frame: LocalFrame, position_m) -> list[float] | None:
     return [round(float(lon), 9), round(float(lat), 9)]  # 1e-9 degree is 0.1 mm
 
 
-def _sigmas(cov: list[list[float]] | None) -> tuple[float | None, float | None]:
+def sigmas_m(cov: list[list[float]] | None) -> tuple[float | None, float | None]:
+    """(major, minor) standard deviations of a 2x2 covariance, m; (None, None) for none."""
     if cov is None:
         return None, None
     values = np.sqrt(np.clip(np.linalg.eigvalsh(np.asarray(cov, float)), 0.0, None))
@@ -131,7 +133,7 @@ def trajectory_geojson(run, frame: LocalFrame, *, name: str) -> dict:
                                          east_m=p.truth_m[0], north_m=p.truth_m[1]))
             measured = _lon_lat(frame, p.measurement_m)
             if measured is not None:
-                major, minor = _sigmas(p.measurement_cov_m2)
+                major, minor = sigmas_m(p.measurement_cov_m2)
                 features.append(_feature({"type": "Point", "coordinates": measured}, kind="measurement", **common,
                                          source=p.measurement_source, east_m=p.measurement_m[0],
                                          north_m=p.measurement_m[1], cov_m2=p.measurement_cov_m2,
@@ -140,7 +142,7 @@ def trajectory_geojson(run, frame: LocalFrame, *, name: str) -> dict:
             estimate = _lon_lat(frame, p.estimate_m)
             if estimate is None:
                 continue
-            major, minor = _sigmas(p.estimate_cov_m2)
+            major, minor = sigmas_m(p.estimate_cov_m2)
             features.append(_feature({"type": "Point", "coordinates": estimate}, kind="estimate", **common,
                                      east_m=p.estimate_m[0], north_m=p.estimate_m[1], cov_m2=p.estimate_cov_m2,
                                      sigma_major_m=major, sigma_minor_m=minor, error_m=_finite(p.estimate_error_m)))

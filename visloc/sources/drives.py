@@ -39,7 +39,7 @@ import io
 import math
 import os
 import re
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -54,7 +54,6 @@ from visloc.sources.calibration import (
     read_text,
 )
 from visloc.errors import InputError
-from visloc.sources.imagesize import header_size_px
 from visloc.features.sift import to_gray_u8
 from visloc.geo import yaw_enu_to_heading_deg
 from visloc.geometry.projective import CameraModel
@@ -408,37 +407,3 @@ def open_csv(csv_path: Path, *, source: str | None = None, camera: str = "camera
     return Drive(source=source, camera=camera, frames=frames, P_rect=calib.P_rect,
                     image_size_px=(calib.width_px, calib.height_px), T_camera_imu=calib.T_camera_imu,
                     distortion=calib.distortion)
-
-
-def open_source(path: Path | None, *, drive: str | None = None, camera: str = "image_01") -> Drive:
-    """A CSV file gives a generic sequence; a folder is read as a KITTI raw root (None: the default
-    data root, ``default_data_root()``)."""
-    path = default_data_root() if path is None else Path(path)
-    if path.suffix.lower() == ".csv":
-        return fit_calibration(open_csv(path))
-    return fit_calibration(open_kitti(path, drive, camera))
-
-
-def fit_calibration(sequence: Drive) -> Drive:
-    """``sequence`` with a calibration that fits its images, judged from the first image's header.
-
-    Images of the calibration's size: unchanged. Images resized from it (the same aspect ratio, to a
-    pixel): the intrinsics scaled to their size, and a note saying so (``Drive.notes``). Any other
-    size: ``InputError`` naming the image, both sizes and the calibration."""
-    if sequence.image_size_px is None or sequence.P_rect is None or not sequence.frames:
-        return sequence
-    first = sequence.frames[0].image_path
-    size = header_size_px(first)
-    if size is None or tuple(size) == tuple(sequence.image_size_px):
-        return sequence
-    (w, h), (w0, h0) = size, sequence.image_size_px
-    if abs(h0 * w / w0 - h) > 1.0:
-        raise InputError(f"{first}: image is {w}x{h} px but the calibration of {sequence.name} is for {w0}x{h0} px, "
-                         "another aspect ratio: give the calibration of these images")
-    sx, sy = w / w0, h / h0
-    # pixel centres: x + 0.5 = sx (x0 + 0.5), as a resize maps them
-    S = np.array([[sx, 0.0, (sx - 1.0) / 2.0], [0.0, sy, (sy - 1.0) / 2.0], [0.0, 0.0, 1.0]])
-    note = (f"{sequence.name}: images are {w}x{h} px, the calibration is for {w0}x{h0} px: its intrinsics are "
-            f"scaled by {sx:.4g} x {sy:.4g} to fit them")
-    return replace(sequence, P_rect=S @ np.asarray(sequence.P_rect, float), image_size_px=(w, h),
-                   notes=(*sequence.notes, note))
