@@ -124,6 +124,7 @@ class Handles:
     error_plot: viser.GuiUplotHandle
     run_summary: viser.GuiMarkdownHandle
     map_badge: viser.GuiHtmlHandle
+    map_tiles: viser.GuiHtmlHandle
     map: viser.GuiImageHandle
     timelines: dict[str, viser.GuiUplotHandle]  # error, sigma, nees, inliers, latency per step (runpanels.timeline)
 
@@ -249,6 +250,7 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
         map_badge = gui.add_html("")
         map_image = gui.add_image(placeholder("No run yet"), label="top-down map (north up, east right)",
                                   format="png")
+        map_tiles = gui.add_html("")  # the web map's attribution, or why it has no tiles (--tiles)
         gui.add_html(map_legend_html())
     panel.dock_below(gui.main_panel)
     return Handles(status=status, progress=progress, session=session, step=step, prev_next=prev_next, play=play,
@@ -256,4 +258,5 @@ def build_gui(server: viser.ViserServer, store_path: str) -> Handles:
                    reset=reset, tuned_from=tuned_from, layers=layers, magnify=magnify, geojson=geojson, csv=csv, mcap=mcap, store=store, store_path=store_path_box, open=open_button,
                    store_message=store_message, db=db, queries=queries, store_info=store_info, step_badge=step_badge,
                    figure=figure, numbers=numbers, counts_plot=counts_plot, error_plot=error_plot,
-                   run_summary=run_summary, map_badge=map_badge, map=map_image, timelines=timelines)
+                   run_summary=run_summary, map_badge=map_badge, map=map_image, map_tiles=map_tiles,
+                   timelines=timelines)

@@ -90,6 +90,12 @@ class Page:
         for client in self.server.get_clients().values():  # look_at last: viser moves it with a new position
             client.camera.position, client.camera.look_at = position, look_at
         self.gui.map.image = mapview.map_image(self.truth_track_m, self.db_m, [], None, tiles=self.tiles)
+        self.tiles_note()
+
+    def tiles_note(self) -> None:
+        """Under the map: its tiles' attribution, or why it has none now (no network)."""
+        if self.tiles is not None:
+            self.gui.map_tiles.content = panels.tiles_html(self.tiles.caption, problem=bool(self.tiles.source.problem))
 
     def factor(self, magnification: float):
         """How many times larger each ellipse is drawn (``runpanels.drawn_factor``), as a function of its covariance."""
@@ -137,6 +143,7 @@ class Page:
         draw_timelines(g.timelines, visloc.steps_of_records(run.records, t0_s), k)
         g.map.image = mapview.map_image(self.truth_track_m, self.db_m, run.records, k,
                                         note="previous run - re-matching" if note else None, tiles=self.tiles)
+        self.tiles_note()
         if not self.pictures_shown:
             g.figure.image = panels.placeholder(f"Reading the images of step {k + 1}…".replace("…", "..."))
 

@@ -82,6 +82,12 @@ def session_html(line: str, tab: int | None = None) -> str:
             f'{text(line + own)}</div>')
 
 
+def tiles_html(caption: str, *, problem: bool) -> str:
+    """The line under the map about its web-map tiles: their attribution, or (``problem``) why there are none."""
+    color = "#b35c00" if problem else "#666"
+    return f'<div style="font-size:12px;color:{color};padding:2px 12px;overflow-wrap:anywhere">{text(caption)}</div>'
+
+
 def stale_badge_html(note: str | None) -> str:
     """A grey badge saying the numbers below belong to the previous run ("" when they are current)."""
     if not note:

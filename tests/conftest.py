@@ -32,6 +32,13 @@ def shared_tmp(tmp_path_factory, worker_id) -> Path:
     return base.parent if worker_id != "master" else base
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _cache_of_the_run(tmp_path_factory):
+    """What visloc caches (a log's images, map tiles) goes to this run's temporary folder, never the home
+    folder of whoever runs the tests; the commands the tests start inherit it."""
+    os.environ["VISLOC_CACHE"] = str(tmp_path_factory.mktemp("visloc_cache"))
+
+
 @pytest.fixture
 def memory_store():
     store = FeatureStore.memory()

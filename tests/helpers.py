@@ -182,6 +182,38 @@ def one_line_error(result, *fragments):
         assert fragment in lines[0], lines[0]
 
 
+# -- a run exported as MCAP, read back ----------------------------------------------------------------
+
+def read_back_mcap(path: Path, steps: list[dict], *, images: bool, places: float = 1e-12, rel: float = 1e-12) -> None:
+    """Every message of a run's MCAP decodes with its schema (protobuf for Foxglove's, JSON schema for the
+    steps') by ``mcap``'s own reader and decoders; the estimate fixes are the run's estimates (``steps``: as its
+    JSON has them, latitude, longitude and covariance), step for step."""
+    import jsonschema
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    topics: dict[str, list] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message in reader.iter_messages():
+            if channel.message_encoding == "json":
+                decoded = json.loads(message.data)
+                jsonschema.validate(decoded, json.loads(schema.data))
+            else:
+                assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
+                decoded = DecoderFactory().decoder_for("protobuf", schema)(message.data)
+            topics.setdefault(channel.topic, []).append(decoded)
+    expected = {"/visloc/truth", "/visloc/measurement", "/visloc/estimate", "/visloc/scene", "/visloc/step"}
+    assert expected | ({"/visloc/image/query", "/visloc/image/match"} if images else set()) == set(topics)
+    assert [s["step"] for s in topics["/visloc/step"]] == [s["step"] for s in steps]
+    estimated = [s for s in steps if s["estimate_lat_deg"] is not None]
+    assert len(topics["/visloc/estimate"]) == len(estimated) > 0
+    for fix, step in zip(topics["/visloc/estimate"], estimated):
+        assert (fix.latitude, fix.longitude) == pytest.approx((step["estimate_lat_deg"], step["estimate_lon_deg"]),
+                                                              abs=places)
+        assert list(fix.position_covariance)[:2] == pytest.approx(step["estimate_cov_m2"][0], rel=rel)
+
+
 # -- a store being ingested, read with plain sqlite3 -----------------------------------------------------
 
 def snapshot(path):

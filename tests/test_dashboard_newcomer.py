@@ -27,6 +27,7 @@ from helpers import (
     go_to_step,
     open_other_store,
     open_page,
+    read_back_mcap,
     reset,
     row,
     screenshot,
@@ -309,7 +310,7 @@ def test_every_tab_sees_the_shared_session_and_who_changed_what(dashboard, brows
 
 
 @pytest.mark.slow
-def test_the_run_downloads_as_geojson_and_csv(dashboard, browser, tmp_path):
+def test_the_run_downloads_as_geojson_csv_and_mcap(dashboard, browser, tmp_path):
     page = open_on_current_step(browser, dashboard.url)
     try:
         with page.expect_download() as got:
@@ -329,6 +330,15 @@ def test_the_run_downloads_as_geojson_and_csv(dashboard, browser, tmp_path):
         rows = list(csv.DictReader(io.StringIO((tmp_path / "run.csv").read_text())))
         assert len(rows) == 11
         assert rows[0]["truth_east_m"] and rows[0]["estimate_cov_ee_m2"]
+        with page.expect_download() as got:  # for Foxglove: the same steps, each message decoded with its schema
+            page.get_by_role("button", name="Download MCAP").click()
+        download = got.value
+        assert download.suggested_filename.endswith(".mcap")
+        download.save_as(tmp_path / "run.mcap")
+        steps = [{"step": int(r["step"]), "estimate_lat_deg": float(r["estimate_lat_deg"]),
+                  "estimate_lon_deg": float(r["estimate_lon_deg"]),
+                  "estimate_cov_m2": [[float(r["estimate_cov_ee_m2"]), float(r["estimate_cov_en_m2"])]]} for r in rows]
+        read_back_mcap(tmp_path / "run.mcap", steps, images=False, places=1e-9, rel=1e-5)
     finally:
         page.close()
 

@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers import DRIVE_0005, KITTI_DRIVE, ORIGIN_LAT_DEG, REPO, one_line_error, run_cli
+from helpers import DRIVE_0005, KITTI_DRIVE, ORIGIN_LAT_DEG, REPO, one_line_error, read_back_mcap, run_cli
 from visloc.sources.drives import Frame, open_kitti
 from visloc.sources.opening import open_source
 from visloc.sources.log_frames import Fixes, bracket, pair_fix, roll_pitch_yaw_rad, rotation_of_quaternion
@@ -32,21 +32,17 @@ FORMATS = {"sqlite3": "drive_sqlite3", "mcap": "drive_mcap", "bag": "drive.bag"}
 M_PER_DEG_LON = 111_320.0 * math.cos(math.radians(ORIGIN_LAT_DEG))
 
 
-@pytest.fixture(autouse=True)
-def _image_cache(tmp_path, monkeypatch):
-    """The images a log holds are written to a cache folder: this test's own."""
-    monkeypatch.setenv("VISLOC_CACHE", str(tmp_path / "cache"))
-
-
 def frames_of_csv(csv_path: Path) -> list[Frame]:
     return list(open_source(csv_path).frames)
 
 
 def write_synthetic_log(out: Path, fmt: str, frames: list[Frame], *, image_topic: str = "/cam/image_raw",
                         fixes: bool = True, fix_status: int = 0, fix_shift_ns: int = 0,
-                        camera_info_size: tuple[int, int] | None = None, extra_images: str | None = None) -> Path:
+                        camera_info_size: tuple[int, int] | None = None, extra_images: str | None = None,
+                        tf_attitude: bool = False) -> Path:
     """A log of ``frames`` (their images, geotags as NavSatFix at their times + ``fix_shift_ns``, and a
-    CameraInfo of ``camera_info_size`` when given), written with the rosbags writer."""
+    CameraInfo of ``camera_info_size`` when given; ``tf_attitude``: the frames' attitudes as /tf map to
+    base_link and the camera on base_link in /tf_static), written with the rosbags writer."""
     with kitti_to_log.LogWriter(out, fmt) as log:
         m = log.messages
         for f in frames:
@@ -62,6 +58,15 @@ def write_synthetic_log(out: Path, fmt: str, frames: list[Frame], *, image_topic
             if fixes:
                 log.write("/gps/fix", "sensor_msgs/msg/NavSatFix", t + fix_shift_ns,
                           m.fix(t + fix_shift_ns, f, status=fix_status))
+            if tf_attitude:  # the vehicle's pose in the map frame on /tf, and no IMU
+                pose = np.eye(4)
+                pose[:3, :3] = kitti_to_log.rotation_rpy(f.roll_rad, f.pitch_rad, f.yaw_rad)
+                moving = m.static_transforms(t, {"base_link": pose})
+                moving.transforms[0].header.frame_id = "map"
+                log.write("/tf", "tf2_msgs/msg/TFMessage", t, moving)
+        if tf_attitude:
+            on_vehicle = np.array([[0, 0, 1, 1.5], [-1, 0, 0, 0.1], [0, -1, 0, 1.2], [0, 0, 0, 1]], float)
+            log.write("/tf_static", "tf2_msgs/msg/TFMessage", t, m.static_transforms(t, {"cam_optical": on_vehicle}))
     return out
 
 
@@ -81,6 +86,16 @@ def test_an_image_takes_the_fix_at_its_time_exactly_else_interpolates_within_the
     assert bracket(fixes.stamp_ns, 3_000_000_000, 0) == (2, 2, 0.0)
 
 
+def test_a_camera_is_named_by_the_part_of_its_topic_that_names_it_unless_two_share_it():
+    from visloc.sources.logs import camera_names
+
+    assert camera_names(["/kitti/image_00/image_raw", "/kitti/image_01/image_raw", "/cam0/compressed"]) == {
+        "/kitti/image_00/image_raw": "image_00", "/kitti/image_01/image_raw": "image_01", "/cam0/compressed": "cam0"}
+    assert camera_names(["/left/image_raw", "/left/image_rect"]) == {"/left/image_raw": "left.image_raw",
+                                                                     "/left/image_rect": "left.image_rect"}
+    assert camera_names(["/image_raw"]) == {"/image_raw": "image_raw"}
+
+
 def test_an_orientation_reads_back_as_the_oxts_roll_pitch_and_yaw_it_was_made_from():
     for roll, pitch, yaw in ((0.03, -0.01, 2.9), (-0.2, 0.4, -1.2), (0.0, 0.0, math.pi - 1e-9)):
         q = kitti_to_log.quaternion_xyzw(kitti_to_log.rotation_rpy(roll, pitch, yaw))
@@ -94,12 +109,25 @@ def test_a_log_in_each_format_is_read_as_the_drive_it_was_written_from(tmp_path,
     frames = frames_of_csv(csv_drive)
     log = write_synthetic_log(tmp_path / FORMATS[fmt], fmt, frames)
     drive = open_source(log)
-    assert drive.camera == "cam.image_raw" and drive.source == Path(FORMATS[fmt]).stem
+    assert drive.camera == "cam" and drive.source == Path(FORMATS[fmt]).stem
     assert [(f.frame, f.timestamp_s, f.lat_deg, f.lon_deg) for f in drive.frames] == \
         [(f.frame, f.timestamp_s, f.lat_deg, f.lon_deg) for f in frames]
     for a, b in zip(frames, drive.frames):
         assert np.array_equal(cv2.imread(str(a.image_path), -1), cv2.imread(str(b.image_path), -1))
     assert drive.P_rect is None and any("refined mode is not available" in n for n in drive.notes)
+
+
+def test_without_an_imu_the_attitude_comes_from_the_transform_tree(tmp_path, csv_drive):
+    from dataclasses import replace
+
+    frames = [replace(f, roll_rad=0.01 * i, pitch_rad=-0.02, yaw_rad=2.5 + 0.05 * i)
+              for i, f in enumerate(frames_of_csv(csv_drive))]
+    log = write_synthetic_log(tmp_path / "tf.bag", "bag", frames, camera_info_size=(320, 240), tf_attitude=True)
+    drive = open_source(log)
+    for a, b in zip(frames, drive.frames):
+        assert np.allclose((a.roll_rad, a.pitch_rad, a.yaw_rad), (b.roll_rad, b.pitch_rad, b.yaw_rad), atol=1e-12)
+    assert drive.T_camera_imu is not None and np.allclose(drive.T_camera_imu[:3, 3], [0.1, 1.2, -1.5])
+    assert any("attitude from the transform map -> base_link of /tf" in note for note in drive.notes)
 
 
 def test_info_lists_a_logs_topics_and_the_largest_gap_a_geotag_was_interpolated_over(tmp_path, csv_drive):
@@ -111,7 +139,7 @@ def test_info_lists_a_logs_topics_and_the_largest_gap_a_geotag_was_interpolated_
     # fixes 0.1 s after each image, 0.5 s apart: the first image is before the first fix, left out
     assert "1 of 12 images of /cam/image_raw left out" in result.stdout
     assert "largest gap between the two fixes an image's geotag was interpolated from: 0.500 s" in result.stdout
-    assert "drive/cam.image_raw: 11 frames" in result.stdout
+    assert "drive/cam: 11 frames" in result.stdout
 
 
 def test_a_run_on_a_log_gives_the_figures_of_the_same_drive_read_from_its_csv(tmp_path, csv_pair):
@@ -131,35 +159,6 @@ def test_a_run_on_a_log_gives_the_figures_of_the_same_drive_read_from_its_csv(tm
     csv_steps, log_steps = ([{k: s.get(k) for k in keys} for s in runs[n]["steps"]] for n in ("csv", "log"))
     assert csv_steps == log_steps and len(log_steps) == 4
     read_back_mcap(tmp_path / "run.mcap", runs["log"]["steps"], images=True)
-
-
-def read_back_mcap(path: Path, steps: list[dict], *, images: bool) -> None:
-    """Every message of the MCAP decodes with its schema (protobuf for Foxglove's, JSON schema for the
-    steps'); the estimate fixes are the run's estimates, step for step."""
-    import jsonschema
-    from mcap.reader import make_reader
-    from mcap_protobuf.decoder import DecoderFactory
-
-    topics: dict[str, list] = {}
-    with open(path, "rb") as f:
-        reader = make_reader(f, decoder_factories=[DecoderFactory()])
-        for schema, channel, message in reader.iter_messages():
-            if channel.message_encoding == "json":
-                decoded = json.loads(message.data)
-                jsonschema.validate(decoded, json.loads(schema.data))
-            else:
-                assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
-                decoded = DecoderFactory().decoder_for("protobuf", schema)(message.data)
-            topics.setdefault(channel.topic, []).append(decoded)
-    expected = {"/visloc/truth", "/visloc/measurement", "/visloc/estimate", "/visloc/scene", "/visloc/step"}
-    assert expected | ({"/visloc/image/query", "/visloc/image/match"} if images else set()) == set(topics)
-    assert [s["step"] for s in topics["/visloc/step"]] == [s["step"] for s in steps]
-    estimated = [s for s in steps if s["estimate_lat_deg"] is not None]
-    assert len(topics["/visloc/estimate"]) == len(estimated) > 0
-    for fix, step in zip(topics["/visloc/estimate"], estimated):
-        assert (fix.latitude, fix.longitude) == pytest.approx((step["estimate_lat_deg"], step["estimate_lon_deg"]),
-                                                              abs=1e-12)
-        assert list(fix.position_covariance)[:2] == pytest.approx(step["estimate_cov_m2"][0], rel=1e-12)
 
 
 # -- bad logs: one line each, exit 2, nothing stored -------------------------------------------------------

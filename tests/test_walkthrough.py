@@ -20,7 +20,7 @@ import threading
 
 import geojson
 import pytest
-from helpers import control, dismiss_webgl_notice, new_page, run_number, visit, wait_for
+from helpers import control, dismiss_webgl_notice, new_page, read_back_mcap, run_number, visit, wait_for
 
 from helpers import REPO
 
@@ -29,7 +29,7 @@ pytestmark = [pytest.mark.slow, pytest.mark.longest]
 MARKER = "<!-- the walk-through: tests/test_walkthrough.py runs this block as it is -->"
 README_ROOT = "../shared/data/kitti"
 URL_LINE = re.compile(r"visloc dashboard: (http://\S+)")
-WALK_S = 3600  # everything before the dashboard: two CSV drives, an ingest, a series, an evaluation
+WALK_S = 3600  # everything before the dashboard: a log, an ingest, a series, an evaluation
 
 
 def walkthrough_block() -> str:
@@ -84,6 +84,8 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser, tmp_path):
         assert evaluation["n_series"] == len(evaluation["series"]) == 2
         rows = list(csv.DictReader((out / "evaluation.csv").open()))
         assert len(rows) == sum(len(s) for s in evaluation["series"])
+        read_back_mcap(out / "evaluation.mcap", [step for s in evaluation["series"] for step in s], images=False)
+        assert "/kitti/image_00/image_raw: sensor_msgs/Image, 61 messages" in log  # visloc info on the log
         assert "1.85" not in log  # the paper's figure for its own drive is not a comparison for this one
         # the dashboard shows the query drive against the database drive and fills in a run
         url = URL_LINE.search(log).group(1)
@@ -94,9 +96,9 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser, tmp_path):
             wait_for(lambda: run_number(page) > 0, 600, "the first run to be ready")
             page.get_by_text("Step 1 of 7", exact=True).wait_for()  # one query a second over the 61 frames
             page.get_by_text("Data", exact=True).click()
-            assert control(page, "Database").locator("input").first.input_value() == "database/camera"
+            assert control(page, "Database").locator("input").first.input_value() == "drive/image_01"
             queries = page.get_by_text("Queries", exact=True).last  # the Data fold's, after the fold named so
-            assert queries.locator("xpath=../../..").locator("input").first.input_value() == "queries/camera"
+            assert queries.locator("xpath=../../..").locator("input").first.input_value() == "drive/image_00"
             dismiss_webgl_notice(page)
             page.screenshot(path=str(tmp_path / "walkthrough_dashboard.png"))
         finally:

@@ -27,7 +27,7 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
     tiles = None
     if a.tiles is not None:  # a bad URL is refused here, before anything is served
         from visloc.dashboard.tiles import TileSource
-        from visloc.sources.logs import cache_root
+        from visloc.sources.log_cache import cache_root
 
         tiles = TileSource(a.tiles, cache_root() / "tiles", attribution=a.tiles_attribution)
     elif a.tiles_attribution is not None:

@@ -25,11 +25,7 @@ cache folder keyed by the log's path, size and modification time (``$VISLOC_CACH
 
 from __future__ import annotations
 
-import hashlib
-import json
 import math
-import os
-import re
 from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -42,8 +38,9 @@ from visloc.errors import InputError
 from visloc.geo import yaw_enu_to_heading_deg
 from visloc.sources.drives import Drive, Frame
 from visloc.sources.imagesize import header_size_px
-from visloc.sources.log_frames import (NO_FIX, Fixes, attitude_at, chain, horizontal_sigma_m, image_array,
-                                       pair_fix, transform_matrix)
+from visloc.sources.log_cache import cache_folder, cached_images, image_file, record_images
+from visloc.sources.log_frames import (NO_FIX, Fixes, attitude_at, chain, horizontal_sigma_m, pair_fix,
+                                       transform_matrix)
 
 LOG_SUFFIXES = (".mcap", ".bag")
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -52,7 +49,6 @@ INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 IMU_TYPE = "sensor_msgs/msg/Imu"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
 DEFAULT_MAX_FIX_GAP_S = 1.0  # a 1 Hz receiver's fixes are 1 s apart (visloc.params.options: --max-fix-gap-s)
-CACHE_VERSION = 1
 
 
 def is_log(path: Path | str | None) -> bool:
@@ -115,7 +111,8 @@ def _choose(path: Path, topics: dict[str, str], types: tuple[str, ...], asked: s
     candidates = sorted(t for t, m in topics.items() if m in types)
     kind = " or ".join(m.replace("/msg/", "/") for m in types)
     if asked is not None:
-        name = "/" + asked.lstrip("/").replace(".", "/")  # a topic, or the camera name visloc gave it
+        by_name = {n: t for t, n in camera_names(candidates).items()} if types == IMAGE_TYPES else {}
+        name = by_name.get(asked, "/" + asked.lstrip("/"))  # a topic, or the camera name visloc gave it
         if name not in candidates:
             raise InputError(f"{flag} {asked}: {path} has no {kind} topic of that name (its {what} topics: "
                              f"{', '.join(candidates) or 'none'})")
@@ -130,10 +127,23 @@ def _choose(path: Path, topics: dict[str, str], types: tuple[str, ...], asked: s
                      f"({', '.join(candidates)})")
 
 
-def camera_name(topic: str) -> str:
-    """The name the store gives an image topic's camera: the topic without its leading /, each / a dot (a
-    drive's name is source/camera, and ROS names hold no dots)."""
-    return topic.strip("/").replace("/", ".")
+IMAGE_LEAVES = ("image_raw", "image_rect", "image_color", "image_mono", "image_rect_color", "image_rect_mono",
+                "image", "compressed")  # what ROS names the last part of an image topic
+
+
+def camera_names(image_topics: list[str]) -> dict[str, str]:
+    """The name the store gives each image topic's camera: the part of the topic that names the camera
+    (``/kitti/image_01/image_raw``: ``image_01``, ``/cam0/image_raw``: ``cam0``) when no other image topic of
+    the log has the same; else the whole topic, its / as dots (a drive's name is source/camera, and ROS names
+    hold no dots)."""
+    def short(topic: str) -> str:
+        parts = topic.strip("/").split("/")
+        while len(parts) > 1 and parts[-1] in IMAGE_LEAVES:
+            parts.pop()
+        return parts[-1]
+
+    shorts = [short(t) for t in image_topics]
+    return {t: s if shorts.count(s) == 1 else t.strip("/").replace("/", ".") for t, s in zip(image_topics, shorts)}
 
 
 def _stamp_ns(message, log_ns: int) -> int:
@@ -185,6 +195,26 @@ def _read_orientations(reader, path: Path, topic: str) -> tuple[np.ndarray, np.n
     return np.array(stamps, np.int64)[order], np.array(quaternions, float).reshape(-1, 4)[order], frame
 
 
+VEHICLE_FRAME = "base_link"  # REP 105's name of the vehicle's frame
+
+
+def _tf_orientations(reader, path: Path, topics: dict[str, str]) -> tuple[np.ndarray, np.ndarray, str, str]:
+    """(stamps ns, quaternions (N, 4), child frame, parent frame) of the transform tree's moving transforms to
+    the vehicle frame (``/tf``: e.g. map to base_link), the attitude when the log has no IMU orientation."""
+    stamps, quaternions, parent = [], [], ""
+    for topic in sorted(t for t, m in topics.items() if m == TF_TYPE and not t.endswith("tf_static")):
+        for log_ns, m in _messages(reader, path, topic):
+            for ts in m.transforms:
+                if ts.child_frame_id.lstrip("/") == VEHICLE_FRAME:
+                    r = ts.transform.rotation
+                    stamps.append(_stamp_ns(ts, log_ns))
+                    quaternions.append((r.x, r.y, r.z, r.w))
+                    parent = parent or ts.header.frame_id.lstrip("/")
+    order = np.argsort(np.array(stamps, np.int64), kind="stable")
+    return (np.array(stamps, np.int64)[order], np.array(quaternions, float).reshape(-1, 4)[order],
+            VEHICLE_FRAME if stamps else "", parent)
+
+
 def _static_transforms(reader, path: Path, topics: dict[str, str]) -> dict[tuple[str, str], np.ndarray]:
     out: dict[tuple[str, str], np.ndarray] = {}
     for topic in sorted(t for t, m in topics.items() if m == TF_TYPE and t.endswith("tf_static")):
@@ -208,70 +238,18 @@ def _camera_info_topic(path: Path, topics: dict[str, str], image_topic: str, ask
     return infos[0] if len(infos) == 1 else None
 
 
-def cache_root() -> Path:
-    env = os.environ.get("VISLOC_CACHE")
-    return Path(env) if env else Path.home() / ".cache" / "visloc"
-
-
-def _cache_folder(path: Path, topic: str) -> Path:
-    """Where the images of ``topic`` go: keyed by the log's path, size and modification time."""
-    files = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
-    stats = [(str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns) for p in files]
-    key = hashlib.sha256(json.dumps([CACHE_VERSION, stats]).encode()).hexdigest()[:16]
-    slug = re.sub(r"[^A-Za-z0-9_.-]+", "_", f"{path.name}-{topic.strip('/')}")[:80]
-    return cache_root() / "logs" / f"{slug}-{key}"
-
-
-def _write_atomically(target: Path, write) -> None:
-    tmp = target.with_name(f".{target.stem}.tmp{target.suffix}")
-    write(tmp)
-    os.replace(tmp, target)
-
-
-def _image_file(folder: Path, n: int, message, msgtype: str, where: str) -> Path:
-    """The image of message ``n`` as a file in ``folder``, written when missing."""
-    if msgtype.endswith("CompressedImage"):
-        data = bytes(np.asarray(message.data, np.uint8))
-        suffix = ".png" if data[:4] == b"\x89PNG" else ".jpg" if data[:2] == b"\xff\xd8" else ".img"
-        target = folder / f"{n:06d}{suffix}"
-        if not target.exists():
-            _write_atomically(target, lambda p: p.write_bytes(data))
-        return target
-    target = folder / f"{n:06d}.png"
-    if not target.exists():
-        pixels = image_array(message.encoding, int(message.width), int(message.height), int(message.step),
-                             bool(message.is_bigendian), message.data, where)
-
-        def write_png(p: Path) -> None:
-            if not cv2.imwrite(str(p), pixels, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
-                raise InputError(f"{p}: cannot write the cache of the log's images")
-
-        _write_atomically(target, write_png)
-    return target
-
-
 def _images(reader, path: Path, topic: str, msgtype: str) -> list[tuple[int, Path]]:
     """(stamp ns, image file) of every message of the image topic, in the log's order, the files written to the
     cache once (an index records them, so that a later command reads no image message)."""
-    folder = _cache_folder(path, topic)
-    index = folder / "index.json"
-    if index.is_file():
-        try:
-            done = json.loads(index.read_text())
-            return [(int(t), folder / name) for t, name in done["images"]]
-        except (ValueError, KeyError, TypeError, OSError):
-            pass  # a damaged index: read the images again
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"{folder}: cannot create the cache of the log's images ({exc.strerror or exc}); "
-                         "set VISLOC_CACHE to a writable folder") from None
-    out = []
-    for n, (log_ns, m) in enumerate(_messages(reader, path, topic)):
-        out.append((_stamp_ns(m, log_ns), _image_file(folder, n, m, msgtype, f"{path}: {topic} message {n}")))
+    folder = cache_folder(path, topic)
+    done = cached_images(folder)
+    if done is not None:
+        return done
+    out = [(_stamp_ns(m, log_ns), image_file(folder, n, m, msgtype, f"{path}: {topic} message {n}"))
+           for n, (log_ns, m) in enumerate(_messages(reader, path, topic))]
     if not out:
         raise InputError(f"{path}: {topic}: holds no images")
-    _write_atomically(index, lambda p: p.write_text(json.dumps({"images": [[t, f.name] for t, f in out]})))
+    record_images(folder, out)
     return out
 
 
@@ -323,7 +301,8 @@ def _camera(reader, path: Path, topics: dict[str, str], image_topic: str, info_t
     P, distortion, camera_frame = _calibration(reader, path, info_topic, image_size)
     transforms = _static_transforms(reader, path, topics)
     imu_frame = imu_frame.lstrip("/")
-    vehicle = next((f for f in (imu_frame, "base_link") if f and chain(transforms, f, camera_frame) is not None), None)
+    vehicle = next((f for f in (imu_frame, VEHICLE_FRAME) if f and chain(transforms, f, camera_frame) is not None),
+                   None)
     if vehicle is None:
         return LogCamera(P, image_size, distortion, None, (
             f"{path.name}: no static transform from the vehicle frame (the IMU's, or base_link) to the camera's "
@@ -379,13 +358,18 @@ def open_log(path: Path | str, *, camera: str | None = None, camera_flag: str = 
         fixes, _ = _read_fixes(reader, path, fix)
         images = _images(reader, path, image_topic, topics[image_topic])
         orientations = _read_orientations(reader, path, imu) if imu else (np.zeros(0, np.int64), np.zeros((0, 4)), "")
+        if not len(orientations[0]):  # no IMU orientation: the transform tree's, where it moves the vehicle
+            *orientations, parent = _tf_orientations(reader, path, topics)
+            if len(orientations[0]):
+                notes.append(f"{path.name}: attitude from the transform {parent} -> {VEHICLE_FRAME} of /tf, taken "
+                             "as relative to east-north-up")
         size = header_size_px(images[0][1]) if info_topic is not None else None
         if info_topic is not None and size is None:
             raise InputError(f"{images[0][1]}: cannot read the image's size")
         camera_model = _camera(reader, path, topics, image_topic, info_topic, size, orientations[2])
     notes += camera_model.notes
     frames, largest_gap_s, left_out = [], 0.0, 0
-    for n, (t_ns, image_file) in enumerate(images):
+    for n, (t_ns, image_path) in enumerate(images):
         geotag = pair_fix(fixes, t_ns, max_gap_ns)
         if geotag is None:
             left_out += 1
@@ -393,7 +377,7 @@ def open_log(path: Path | str, *, camera: str | None = None, camera_flag: str = 
         largest_gap_s = max(largest_gap_s, geotag.gap_s)
         attitude = attitude_at(orientations[0], orientations[1], t_ns, max_gap_ns) if len(orientations[0]) else None
         roll, pitch, yaw = attitude if attitude is not None else (None, None, None)
-        frames.append(Frame(frame=n, image_path=image_file, timestamp_s=(t_ns // 1_000_000_000) + (
+        frames.append(Frame(frame=n, image_path=image_path, timestamp_s=(t_ns // 1_000_000_000) + (
             t_ns % 1_000_000_000) / 1e9, lat_deg=geotag.lat_deg, lon_deg=geotag.lon_deg, alt_m=geotag.alt_m,
             heading_deg=None if yaw is None else yaw_enu_to_heading_deg(yaw), roll_rad=roll, pitch_rad=pitch,
             yaw_rad=yaw, position_accuracy_m=geotag.sigma_m))
@@ -406,7 +390,8 @@ def open_log(path: Path | str, *, camera: str | None = None, camera_flag: str = 
     gap = (f"largest gap between the two fixes an image's geotag was interpolated from: {largest_gap_s:.3f} s"
            if largest_gap_s else "every image has a fix at its own time")
     notes.append(f"{path.name}: {len(frames)} images of {image_topic} with geotags from {fix}; {gap}")
-    return Drive(source=path.stem if path.is_file() else path.name, camera=camera_name(image_topic),
+    name = camera_names(sorted(t for t, m in topics.items() if m in IMAGE_TYPES))[image_topic]
+    return Drive(source=path.stem if path.is_file() else path.name, camera=name,
                  frames=tuple(frames), P_rect=camera_model.P_rect, image_size_px=camera_model.image_size_px,
                  T_camera_imu=camera_model.T_camera_imu, distortion=camera_model.distortion, notes=tuple(notes))
 
