@@ -184,10 +184,9 @@ def one_line_error(result, *fragments):
 
 # -- a run exported as MCAP, read back ----------------------------------------------------------------
 
-def read_back_mcap(path: Path, steps: list[dict], *, images: bool, places: float = 1e-12, rel: float = 1e-12) -> None:
-    """Every message of a run's MCAP decodes with its schema (protobuf for Foxglove's, JSON schema for the
-    steps') by ``mcap``'s own reader and decoders; the estimate fixes are the run's estimates (``steps``: as its
-    JSON has them, latitude, longitude and covariance), step for step."""
+def mcap_topics(path: Path) -> dict[str, list]:
+    """{topic: its messages decoded} of an MCAP file, by ``mcap``'s own reader: protobuf messages with the
+    protobuf decoder, JSON ones checked against their JSON schema."""
     import jsonschema
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
@@ -203,15 +202,30 @@ def read_back_mcap(path: Path, steps: list[dict], *, images: bool, places: float
                 assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
                 decoded = DecoderFactory().decoder_for("protobuf", schema)(message.data)
             topics.setdefault(channel.topic, []).append(decoded)
+    return topics
+
+
+def read_back_mcap(path: Path, steps: list[dict], *, images: bool, places: float = 1e-12, rel: float = 1e-12) -> None:
+    """Every message of a run's MCAP decodes with its schema (protobuf for Foxglove's, JSON schema for the
+    steps') by ``mcap``'s own reader and decoders; its steps are the run's (``steps``: as its JSON has them,
+    each with its ``series``, 0 when not given), and its truth, measurement and estimate fixes are theirs
+    (latitude and longitude, and the estimate's covariance), step for step."""
+    topics = mcap_topics(path)
     expected = {"/visloc/truth", "/visloc/measurement", "/visloc/estimate", "/visloc/scene", "/visloc/step"}
     assert expected | ({"/visloc/image/query", "/visloc/image/match"} if images else set()) == set(topics)
-    assert [s["step"] for s in topics["/visloc/step"]] == [s["step"] for s in steps]
-    estimated = [s for s in steps if s["estimate_lat_deg"] is not None]
-    assert len(topics["/visloc/estimate"]) == len(estimated) > 0
-    for fix, step in zip(topics["/visloc/estimate"], estimated):
-        assert (fix.latitude, fix.longitude) == pytest.approx((step["estimate_lat_deg"], step["estimate_lon_deg"]),
-                                                              abs=places)
-        assert list(fix.position_covariance)[:2] == pytest.approx(step["estimate_cov_m2"][0], rel=rel)
+    by_key = {(s.get("series", 0), s["step"]): s for s in steps}
+    order = [(m["series"], m["step"]) for m in topics["/visloc/step"]]  # the file's order: by time
+    assert sorted(order) == sorted(by_key)
+    for kind in ("truth", "measurement", "estimate"):
+        fixes = iter(topics[f"/visloc/{kind}"])
+        shown = [by_key[k] for k in order if by_key[k].get(f"{kind}_lat_deg") is not None]
+        assert len(topics[f"/visloc/{kind}"]) == len(shown), kind
+        for fix, step in zip(fixes, shown):
+            assert (fix.latitude, fix.longitude) == pytest.approx((step[f"{kind}_lat_deg"], step[f"{kind}_lon_deg"]),
+                                                                  abs=places), (kind, step["step"])
+            if kind == "estimate":
+                assert list(fix.position_covariance)[:2] == pytest.approx(step["estimate_cov_m2"][0], rel=rel)
+    assert topics["/visloc/estimate"], "no estimate"
 
 
 # -- a store being ingested, read with plain sqlite3 -----------------------------------------------------

@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, run_cli, write_csv_drive
+from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, mcap_topics, run_cli, write_csv_drive
 from helpers import error_lines
 from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED
@@ -187,8 +187,11 @@ def test_an_interrupted_structure_build_resumes_where_it_stopped(store, tmp_path
 def test_track_localizes_every_frame_and_writes_its_json(store, kitti_root, tmp_path):
     out = tmp_path / "track.json"
     result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
-                     "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "30", "--json", out)
+                     "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "30", "--json", out,
+                     "--mcap", tmp_path / "track.mcap")
     assert result.returncode == 0, result.stderr
+    exported = mcap_topics(tmp_path / "track.mcap")  # every frame, for Foxglove
+    assert len(exported["/visloc/estimate"]) == len(exported["/visloc/step"]) == 30
     assert "refined fast path" in result.stdout and "sustained" in result.stdout
     run = json.loads(out.read_text())
     assert run["frames"] == 30 and len(run["per_frame"]) == 30

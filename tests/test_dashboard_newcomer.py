@@ -335,8 +335,9 @@ def test_the_run_downloads_as_geojson_csv_and_mcap(dashboard, browser, tmp_path)
         download = got.value
         assert download.suggested_filename.endswith(".mcap")
         download.save_as(tmp_path / "run.mcap")
-        steps = [{"step": int(r["step"]), "estimate_lat_deg": float(r["estimate_lat_deg"]),
-                  "estimate_lon_deg": float(r["estimate_lon_deg"]),
+        steps = [{"series": int(r["series"]), "step": int(r["step"]),
+                  **{f"{kind}_{axis}_deg": float(r[f"{kind}_{axis}_deg"]) if r[f"{kind}_{axis}_deg"] else None
+                     for kind in ("truth", "measurement", "estimate") for axis in ("lat", "lon")},
                   "estimate_cov_m2": [[float(r["estimate_cov_ee_m2"]), float(r["estimate_cov_en_m2"])]]} for r in rows]
         read_back_mcap(tmp_path / "run.mcap", steps, images=False, places=1e-9, rel=1e-5)
     finally:

@@ -84,7 +84,8 @@ def test_the_readme_walkthrough_runs_as_written(kitti_root, browser, tmp_path):
         assert evaluation["n_series"] == len(evaluation["series"]) == 2
         rows = list(csv.DictReader((out / "evaluation.csv").open()))
         assert len(rows) == sum(len(s) for s in evaluation["series"])
-        read_back_mcap(out / "evaluation.mcap", [step for s in evaluation["series"] for step in s], images=False)
+        read_back_mcap(out / "evaluation.mcap", [{**step, "series": k} for k, s in enumerate(evaluation["series"])
+                                                 for step in s], images=False)
         assert "/kitti/image_00/image_raw: sensor_msgs/Image, 61 messages" in log  # visloc info on the log
         assert "1.85" not in log  # the paper's figure for its own drive is not a comparison for this one
         # the dashboard shows the query drive against the database drive and fills in a run

@@ -5,18 +5,29 @@ from __future__ import annotations
 import argparse
 
 from visloc.cli.choices import kitti_camera, log_options, refuse_camera_for_csv
-from visloc.sources.logs import is_log, log_topics
+from visloc.sources.logs import IMAGE_TYPES, is_log, log_topics
 from visloc.sources.opening import open_source
 
 
 def describe_drive(a: argparse.Namespace) -> int:
-    """``visloc info SOURCE``: what visloc reads from a drive (a log's topics first)."""
+    """``visloc info SOURCE``: what visloc reads from a drive (a log's topics first, then each of its cameras
+    unless ``--camera`` names one)."""
+    cameras = [a.camera]
     if is_log(a.source):
+        topics = log_topics(a.source)
         print(f"{a.source}: topics")
-        for topic, (msgtype, count) in sorted(log_topics(a.source).items()):
+        for topic, (msgtype, count) in sorted(topics.items()):
             print(f"  {topic}: {msgtype.replace('/msg/', '/')}, {count} messages")
+        if a.camera is None:
+            cameras = sorted(t for t, (m, _) in topics.items() if m in IMAGE_TYPES) or [None]
     refuse_camera_for_csv(a.source, "--camera", a.camera)
-    seq = open_source(a.source, drive=a.drive, camera=kitti_camera(a.source, a.drive, a.camera), **log_options(a))
+    for camera in cameras:
+        seq = open_source(a.source, drive=a.drive, camera=kitti_camera(a.source, a.drive, camera), **log_options(a))
+        _describe(seq)
+    return 0
+
+
+def _describe(seq) -> None:
     for note in seq.notes:
         print(note)
     times = seq.timestamps_s
@@ -29,4 +40,3 @@ def describe_drive(a: argparse.Namespace) -> int:
           + f"; {with_attitude} of {len(seq)} frames with attitude; "
           + (f"stated geotag accuracy {min(accuracies):.3g}-{max(accuracies):.3g} m" if accuracies
              else "no stated geotag accuracy"))
-    return 0

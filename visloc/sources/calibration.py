@@ -28,7 +28,8 @@ frame is X_velo = T_velo_imu X_imu, X_cam0 = T_cam0_velo X_velo (unrectified lef
 gray camera), then rotated by R_rect_00 into the common rectified frame, and camera N
 sits at t_N = K^-1 P_rect_0N[:, 3] from the rectified camera 0 (for image_01 about
 -0.54 m in x: 0.54 m to the right). So T_camera_imu = [I | t_N] R_rect_00 T_cam0_velo
-T_velo_imu, and the rectified intrinsics are K = P_rect_0N[:, :3].
+T_velo_imu, and the rectified intrinsics are K = P_rect_0N[:, :3]. The product's rotation is taken to the nearest
+rotation (KITTI writes its rotations to 6-8 digits: their product is a rotation to about 1e-7).
 """
 
 from __future__ import annotations
@@ -296,4 +297,23 @@ def read_kitti_extrinsics(date_folder: Path, camera: str) -> np.ndarray | None:
     T_camera_rect = np.eye(4)
     with np.errstate(all="ignore"):
         T_camera_rect[:3, 3] = np.linalg.solve(P[:, :3], P[:, 3])  # baseline of camera N in the rectified frame
-        return T_camera_rect @ T_rect_cam0 @ T_cam0_velo @ T_velo_imu
+        T = T_camera_rect @ T_rect_cam0 @ T_cam0_velo @ T_velo_imu
+    return _rigid_part(T, paths)
+
+
+def _rigid_part(T: np.ndarray, paths: list[Path]) -> np.ndarray:
+    """``T`` with its rotation replaced by the nearest rotation (SVD): KITTI's calibration rotations are written
+    to 6-8 digits, so their product is a rotation to about 1e-7 only, and a camera's pose is rigid (a log's
+    transform tree, quaternions, can only say a rigid one). A product further than ``RIGID_TOLERANCE`` from
+    any rotation is refused."""
+    R = T[:3, :3]
+    if not np.all(np.isfinite(T)):
+        raise InputError(f"{paths[0].parent}: the camera's calibration chain holds a value that is not finite")
+    U, _, Vt = np.linalg.svd(R)
+    nearest = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    if not np.abs(nearest - R).max() <= RIGID_TOLERANCE:
+        raise InputError(f"{paths[0].parent}: calib_*.txt: the camera's calibration chain is not a rigid transform "
+                         f"(its rotation is off by {np.abs(nearest - R).max():.2g}, tolerance {RIGID_TOLERANCE:g})")
+    out = T.copy()
+    out[:3, :3] = nearest
+    return out
