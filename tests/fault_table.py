@@ -23,6 +23,7 @@ FAULT_MODULES = (
     "test_faults_params",
     "test_faults_dashboard",
     "test_faults_shards",
+    "test_logs",
 )
 
 
