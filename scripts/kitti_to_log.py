@@ -18,7 +18,8 @@ The log is written with the ``rosbags`` writer, as a robot's recorder would writ
 
 The values are what visloc's own KITTI reader makes of the drive, so a drive read from the log is the
 drive read from the folder. ``--format``: ``sqlite3`` and ``mcap`` write a rosbag2 folder OUT (its
-``.mcap`` file alone is a log too), ``bag`` a ROS 1 bag OUT. Bad input: one line and exit status 2.
+``.mcap`` file alone is a log too), ``bag`` a ROS 1 bag OUT; an OUT that exists is kept as it is. Bad input:
+one line and exit status 2.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import math
+import shutil
 import sys
 from pathlib import Path
 
@@ -229,9 +231,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--format", choices=FORMATS, default="mcap", help="default %(default)s")
     p.add_argument("--frames", type=int, default=None, help="only the first N frames")
     a = p.parse_args(argv)
+    if a.out.exists():  # the walk-through run a second time: the log it wrote is kept
+        print(f"{a.out} exists: kept (remove it to write it again)")
+        return 0
     try:
         write_log(a.root, a.drive, a.camera or ["image_00"], a.out, a.format, a.frames)
-    except InputError as exc:
+    except BaseException as exc:  # a log written part way is removed: it is not a log of the drive
+        if a.out.is_dir():
+            shutil.rmtree(a.out)
+        a.out.unlink(missing_ok=True)
+        if not isinstance(exc, InputError):
+            raise
         print(f"kitti_to_log: error: {exc}", file=sys.stderr)
         return 2
     print(f"wrote {a.out}")
