@@ -39,14 +39,19 @@ from measuring import REPO, Section, load_1min
 
 SECTION = Section("log-equivalence", "log_equivalence", REPO / "docs" / "formats.md")
 FORMATS = ("sqlite3", "mcap", "bag")
-TIMED = {"latency_ms", "measurement_ms", "measurement_latency_ms", "structure_build_ms", "wall_s", "sustained_hz",
-         "stages_ms", "latency_p50_ms", "latency_p95_ms", "build_ms", "sift_ms", "retrieval_ms", "geometry_ms",
-         "filter_ms"}
 M_PER_DEG_LAT = 111_320.0
 
-_spec = importlib.util.spec_from_file_location("kitti_to_log", REPO / "scripts" / "kitti_to_log.py")
-kitti_to_log = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(kitti_to_log)
+
+def _script(name: str):
+    """A module of ``scripts/`` (not a package): the log writer, and the timed keys ``compare_runs`` leaves out."""
+    spec = importlib.util.spec_from_file_location(name, REPO / "scripts" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+kitti_to_log = _script("kitti_to_log")
+TIMED = _script("compare_runs").TIMED
 
 
 def visloc(*args) -> subprocess.CompletedProcess:

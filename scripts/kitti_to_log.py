@@ -38,6 +38,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
 from visloc.errors import InputError  # noqa: E402
+from visloc.geometry.projective import quaternion_from_rotation, rotation_from_rpy  # noqa: E402
 from visloc.sources.calibration import inverse_pose, read_text  # noqa: E402
 from visloc.sources.drives import KITTI_CAMERAS, open_kitti, resolve_drive  # noqa: E402
 
@@ -60,29 +61,6 @@ def stamps_ns(path: Path) -> list[int]:
             seconds = int(dt.datetime.strptime(day, "%Y-%m-%d %H:%M:%S").replace(tzinfo=dt.timezone.utc).timestamp())
             out.append(seconds * 1_000_000_000 + int(frac.ljust(9, "0")[:9] or 0))
     return out
-
-
-def quaternion_xyzw(R: np.ndarray) -> tuple[float, float, float, float]:
-    """Unit quaternion of a rotation matrix (Shepperd's method)."""
-    m = np.asarray(R, float)
-    t = np.trace(m)
-    if t > 0:
-        s = math.sqrt(t + 1.0) * 2
-        return ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s)
-    i = int(np.argmax(np.diag(m)))
-    j, k = (i + 1) % 3, (i + 2) % 3
-    s = math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k]) * 2
-    q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
-    q[i], q[j], q[k] = 0.25 * s, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
-    return tuple(q)
-
-
-def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
-    Rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
-    Ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
-    Rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
-    return Rz @ Ry @ Rx
 
 
 class Messages:
@@ -137,7 +115,7 @@ class Messages:
             position_covariance=covariance, position_covariance_type=0 if sigma is None else 2)
 
     def imu(self, stamp_ns: int, frame) -> object:
-        x, y, z, w = quaternion_xyzw(rotation_rpy(frame.roll_rad, frame.pitch_rad, frame.yaw_rad))
+        x, y, z, w = quaternion_from_rotation(rotation_from_rpy(frame.roll_rad, frame.pitch_rad, frame.yaw_rad))
         vector = self.t["geometry_msgs/msg/Vector3"]
         return self.t["sensor_msgs/msg/Imu"](
             header=self.header(stamp_ns, VEHICLE_FRAME), orientation=self.t["geometry_msgs/msg/Quaternion"](
@@ -149,7 +127,7 @@ class Messages:
     def static_transforms(self, stamp_ns: int, poses: dict[str, np.ndarray]) -> object:
         out = []
         for child, T in poses.items():
-            x, y, z, w = quaternion_xyzw(T[:3, :3])
+            x, y, z, w = quaternion_from_rotation(T[:3, :3])
             transform = self.t["geometry_msgs/msg/Transform"](
                 translation=self.t["geometry_msgs/msg/Vector3"](x=T[0, 3], y=T[1, 3], z=T[2, 3]),
                 rotation=self.t["geometry_msgs/msg/Quaternion"](x=x, y=y, z=z, w=w))

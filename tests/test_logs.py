@@ -23,7 +23,9 @@ from fault_table import Fault, params
 from helpers import DRIVE_0005, KITTI_DRIVE, ORIGIN_LAT_DEG, REPO, one_line_error, read_back_mcap, run_cli
 from visloc.sources.drives import Frame, open_kitti
 from visloc.sources.opening import open_source
-from visloc.sources.log_frames import Fixes, bracket, pair_fix, roll_pitch_yaw_rad, rotation_of_quaternion
+from visloc.geometry.projective import (quaternion_from_rotation, rotation_from_quaternion, rotation_from_rpy,
+                                       rpy_from_rotation)
+from visloc.sources.log_frames import Fixes, bracket, pair_fix
 
 _spec = importlib.util.spec_from_file_location("kitti_to_log", REPO / "scripts" / "kitti_to_log.py")
 kitti_to_log = importlib.util.module_from_spec(_spec)
@@ -61,7 +63,7 @@ def write_synthetic_log(out: Path, fmt: str, frames: list[Frame], *, image_topic
                           m.fix(t + fix_shift_ns, f, status=fix_status))
             if tf_attitude:  # the vehicle's pose in the map frame on /tf, and no IMU
                 pose = np.eye(4)
-                pose[:3, :3] = kitti_to_log.rotation_rpy(f.roll_rad, f.pitch_rad, f.yaw_rad)
+                pose[:3, :3] = rotation_from_rpy(f.roll_rad, f.pitch_rad, f.yaw_rad)
                 moving = m.static_transforms(t, {"base_link": pose})
                 moving.transforms[0].header.frame_id = "map"
                 log.write("/tf", "tf2_msgs/msg/TFMessage", t, moving)
@@ -129,8 +131,8 @@ def test_a_camera_is_named_by_the_part_of_its_topic_that_names_it_unless_two_sha
 
 def test_an_orientation_reads_back_as_the_oxts_roll_pitch_and_yaw_it_was_made_from():
     for roll, pitch, yaw in ((0.03, -0.01, 2.9), (-0.2, 0.4, -1.2), (0.0, 0.0, math.pi - 1e-9)):
-        q = kitti_to_log.quaternion_xyzw(kitti_to_log.rotation_rpy(roll, pitch, yaw))
-        assert np.allclose(roll_pitch_yaw_rad(rotation_of_quaternion(np.array(q))), (roll, pitch, yaw), atol=1e-12)
+        q = quaternion_from_rotation(rotation_from_rpy(roll, pitch, yaw))
+        assert np.allclose(rpy_from_rotation(rotation_from_quaternion(np.array(q))), (roll, pitch, yaw), atol=1e-12)
 
 
 # -- a log as a drive: the same drive in every format -----------------------------------------------------

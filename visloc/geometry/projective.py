@@ -39,6 +39,36 @@ def rotation_from_rpy(roll_rad: float, pitch_rad: float, yaw_rad: float) -> np.n
     return Rz @ Ry @ Rx
 
 
+def rpy_from_rotation(R: np.ndarray) -> tuple[float, float, float]:
+    """(roll, pitch, yaw) in radians of R_world_imu = Rz(yaw) Ry(pitch) Rx(roll): ``rotation_from_rpy``'s inverse."""
+    R = np.asarray(R, float)
+    return (math.atan2(R[2, 1], R[2, 2]), math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
+            math.atan2(R[1, 0], R[0, 0]))
+
+
+def rotation_from_quaternion(q_xyzw: np.ndarray) -> np.ndarray:
+    """3x3 rotation of a quaternion (x, y, z, w), normalised first."""
+    x, y, z, w = np.asarray(q_xyzw, float) / np.linalg.norm(q_xyzw)
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def quaternion_from_rotation(R: np.ndarray) -> tuple[float, float, float, float]:
+    """Unit quaternion (x, y, z, w) of a 3x3 rotation (Shepperd's method): ``rotation_from_quaternion``'s inverse."""
+    m = np.asarray(R, float)
+    t = float(np.trace(m))
+    if t > 0:
+        s = math.sqrt(t + 1.0) * 2
+        return ((m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s)
+    i = int(np.argmax(np.diag(m)))
+    j, k = (i + 1) % 3, (i + 2) % 3
+    s = math.sqrt(1.0 + m[i, i] - m[j, j] - m[k, k]) * 2
+    q = [0.0, 0.0, 0.0, (m[k, j] - m[j, k]) / s]
+    q[i], q[j], q[k] = 0.25 * s, (m[j, i] + m[i, j]) / s, (m[k, i] + m[i, k]) / s
+    return (q[0], q[1], q[2], q[3])
+
+
 def rigid(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = R

@@ -82,7 +82,8 @@ def trajectory_points(run) -> list[TrajectoryPoint]:
     return points_from_records(run)
 
 
-def _finite(value: float | None) -> float | None:
+def finite_or_none(value: float | None) -> float | None:
+    """``value`` as a float, None when it is None or not finite (what JSON and CSV files hold for no value)."""
     return None if value is None or not math.isfinite(value) else float(value)
 
 
@@ -126,7 +127,7 @@ def trajectory_geojson(run, frame: LocalFrame, *, name: str) -> dict:
             if geometry is not None:
                 features.append(_feature(geometry, kind=kind, series=series))
         for p in steps:
-            common = {"series": series, "step": p.step, "frame": p.frame, "timestamp_s": _finite(p.timestamp_s)}
+            common = {"series": series, "step": p.step, "frame": p.frame, "timestamp_s": finite_or_none(p.timestamp_s)}
             truth = _lon_lat(frame, p.truth_m)
             if truth is not None:
                 features.append(_feature({"type": "Point", "coordinates": truth}, kind="truth", **common,
@@ -138,14 +139,14 @@ def trajectory_geojson(run, frame: LocalFrame, *, name: str) -> dict:
                                          source=p.measurement_source, east_m=p.measurement_m[0],
                                          north_m=p.measurement_m[1], cov_m2=p.measurement_cov_m2,
                                          sigma_major_m=major, sigma_minor_m=minor,
-                                         error_m=_finite(p.measurement_error_m)))
+                                         error_m=finite_or_none(p.measurement_error_m)))
             estimate = _lon_lat(frame, p.estimate_m)
             if estimate is None:
                 continue
             major, minor = sigmas_m(p.estimate_cov_m2)
             features.append(_feature({"type": "Point", "coordinates": estimate}, kind="estimate", **common,
                                      east_m=p.estimate_m[0], north_m=p.estimate_m[1], cov_m2=p.estimate_cov_m2,
-                                     sigma_major_m=major, sigma_minor_m=minor, error_m=_finite(p.estimate_error_m)))
+                                     sigma_major_m=major, sigma_minor_m=minor, error_m=finite_or_none(p.estimate_error_m)))
             if major:  # a covariance with some spread: its ellipse
                 ring_m = covariance_ellipse_m(np.asarray(p.estimate_m), np.asarray(p.estimate_cov_m2),
                                               ELLIPSE_SIGMA, ELLIPSE_POINTS)
@@ -188,7 +189,7 @@ def _cov_columns(cov: list[list[float]] | None) -> list:
 
 
 def _number(value: float | None, fmt: str = ".4f") -> str:
-    value = _finite(value)
+    value = finite_or_none(value)
     return "" if value is None else f"{value:{fmt}}"
 
 

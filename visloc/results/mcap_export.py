@@ -17,7 +17,6 @@ says its series):
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -25,7 +24,8 @@ import numpy as np
 
 from visloc.errors import InputError
 from visloc.geo import LocalFrame
-from visloc.results.export import ELLIPSE_POINTS, ELLIPSE_SIGMA, TrajectoryPoint, sigmas_m, trajectory_points
+from visloc.results.export import (ELLIPSE_POINTS, ELLIPSE_SIGMA, TrajectoryPoint, finite_or_none, sigmas_m,
+                                   trajectory_points)
 from visloc.tracking.kalman import covariance_ellipse_m
 
 LOCAL_FRAME_ID = "visloc_local"
@@ -44,10 +44,6 @@ STEP_SCHEMA = {
 COLORS = {"truth": (0.2, 0.8, 0.3), "measurement": (1.0, 0.55, 0.1), "estimate": (0.2, 0.5, 1.0)}
 
 
-def _finite(value: float | None) -> float | None:
-    return None if value is None or not math.isfinite(value) else float(value)
-
-
 def _ns(timestamp_s: float) -> int:
     return int(round(timestamp_s * 1e9))
 
@@ -57,8 +53,8 @@ def step_json(p: TrajectoryPoint) -> dict:
     m_major, m_minor = sigmas_m(p.measurement_cov_m2)
     e_major, e_minor = sigmas_m(p.estimate_cov_m2)
     return {"series": p.series, "step": p.step, "frame": p.frame, "timestamp_s": float(p.timestamp_s),
-            "measurement_source": p.measurement_source, "measurement_error_m": _finite(p.measurement_error_m),
-            "estimate_error_m": _finite(p.estimate_error_m), "measurement_sigma_major_m": m_major,
+            "measurement_source": p.measurement_source, "measurement_error_m": finite_or_none(p.measurement_error_m),
+            "estimate_error_m": finite_or_none(p.estimate_error_m), "measurement_sigma_major_m": m_major,
             "measurement_sigma_minor_m": m_minor, "estimate_sigma_major_m": e_major, "estimate_sigma_minor_m": e_minor}
 
 

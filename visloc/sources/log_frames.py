@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from visloc.errors import InputError
+from visloc.geometry.projective import rigid, rotation_from_quaternion, rpy_from_rotation
 
 NO_FIX = -1  # sensor_msgs/NavSatStatus.STATUS_NO_FIX
 
@@ -102,21 +103,6 @@ def slerp(q0: np.ndarray, q1: np.ndarray, w: float) -> np.ndarray:
     return (math.sin((1 - w) * theta) * q0 + math.sin(w * theta) * q1) / math.sin(theta)
 
 
-def rotation_of_quaternion(q: np.ndarray) -> np.ndarray:
-    """3x3 rotation of a quaternion (x, y, z, w), normalised first."""
-    x, y, z, w = np.asarray(q, float) / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
-
-
-def roll_pitch_yaw_rad(R: np.ndarray) -> tuple[float, float, float]:
-    """OXTS roll, pitch, yaw of a vehicle-to-east-north-up rotation R = Rz(yaw) Ry(pitch) Rx(roll)."""
-    R = np.asarray(R, float)
-    return (math.atan2(R[2, 1], R[2, 2]), math.atan2(-R[2, 0], math.hypot(R[2, 1], R[2, 2])),
-            math.atan2(R[1, 0], R[0, 0]))
-
-
 def attitude_at(stamps_ns: np.ndarray, quaternions: np.ndarray, t_ns: int,
                 max_gap_ns: int) -> tuple[float, float, float] | None:
     """(roll, pitch, yaw) in radians at ``t_ns`` from orientation samples (N, 4) as (x, y, z, w); None when
@@ -125,16 +111,13 @@ def attitude_at(stamps_ns: np.ndarray, quaternions: np.ndarray, t_ns: int,
     if found is None:
         return None
     a, b, w = found
-    return roll_pitch_yaw_rad(rotation_of_quaternion(slerp(quaternions[a], quaternions[b], w)))
+    return rpy_from_rotation(rotation_from_quaternion(slerp(quaternions[a], quaternions[b], w)))
 
 
 def transform_matrix(translation: tuple[float, float, float], rotation_xyzw: tuple[float, float, float, float]
                      ) -> np.ndarray:
     """4x4 pose of a ``geometry_msgs/Transform``."""
-    T = np.eye(4)
-    T[:3, :3] = rotation_of_quaternion(np.asarray(rotation_xyzw, float))
-    T[:3, 3] = translation
-    return T
+    return rigid(rotation_from_quaternion(np.asarray(rotation_xyzw, float)), translation)
 
 
 def chain(transforms: dict[tuple[str, str], np.ndarray], start: str, end: str) -> np.ndarray | None:
