@@ -7,6 +7,7 @@ calls it with the lock held (see ``visloc.dashboard.app``).
 
 from __future__ import annotations
 
+import threading
 
 import numpy as np
 import viser
@@ -59,6 +60,10 @@ class Page:
         self.pictures_shown = False  # a step's pictures are on the page (not the first placeholder)
         self.tile_source = tile_source  # web-map tiles under the map (``visloc.dashboard.tiles.TileSource``), or None
         self.tiles = None  # that source on the drive shown (``TileLayer``)
+        self._map_shown = None  # (records, step, note) of the map on the page, drawn again when tiles come
+        self._map_lock = threading.Lock()  # the map is drawn by the apply path and by the tiles' thread
+        if tile_source is not None:
+            tile_source.on_fetched = self._tiles_came
 
     # -- messages ----------------------------------------------------------------------------------
 
@@ -89,12 +94,23 @@ class Page:
         self.server.initial_camera.up = (0.0, 0.0, 1.0)
         for client in self.server.get_clients().values():  # look_at last: viser moves it with a new position
             client.camera.position, client.camera.look_at = position, look_at
-        self.gui.map.image = mapview.map_image(self.truth_track_m, self.db_m, [], None, tiles=self.tiles)
-        self.tiles_note()
+        self.show_map([], None, None)
 
-    def tiles_note(self) -> None:
-        """Under the map: its tiles' attribution, or why it has none now (no network)."""
-        if self.tiles is not None:
+    def show_map(self, records: list, k: int | None, note: str | None) -> None:
+        """The top-down map of ``records`` at step ``k`` (``note``: it is not the run asked for), on its tiles."""
+        with self._map_lock:
+            self._map_shown = (records, k, note)
+            self._draw_map()
+
+    def _tiles_came(self) -> None:
+        with self._map_lock:
+            if self._map_shown is not None:
+                self._draw_map()
+
+    def _draw_map(self) -> None:
+        records, k, note = self._map_shown
+        self.gui.map.image = mapview.map_image(self.truth_track_m, self.db_m, records, k, note=note, tiles=self.tiles)
+        if self.tiles is not None:  # under the map: its tiles' attribution, or why it has none now (no network)
             self.gui.map_tiles.content = panels.tiles_html(self.tiles.caption, problem=bool(self.tiles.source.problem))
 
     def factor(self, magnification: float):
@@ -141,9 +157,7 @@ class Page:
         g.error_plot.scales, g.error_plot.data = scales, data
         g.error_plot.title = "Error per step (m), the paper's Figure 4" + suffix
         draw_timelines(g.timelines, visloc.steps_of_records(run.records, t0_s), k)
-        g.map.image = mapview.map_image(self.truth_track_m, self.db_m, run.records, k,
-                                        note="previous run - re-matching" if note else None, tiles=self.tiles)
-        self.tiles_note()
+        self.show_map(run.records, k, "previous run - re-matching" if note else None)
         if not self.pictures_shown:
             g.figure.image = panels.placeholder(f"Reading the images of step {k + 1}…".replace("…", "..."))
 

@@ -5,7 +5,8 @@ Off unless ``visloc dashboard --tiles URL`` (``--tiles osm``: OpenStreetMap's st
 policy asks for a valid User-Agent, caching, and modest use: a person looking at a run, never bulk
 downloads; the attribution is drawn on the map). A tile that cannot be fetched is left blank, and while the
 server is unreachable (no network) the map says so and is drawn as before, without tiles; the server is
-asked again after ``RETRY_S``.
+asked again after ``RETRY_S``. Tiles are fetched beside the page, never while it draws: the map is drawn again
+when they come.
 """
 
 from __future__ import annotations
@@ -58,7 +59,9 @@ def zoom_for(px_per_m: float, lat_deg: float) -> int:
 
 
 class TileSource:
-    """Tiles of one server: in memory, on disk under ``cache_dir``, fetched when missing."""
+    """Tiles of one server: in memory, on disk under ``cache_dir``, and fetched when missing by a thread of its
+    own, never by the drawing that asked (a slow or absent network never holds the page up). ``on_fetched`` is
+    called from that thread once the tiles asked for have come, or the server could not be reached."""
 
     def __init__(self, url: str, cache_dir: Path, *, attribution: str | None = None, timeout_s: float = 4.0):
         self.url = tile_url(url)
@@ -67,32 +70,59 @@ class TileSource:
         self.folder = Path(cache_dir) / hashlib.sha256(self.url.encode()).hexdigest()[:16]
         self.timeout_s = timeout_s
         self.problem: str | None = None  # why the server could not be reached, while it cannot
+        self.on_fetched = None
         self._failed_at = -math.inf
         self._memory: dict[tuple[int, int, int], np.ndarray | None] = {}
+        self._wanted: list[tuple[int, int, int]] = []  # asked for, not fetched yet, in the order asked
+        self._fetching = False
         self._lock = threading.Lock()
 
+    def _path(self, z: int, x: int, y: int) -> Path:
+        return self.folder / str(z) / str(x) / f"{y}.png"
+
     def tile(self, z: int, x: int, y: int) -> np.ndarray | None:
-        """The RGB tile, or None when it cannot be had now."""
+        """The RGB tile, or None when it is not here yet (then it is fetched, unless the server was unreachable
+        less than ``RETRY_S`` ago)."""
         key = (z, x, y)
         with self._lock:
             if key in self._memory:
                 return self._memory[key]
-            path = self.folder / str(z) / str(x) / f"{y}.png"
-            data = path.read_bytes() if path.is_file() else None
-            if data is None:
-                if time.monotonic() - self._failed_at < RETRY_S:
-                    return None
-                data = self._fetch(z, x, y)
-                if data is None:
-                    return None
-                path.parent.mkdir(parents=True, exist_ok=True)
-                tmp = path.with_name(f".{y}.{os.getpid()}.tmp")
-                tmp.write_bytes(data)
-                os.replace(tmp, path)
-            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
-            rgb = None if image is None or image.shape[:2] != (TILE_PX, TILE_PX) else image[:, :, ::-1].copy()
-            self._memory[key] = rgb
-            return rgb
+            path = self._path(*key)
+            if path.is_file():
+                return self._keep(key, path.read_bytes())
+            if time.monotonic() - self._failed_at >= RETRY_S and key not in self._wanted:
+                self._wanted.append(key)
+                if not self._fetching:
+                    self._fetching = True
+                    threading.Thread(target=self._fetch_wanted, name="visloc-dashboard-tiles", daemon=True).start()
+            return None
+
+    def _keep(self, key: tuple[int, int, int], data: bytes) -> np.ndarray | None:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
+        rgb = None if image is None or image.shape[:2] != (TILE_PX, TILE_PX) else image[:, :, ::-1].copy()
+        self._memory[key] = rgb
+        return rgb
+
+    def _fetch_wanted(self) -> None:
+        while True:
+            with self._lock:
+                if not self._wanted:
+                    self._fetching = False
+                    break
+                key = self._wanted.pop(0)
+            data = self._fetch(*key)
+            with self._lock:
+                if data is not None:
+                    path = self._path(*key)
+                    path.parent.mkdir(parents=True, exist_ok=True)
+                    tmp = path.with_name(f".{key[2]}.{os.getpid()}.tmp")
+                    tmp.write_bytes(data)
+                    os.replace(tmp, path)
+                    self._keep(key, data)
+                elif time.monotonic() - self._failed_at < RETRY_S:
+                    self._wanted.clear()  # the network is down: asked again after RETRY_S
+        if self.on_fetched is not None:
+            self.on_fetched()
 
     def _fetch(self, z: int, x: int, y: int) -> bytes | None:
         url = self.url.format(z=z, x=x, y=y)
@@ -103,7 +133,8 @@ class TileSource:
             self.problem = None
             return data
         except urllib.error.HTTPError as exc:  # the server answered: this tile is missing, not the network
-            self._memory[(z, x, y)] = None
+            with self._lock:
+                self._memory[(z, x, y)] = None
             self.problem = None if exc.code == 404 else f"tile server answered {exc.code}"
             return None
         except (OSError, ValueError) as exc:

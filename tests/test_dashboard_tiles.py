@@ -70,9 +70,13 @@ def test_the_map_draws_web_map_tiles_and_says_when_the_server_is_unreachable(csv
         page.get_by_text(f"map tiles: 127.0.0.1:{server.server_address[1]}").wait_for()
         wait_for(lambda: asked, SERVER_WORK_S, "the dashboard to ask the tile server")
         shot = tmp_path / "map.png"
-        picture.first.screenshot(path=str(shot))
+
+        def tiles_drawn() -> bool:  # fetched beside the page, the tiles come into the map once they are here
+            picture.first.screenshot(path=str(shot))
+            return tile_share(shot) > 0.3
+
+        wait_for(tiles_drawn, SERVER_WORK_S, "the tiles under the map", poll_s=1.0)
         screenshot(page, "tiles_map.png")
-        assert tile_share(shot) > 0.3, "the tiles are not under the map"
         assert all(p.endswith(".png") and p.count("/") == 3 for p in asked)
         assert list((tmp_path / "cache" / "tiles").rglob("*.png")), "tiles are kept on disk"
         page.close()
