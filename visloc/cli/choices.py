@@ -20,7 +20,6 @@ from pathlib import Path
 
 from visloc.store.database import GeoDatabase, same_drive
 from visloc.errors import InputError
-from visloc.params import COMMAND_OPTIONS
 from visloc.results.export import GEOJSON_SUFFIXES, write_trajectory
 from visloc.cli.outputs import require_writable_output
 from visloc.sources.drives import default_data_root, resolve_drive
@@ -37,10 +36,7 @@ def is_csv(source: Path | str | None) -> bool:
 
 def log_options(a: argparse.Namespace) -> dict:
     """What the flags say of a log's topics and fixes (None: not given), for ``open_source``."""
-    options = {key: getattr(a, key, None) for key in LOG_OPTIONS}
-    if options["max_fix_gap_s"] == COMMAND_OPTIONS.max_fix_gap_s:  # the default: a drive that is no log takes it too
-        options["max_fix_gap_s"] = None
-    return options
+    return {key: getattr(a, key, None) for key in LOG_OPTIONS}
 
 
 LOG_OPTIONS = ("fix_topic", "camera_info_topic", "imu_topic", "max_fix_gap_s")

@@ -37,9 +37,9 @@ class CommandOptions(Params):
                                         "points may hold; the least recently used tile is dropped first",
                                  unit="MB", low=0, open_low=True, methods=COMMANDS)
     port: int = param(8080, "port to try first", kind="integer", low=1, high=65535, methods=COMMANDS)
-    max_fix_gap_s: float = param(1.0, "a log: an image's geotag is interpolated between the fixes around it when they "
-                                      "are at most this far apart; an image further from any fix is left out",
-                                 unit="s", low=0, methods=COMMANDS)
+    max_fix_gap_s: float | None = param(None, "a log: an image's geotag is interpolated between the fixes around it "
+                                              "when they are at most this far apart; an image further from any fix is "
+                                              "left out", unit="s", low=0, when_unset="1", methods=COMMANDS)
 
 
 COMMAND_OPTIONS = CommandOptions()
