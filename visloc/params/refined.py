@@ -33,7 +33,8 @@ class RefinedParams(Params):
     essential_px: float = _refined(1.0, "RANSAC threshold of the essential matrix", unit="px", low=0, open_low=True)
     min_verified_inliers: int = _refined(20, "essential-matrix inliers a candidate needs to count as verified",
                                          kind="integer", low=5)
-    n_views: int = _refined(2, "verified candidates the query is posed against", kind="integer", low=1)
+    n_views: int = _refined(4, "verified candidates the query is posed against (refined-fast: 2, for its "
+                               "latency)", kind="integer", low=1)
     both_sides: bool = _refined(True, "choose the views on both sides of the query where the database has both "
                                       "(best first otherwise)", kind="bool")
     neighbour_baselines_m: tuple[float, ...] = _refined(
@@ -60,6 +61,12 @@ class RefinedParams(Params):
     min_attitude_prior_deg: float = _refined(0.2, "... and never tighter than this", unit="deg", low=0, open_low=True)
     pnp_px: float = _refined(2.0, "PnP RANSAC inlier threshold (refined-fast: 3, for keypoints found at a reduced "
                                   "scale)", unit="px", low=0, open_low=True)
+    guided_radius_px: float = _refined(
+        4.0, "once posed, each view's 3D points are projected into the query and matched to the query keypoints "
+             "within this distance of where they land, and the query posed again on both (0: no guided matching)",
+        unit="px", low=0)
+    guided_ratio: float = _refined(0.9, "Lowe ratio among the query keypoints near a projected point",
+                                   low=0, high=1, open_low=True)
     pnp_iterations: int = _refined(1000, "PnP RANSAC iterations", kind="integer", low=1)
     min_pnp_inliers: int = _refined(15, "fewer PnP inliers than this: fall back to the geotag", kind="integer", low=6)
     max_offset_m: float = _refined(30.0, "a pose farther than this from the geotag of the view it was solved against "

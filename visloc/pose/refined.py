@@ -262,7 +262,7 @@ def pose_measurement(
         return view_structure(geometry, i, neighbours_used[i], params, cache)
 
     posed = pose_from_views(query_xy, usable, pairs_of, structure_of, neighbours_used, db_east_north_m, geometry,
-                            query_camera, params)
+                            query_camera, params, query_descriptors=query_descriptors_u8)
     return end.posed(posed, **base)
 
 

@@ -16,6 +16,7 @@ from visloc.errors import InputError
 from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, imu_east_north_covariance, imu_pose_from_camera,
                              refine_pose, solve_pnp)
 from visloc.params import RefinedParams
+from visloc.pose.guided import descriptor_distances, guided_matches, project_points
 from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, lever_covariance_m2
 
 
@@ -160,23 +161,26 @@ class MapCorrespondences:
 
 def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np.ndarray],
                     structure_of, neighbours_used: dict[int, Sequence[int]], db_east_north_m: np.ndarray,
-                    geometry: DatabaseGeometry, query_camera: CameraModel, params: RefinedParams) -> PosedViews:
+                    geometry: DatabaseGeometry, query_camera: CameraModel, params: RefinedParams,
+                    query_descriptors: np.ndarray | None = None) -> PosedViews:
     """Steps 3-5 of the module docstring: the query posed against views (best first in ``usable``).
 
     pairs_of[i]: (M, 2) pairs (query row, keypoint row of view i); structure_of(i) -> (keypoint row ->
     (world point, covariance), milliseconds spent building it); neighbours_used[i]: the database images
     view i's structure was triangulated with. Shared by the exact path (structure built as needed)
-    and the fast path (structure read from the store)."""
+    and the fast path (structure read from the store). With ``query_descriptors`` (and
+    ``params.guided_radius_px`` above 0) the first pose's views are matched again, guided by it
+    (``guided_pairs``), and the query posed on both."""
     spent = {"structure_ms": 0.0}
     structures: dict[int, dict] = {}
     support: dict = {}
 
-    def solve(chosen: list[int]) -> tuple[PnPResult | str, _Views]:
+    def solve(chosen: list[int], pairs: dict[int, np.ndarray] = pairs_of) -> tuple[PnPResult | str, _Views]:
         for i in chosen:
             if i not in structures:
                 structures[i], ms = structure_of(i)
                 spent["structure_ms"] += ms
-        views = _correspondences(chosen, pairs_of, structures, query_xy)
+        views = _correspondences(chosen, pairs, structures, query_xy)
         pnp = solve_pnp(views.points_world, views.pixels, query_camera.K, reprojection_px=params.pnp_px,
                         iterations=params.pnp_iterations, seed=params.seed, min_inliers=params.min_pnp_inliers,
                         points_cov=views.points_cov)
@@ -201,6 +205,12 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
                 balanced, balanced_views = solve(balanced_choice)
                 if not isinstance(balanced, str):
                     pnp, views, chosen = balanced, balanced_views, balanced_choice
+    if (not isinstance(pnp, str) and query_descriptors is not None and params.guided_radius_px > 0):
+        guided = guided_pairs(pnp, views, chosen, pairs_of, structures, query_xy, query_descriptors, geometry,
+                              query_camera, params)
+        again, again_views = solve(chosen, guided)
+        if not isinstance(again, str) and len(again.inliers) >= len(pnp.inliers):
+            pnp, views, pairs_of = again, again_views, guided
     describe(chosen, views)
     if isinstance(pnp, str):
         return failed(pnp)
@@ -213,7 +223,7 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
         far = [i for i, p in per_view.items() if np.linalg.norm(p - centre) > params.max_view_spread_m]
         if far and len(far) < len(per_view):
             kept = [i for i in chosen if i not in far]
-            again, again_views = solve(kept)
+            again, again_views = solve(kept, pairs_of)
             if not isinstance(again, str):
                 pnp, views, chosen = again, again_views, kept
                 describe(chosen, views)
@@ -254,6 +264,36 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
                                  {i: tuple(neighbours_used[i]) for i in chosen}, {i: structures[i] for i in chosen})
     return PosedViews(None, support, spent["structure_ms"], east_north, cov, anchor, pnp.reprojection_rms_px,
                       float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m, inliers)
+
+
+def guided_pairs(pnp: PnPResult, views: _Views, chosen: list[int], pairs_of: dict[int, np.ndarray],
+                 structures: dict[int, dict], query_xy: np.ndarray, query_descriptors: np.ndarray,
+                 geometry: DatabaseGeometry, query_camera: CameraModel, params: RefinedParams) -> dict[int, np.ndarray]:
+    """Each chosen view's pairs (query row, keypoint row) with those guided matching adds
+    (``visloc.pose.guided``): its 3D points projected by the pose ``pnp`` and matched to the query keypoints
+    within ``guided_radius_px``, by Lowe's ratio ``guided_ratio`` among them, and no farther in descriptor
+    space than the farthest of the pose's own inliers (a match the first pose already confirmed)."""
+    k = pnp.inliers
+    distances = np.concatenate([descriptor_distances(query_descriptors, geometry.descriptors_u8[i],
+                                                     views.rows[k][views.view_of[k] == i]) for i in chosen])
+    max_distance = float(distances.max()) if len(distances) else 0.0
+    out = {}
+    for i in chosen:
+        pairs = pairs_of[i]
+        d_rows = np.array(sorted(structures[i]), np.int64)
+        if len(d_rows) == 0:
+            out[i] = pairs
+            continue
+        points = np.array([structures[i][r][0] for r in d_rows.tolist()])
+        uv, front = project_points(points, pnp.T_world_camera, query_camera.K)
+        found = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], query_xy, query_descriptors,
+                               radius_px=params.guided_radius_px, ratio=params.guided_ratio,
+                               max_distance=max_distance)
+        new = np.c_[found[:, 1], d_rows[found[:, 0]]]
+        taken_q, taken_d = set(pairs[:, 0].tolist()), set(pairs[:, 1].tolist())
+        new = np.array([(q, d) for q, d in new.tolist() if q not in taken_q and d not in taken_d], np.int64)
+        out[i] = np.concatenate([pairs, new.reshape(-1, 2)]) if len(new) else pairs
+    return out
 
 
 def _geotag_sigma_m(geometry: DatabaseGeometry, i: int, params: RefinedParams) -> float:

@@ -1,0 +1,72 @@
+"""Guided matching: once a query is posed, its views' 3D points are projected into it and matched to the
+query keypoints near where they land.
+
+Matching a query to a database image by descriptors alone (Lowe's ratio over the whole image) drops
+every keypoint whose nearest neighbour is not clearly better than its second: on repeated texture
+(fences, windows, road markings) and low contrast, most of them. A pose narrows each point's
+candidates to the few query keypoints within a few pixels of its projection, and among those the
+ratio test passes far more often. This is the step COLMAP's and ORB-SLAM's localization take
+after a first pose; here it gathers support from the views' stored structure, which the descriptor
+matching left unused.
+
+Pure functions over numpy arrays.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+
+def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
+                   min_depth_m: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+    """(M, 2) pixels of ``points_world`` (M, 3) seen from the camera at ``T_world_camera``, and (M,) bool:
+    which lie in front of it (depth above ``min_depth_m``)."""
+    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
+    p_camera = (np.asarray(points_world, float) - t) @ R
+    depth = p_camera[:, 2]
+    front = depth > min_depth_m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = (p_camera @ K.T)[:, :2] / p_camera[:, 2:3]
+    return uv, front
+
+
+def guided_matches(points_uv_px: np.ndarray, in_front: np.ndarray, point_descriptors: np.ndarray,
+                   query_xy_px: np.ndarray, query_descriptors: np.ndarray, *, radius_px: float, ratio: float,
+                   max_distance: float) -> np.ndarray:
+    """(K, 2) int64 pairs (point row, query row): for each point in front of the camera, the query keypoint
+    within ``radius_px`` of its projection whose descriptor is nearest the point's, kept when that distance
+    is at most ``max_distance`` and below ``ratio`` times the second nearest's within the radius (a lone
+    candidate passes on the distance alone). A query keypoint claimed by several points goes to the nearest
+    in descriptor distance."""
+    rows = np.flatnonzero(in_front & np.all(np.isfinite(points_uv_px), axis=1))
+    if len(rows) == 0 or len(query_xy_px) == 0:
+        return np.zeros((0, 2), np.int64)
+    tree = cKDTree(np.asarray(query_xy_px, float))
+    near = tree.query_ball_point(points_uv_px[rows], r=radius_px)
+    q_desc = np.asarray(query_descriptors, np.float32)
+    p_desc = np.asarray(point_descriptors, np.float32)
+    best: dict[int, tuple[float, int]] = {}  # query row -> (distance, point row)
+    for point, candidates in zip(rows.tolist(), near):
+        if not candidates:
+            continue
+        distances = np.linalg.norm(q_desc[candidates] - p_desc[point], axis=1)
+        order = np.argsort(distances, kind="stable")
+        d1 = float(distances[order[0]])
+        if d1 > max_distance:
+            continue
+        if len(order) > 1 and not d1 < ratio * float(distances[order[1]]):
+            continue
+        q_row = int(candidates[order[0]])
+        if q_row not in best or d1 < best[q_row][0]:
+            best[q_row] = (d1, point)
+    pairs = sorted((point, q_row) for q_row, (_, point) in best.items())
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+def descriptor_distances(query_descriptors: np.ndarray, view_descriptors: np.ndarray,
+                         pairs: np.ndarray) -> np.ndarray:
+    """(M,) L2 distances of the descriptors of ``pairs`` (query row, view row)."""
+    q = np.asarray(query_descriptors, np.float32)[pairs[:, 0]]
+    v = np.asarray(view_descriptors, np.float32)[pairs[:, 1]]
+    return np.linalg.norm(q - v, axis=1)
