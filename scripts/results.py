@@ -248,7 +248,7 @@ def page() -> int:
             setup["modes"][entry["mode"]] = result
         else:
             drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
-    digest["peer"] = digest_peer(PEER, OUT) if PEER.is_dir() else {}
+    digest["peer"] = digest_peer({"peer/results": PEER, "docs/results/peer": REPO / "docs" / "results" / "peer"}, OUT)
     if manifest.get("suite_only"):
         carry_over(digest, json.loads(DIGEST.read_text()) if DIGEST.is_file() else {})
     DIGEST.parent.mkdir(parents=True, exist_ok=True)

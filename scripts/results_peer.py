@@ -26,24 +26,34 @@ def protocol_key(query_camera: str, db_camera: str) -> str | None:
     return f"same_{query_camera}" if query_camera == db_camera else None
 
 
-def digest_peer(peer_dir: Path, out: Path) -> dict:
-    """drive -> the peer's and visloc's per-frame errors on the peer's frames, for every peer JSON that has a
-    matching refined evaluation in ``out`` (evaluate-drives' per-drive JSON)."""
+INLIER_FIGURES = ("min", "median", "max")
+
+
+def digest_peer(peer_dirs: dict[str, Path], out: Path) -> dict:
+    """drive -> the peer's and visloc's per-frame errors and support on the peer's frames, for every peer JSON
+    that has a matching refined evaluation in ``out`` (evaluate-drives' per-drive JSON). ``peer_dirs``: how the
+    page names each directory of peer JSONs -> the directory; a drive found in two is taken from the first."""
     digest = {}
-    for path in sorted(Path(peer_dir).glob("peer_*.json")):
+    paths = [(shown, path) for shown, folder in peer_dirs.items() if Path(folder).is_dir()
+             for path in sorted(Path(folder).glob("peer_*.json"))]
+    for shown, path in paths:
         peer = json.loads(path.read_text())
         params = peer["params"]
         key = protocol_key(params["query_camera"], params["db_camera"])
         ours_path = out / f"{params['drive']}_{key}_refined.json"
-        if key is None or not ours_path.is_file():
+        if key is None or not ours_path.is_file() or params["drive"] in digest:
             continue
         ours: dict[int, list[float]] = {}
         sources: dict[int, list[str]] = {}
+        support: dict[int, list[tuple[int, int]]] = {}
         for series in json.loads(ours_path.read_text())["series"]:
             for step in series:
                 if step["measurement_error_m"] is not None:
                     ours.setdefault(step["query_frame"], []).append(step["measurement_error_m"])
                     sources.setdefault(step["query_frame"], []).append(step["measurement_source"])
+                    if step["measurement_source"] == "geometry":
+                        support.setdefault(step["query_frame"], []).append(
+                            (step.get("n_pnp_inliers", 0), step.get("n_pnp_query_keypoints", 0)))
         frames = []
         for q in peer["queries"]:
             pnp = q["variants"][PEER_VARIANT]["pnp"][PEER_THRESHOLD]
@@ -53,16 +63,23 @@ def digest_peer(peer_dir: Path, out: Path) -> dict:
             frames.append({"frame": f, "peer_error_m": pnp["error_m"] if pnp["ok"] else pnp["fallback_error_m"],
                            "peer_ok": bool(pnp["ok"]), "peer_inliers": pnp.get("num_inliers"),
                            "visloc_error_m": float(np.median(ours[f])),
-                           "visloc_geotag_fallbacks": sum(s == "geotag" for s in sources[f])})
+                           "visloc_geotag_fallbacks": sum(s == "geotag" for s in sources[f]),
+                           # a frame posed by no series has no support: 0, as a failed peer pose counts its own
+                           "visloc_inliers": float(np.median([n for n, _ in support[f]])) if f in support else 0.0,
+                           "visloc_query_keypoints": (float(np.median([k for _, k in support[f]])) if f in support
+                                                      else 0.0)})
         if not frames:
             continue
         peer_e = [r["peer_error_m"] for r in frames]
         ours_e = [r["visloc_error_m"] for r in frames]
         digest[params["drive"]] = {
-            "peer_file": f"peer/results/{path.name}", "evaluation_file": ours_path.name,
+            "peer_file": f"{shown}/{path.name}", "evaluation_file": ours_path.name,
             "protocol": key, "peer_versions": peer.get("versions", {}), "frames": frames,
             "peer_error_m": summary_of(peer_e, count=True), "visloc_error_m": summary_of(ours_e, count=True),
             "peer_failures": sum(not r["peer_ok"] for r in frames),
+            "peer_inliers": summary_of([r["peer_inliers"] or 0 for r in frames], INLIER_FIGURES),
+            "visloc_inliers": summary_of([r["visloc_inliers"] for r in frames], INLIER_FIGURES),
+            "visloc_query_keypoints": summary_of([r["visloc_query_keypoints"] for r in frames], INLIER_FIGURES),
             "visloc_better": sum(o < p for o, p in zip(ours_e, peer_e))}
     return digest
 
@@ -89,9 +106,44 @@ def render_peer(peer: dict, add) -> None:
             f"{p['max']:.3f} | {v['mean']:.3f} / {v['median']:.3f} / {v['p90']:.3f} / {v['max']:.3f} | "
             f"{d['visloc_better']} of {p['n']} | {d['peer_failures']} | {fallbacks} |")
     add("")
+    add("Support, on the same frames: the pose's PnP inliers. The peer counts each query keypoint once per 3D point of "
+        "its merged multi-view tracks, with a 12 px RANSAC threshold; visloc counts its 2D-3D inliers at 2 px, where a "
+        "query keypoint that meets the same point in two views' structure counts twice, and, stricter, the distinct "
+        "query keypoints among them. A failed pose counts 0; visloc's figure on a frame is the median over the series "
+        "that pose it.")
+    add("")
+    add("| drive | peer inliers min / median / max | visloc inliers min / median / max | visloc distinct query "
+        "keypoints min / median / max | frames where visloc's distinct keypoints reach the peer's inliers |")
+    add("|---|---|---|---|---|")
+    for drive, d in peer.items():
+        if "peer_inliers" not in d:
+            continue
+        f = lambda s: f"{s['min']:.0f} / {s['median']:.0f} / {s['max']:.0f}"  # noqa: E731
+        reach = sum(r["visloc_query_keypoints"] >= (r["peer_inliers"] or 0) for r in d["frames"])
+        add(f"| {drive} | {f(d['peer_inliers'])} | {f(d['visloc_inliers'])} | {f(d['visloc_query_keypoints'])} | "
+            f"{reach} of {len(d['frames'])} |")
+    add("")
+    for drive, d in peer.items():
+        if "peer_inliers" not in d:
+            continue
+        add(f"<details><summary>{drive}, frame by frame</summary>")
+        add("")
+        add("| frame | peer error (m) | peer inliers | visloc error (m) | visloc inliers | visloc distinct keypoints |")
+        add("|---|---|---|---|---|---|")
+        for r in d["frames"]:
+            add(f"| {r['frame']} | {r['peer_error_m']:.3f}{'' if r['peer_ok'] else ' (failed)'} | "
+                f"{r['peer_inliers'] or 0} | {r['visloc_error_m']:.3f} | {r['visloc_inliers']:.0f} | "
+                f"{r['visloc_query_keypoints']:.0f} |")
+        add("")
+        add("</details>")
+        add("")
     for drive, d in peer.items():
         worst = sorted(d["frames"], key=lambda r: -r["visloc_error_m"])[:3]
         add(f"- {drive}: visloc's largest errors at frames "
             + ", ".join(f"{r['frame']} ({r['visloc_error_m']:.2f} m; peer {r['peer_error_m']:.2f} m)" for r in worst)
             + f". Peer numbers from `{d['peer_file']}`, visloc's from `out/results/{d['evaluation_file']}`.")
+    add("")
+    add("The peer's JSON under `docs/results/peer/` were measured with its README's command on this machine, "
+        "`--query-frames stride10` on 2011_09_26_drive_0001 (left queries, right database) and `stride5` on the "
+        "others, same camera.")
     add("")

@@ -66,9 +66,9 @@ class Method:
 
 PAPER_METHOD = Method("paper")
 REFINED_METHOD = Method("refined", pose=REFINED)
-# the camera-rate path: keypoints found at a reduced scale are less precise (PnP at 3 px); two views and few
-# candidates per frame inside the gate, more candidates for a frame without one
-REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=3.0, n_views=2),
+# the camera-rate path: keypoints found at a reduced scale are less precise (PnP at 3 px); two views and no
+# guided matching, for its latency; few candidates per frame inside the gate, more for a frame without one
+REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=3.0, n_views=2, guided_radius_px=0.0),
                              shortlist=FAST.replace(shortlist_size=3, lost_shortlist_size=16), camera_rate=True,
                              min_matches=20)
 METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD, REFINED_FAST_METHOD)}

@@ -63,7 +63,8 @@ class RefinedParams(Params):
                                   "scale)", unit="px", low=0, open_low=True)
     guided_radius_px: float = _refined(
         4.0, "once posed, each view's 3D points are projected into the query and matched to the query keypoints "
-             "within this distance of where they land, and the query posed again on both (0: no guided matching)",
+             "within this distance of where they land, and the query posed again on both (0: no guided matching; "
+             "refined-fast: 0, for its latency)",
         unit="px", low=0)
     guided_ratio: float = _refined(0.9, "Lowe ratio among the query keypoints near a projected point",
                                    low=0, high=1, open_low=True)

@@ -193,5 +193,6 @@ class FastPoseMeasurer:
             return end.fallback(f"no candidate has {self.min_matches} matches to stored structure the query allows "
                                 f"(best {best})", **base)
         posed = pose_from_views(query_xy, usable, pairs_of, lambda i: (lookups[i], 0.0), neighbours_used,
-                                self.db_east_north_m, self.geometry, self.query_camera, self.params)
+                                self.db_east_north_m, self.geometry, self.query_camera, self.params,
+                                query_descriptors=query.descriptors_u8)
         return end.posed(posed, **base)
