@@ -106,44 +106,43 @@ def render_peer(peer: dict, add) -> None:
             f"{p['max']:.3f} | {v['mean']:.3f} / {v['median']:.3f} / {v['p90']:.3f} / {v['max']:.3f} | "
             f"{d['visloc_better']} of {p['n']} | {d['peer_failures']} | {fallbacks} |")
     add("")
-    add("Support, on the same frames: the pose's PnP inliers. The peer counts each query keypoint once per 3D point of "
-        "its merged multi-view tracks, with a 12 px RANSAC threshold; visloc counts its 2D-3D inliers at 2 px, where a "
-        "query keypoint that meets the same point in two views' structure counts twice, and, stricter, the distinct "
-        "query keypoints among them. A failed pose counts 0; visloc's figure on a frame is the median over the series "
-        "that pose it.")
-    add("")
-    add("| drive | peer inliers min / median / max | visloc inliers min / median / max | visloc distinct query "
-        "keypoints min / median / max | frames where visloc's distinct keypoints reach the peer's inliers |")
-    add("|---|---|---|---|---|")
-    for drive, d in peer.items():
-        if "peer_inliers" not in d:
-            continue
-        f = lambda s: f"{s['min']:.0f} / {s['median']:.0f} / {s['max']:.0f}"  # noqa: E731
-        reach = sum(r["visloc_query_keypoints"] >= (r["peer_inliers"] or 0) for r in d["frames"])
-        add(f"| {drive} | {f(d['peer_inliers'])} | {f(d['visloc_inliers'])} | {f(d['visloc_query_keypoints'])} | "
-            f"{reach} of {len(d['frames'])} |")
-    add("")
-    for drive, d in peer.items():
-        if "peer_inliers" not in d:
-            continue
-        add(f"<details><summary>{drive}, frame by frame</summary>")
+    supported = {drive: d for drive, d in peer.items() if "peer_inliers" in d}  # digests from before lack it
+    if supported:
+        add("Support, on the same frames: the pose's PnP inliers. The peer counts each query keypoint once per 3D point of "
+            "its merged multi-view tracks, with a 12 px RANSAC threshold; visloc counts its 2D-3D inliers at 2 px, where a "
+            "query keypoint that meets the same point in two views' structure counts twice, and, stricter, the distinct "
+            "query keypoints among them. A failed pose counts 0; visloc's figure on a frame is the median over the series "
+            "that pose it.")
         add("")
-        add("| frame | peer error (m) | peer inliers | visloc error (m) | visloc inliers | visloc distinct keypoints |")
-        add("|---|---|---|---|---|---|")
-        for r in d["frames"]:
-            add(f"| {r['frame']} | {r['peer_error_m']:.3f}{'' if r['peer_ok'] else ' (failed)'} | "
-                f"{r['peer_inliers'] or 0} | {r['visloc_error_m']:.3f} | {r['visloc_inliers']:.0f} | "
-                f"{r['visloc_query_keypoints']:.0f} |")
+        add("| drive | peer inliers min / median / max | visloc inliers min / median / max | visloc distinct query "
+            "keypoints min / median / max | frames where visloc's distinct keypoints reach the peer's inliers |")
+        add("|---|---|---|---|---|")
+        for drive, d in supported.items():
+            f = lambda s: f"{s['min']:.0f} / {s['median']:.0f} / {s['max']:.0f}"  # noqa: E731
+            reach = sum(r["visloc_query_keypoints"] >= (r["peer_inliers"] or 0) for r in d["frames"])
+            add(f"| {drive} | {f(d['peer_inliers'])} | {f(d['visloc_inliers'])} | {f(d['visloc_query_keypoints'])} | "
+                f"{reach} of {len(d['frames'])} |")
         add("")
-        add("</details>")
-        add("")
+        for drive, d in supported.items():
+            add(f"<details><summary>{drive}, frame by frame</summary>")
+            add("")
+            add("| frame | peer error (m) | peer inliers | visloc error (m) | visloc inliers | visloc distinct keypoints |")
+            add("|---|---|---|---|---|---|")
+            for r in d["frames"]:
+                add(f"| {r['frame']} | {r['peer_error_m']:.3f}{'' if r['peer_ok'] else ' (failed)'} | "
+                    f"{r['peer_inliers'] or 0} | {r['visloc_error_m']:.3f} | {r['visloc_inliers']:.0f} | "
+                    f"{r['visloc_query_keypoints']:.0f} |")
+            add("")
+            add("</details>")
+            add("")
     for drive, d in peer.items():
         worst = sorted(d["frames"], key=lambda r: -r["visloc_error_m"])[:3]
         add(f"- {drive}: visloc's largest errors at frames "
             + ", ".join(f"{r['frame']} ({r['visloc_error_m']:.2f} m; peer {r['peer_error_m']:.2f} m)" for r in worst)
             + f". Peer numbers from `{d['peer_file']}`, visloc's from `out/results/{d['evaluation_file']}`.")
-    add("")
-    add("The peer's JSON under `docs/results/peer/` were measured with its README's command on this machine, "
-        "`--query-frames stride10` on 2011_09_26_drive_0001 (left queries, right database) and `stride5` on the "
-        "others, same camera.")
+    if any(d["peer_file"].startswith("docs/results/peer/") for d in peer.values()):
+        add("")
+        add("The peer's JSON under `docs/results/peer/` were measured with its README's command on this machine, "
+            "`--query-frames stride10` on 2011_09_26_drive_0001 (left queries, right database) and `stride5` on the "
+            "others, same camera.")
     add("")

@@ -110,6 +110,30 @@ def test_the_fast_measurement_equals_the_exact_one_on_the_same_candidates(store,
     assert fast.n_structure_matches == max(fast.candidate_structure_matches.values()) and fast.n_verified_inliers is None
 
 
+@pytest.mark.slow
+def test_guided_matching_adds_support_at_the_same_place(store):
+    """On a real frame, guided matching finds more of the query's keypoints in the same views' structure than
+    the descriptor matching did, and the pose it gives stays where the unguided one was."""
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    seq = open_source(None, drive=DRIVE, camera="image_00")
+    (query,) = extract_queries(seq, [26], ws.sift_params)
+    counts = np.array([count_correspondences(query.descriptors_u8, d, PAPER_MATCH) for d in db.descriptors_u8])
+    allowed = np.flatnonzero(np.abs(db.frames - 26) > 10)  # the 1 s exclusion: the frame's own image is not there
+    retrieval = Retrieval(allowed, counts[allowed], int(allowed[np.argmax(counts[allowed])]))
+    geometry = db.geometry()
+    measured = {radius: pose_measurement(query.keypoints_f32, query.descriptors_u8, retrieval, db.east_north_m,
+                                         geometry, seq.camera_model, REFINED.replace(guided_radius_px=radius))
+                for radius in (0.0, REFINED.guided_radius_px)}
+    plain, guided = measured[0.0], measured[REFINED.guided_radius_px]
+    assert plain.source == guided.source == "geometry", (plain.fallback_reason, guided.fallback_reason)
+    assert guided.view_indices == plain.view_indices
+    assert guided.n_pnp_inliers > plain.n_pnp_inliers, (plain.n_pnp_inliers, guided.n_pnp_inliers)
+    distinct = [len(np.unique(m.inliers.query_rows)) for m in (plain, guided)]
+    assert distinct[1] > distinct[0]
+    assert np.linalg.norm(guided.east_north_m - plain.east_north_m) < 3 * plain.sigma_m + 0.05
+
+
 def test_variants_keep_the_excluded_images_out_of_the_structure():
     def structure(variant: str, neighbours: tuple[int, ...]) -> ViewStructure:
         return ViewStructure(10, variant, neighbours, np.array([0]), np.zeros((1, 3)), np.zeros((1, 3, 3)))

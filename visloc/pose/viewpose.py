@@ -206,8 +206,8 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
                 if not isinstance(balanced, str):
                     pnp, views, chosen = balanced, balanced_views, balanced_choice
     if (not isinstance(pnp, str) and query_descriptors is not None and params.guided_radius_px > 0):
-        guided = guided_pairs(pnp, views, chosen, pairs_of, structures, query_xy, query_descriptors, geometry,
-                              query_camera, params)
+        guided = guided_pairs(pnp, views, chosen, structures, query_xy, query_descriptors, geometry, query_camera,
+                              params)
         again, again_views = solve(chosen, guided)
         if not isinstance(again, str) and len(again.inliers) >= len(pnp.inliers):
             pnp, views, pairs_of = again, again_views, guided
@@ -266,20 +266,22 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
                       float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m, inliers)
 
 
-def guided_pairs(pnp: PnPResult, views: _Views, chosen: list[int], pairs_of: dict[int, np.ndarray],
-                 structures: dict[int, dict], query_xy: np.ndarray, query_descriptors: np.ndarray,
-                 geometry: DatabaseGeometry, query_camera: CameraModel, params: RefinedParams) -> dict[int, np.ndarray]:
-    """Each chosen view's pairs (query row, keypoint row) with those guided matching adds
-    (``visloc.pose.guided``): its 3D points projected by the pose ``pnp`` and matched to the query keypoints
-    within ``guided_radius_px``, by Lowe's ratio ``guided_ratio`` among them, and no farther in descriptor
-    space than the farthest of the pose's own inliers (a match the first pose already confirmed)."""
+def guided_pairs(pnp: PnPResult, views: _Views, chosen: list[int], structures: dict[int, dict], query_xy: np.ndarray,
+                 query_descriptors: np.ndarray, geometry: DatabaseGeometry, query_camera: CameraModel,
+                 params: RefinedParams) -> dict[int, np.ndarray]:
+    """Each chosen view's pairs (query row, keypoint row) that the pose ``pnp`` kept as inliers, with those
+    guided matching adds (``visloc.pose.guided``): the view's other 3D points, projected by the pose and
+    matched to the query keypoints within ``guided_radius_px`` of where they land, by Lowe's ratio
+    ``guided_ratio`` among those, and no farther in descriptor space than the farthest of the pose's
+    own inliers (a match the first pose confirmed). The first pose's outliers are dropped: the points they
+    claimed are matched again."""
     k = pnp.inliers
     distances = np.concatenate([descriptor_distances(query_descriptors, geometry.descriptors_u8[i],
                                                      views.rows[k][views.view_of[k] == i]) for i in chosen])
     max_distance = float(distances.max()) if len(distances) else 0.0
     out = {}
     for i in chosen:
-        pairs = pairs_of[i]
+        pairs = views.rows[k][views.view_of[k] == i]  # the first pose's inliers: its outliers free their points
         d_rows = np.array(sorted(structures[i]), np.int64)
         if len(d_rows) == 0:
             out[i] = pairs

@@ -1,0 +1,113 @@
+"""What the refined measurement's support costs: four views and guided matching against two views without it.
+
+    python benchmarks/refined_support.py [--data ROOT] --db out/results/visloc.sqlite [--every 5]
+
+On every drive of the data root, with its first protocol (left queries against the right camera where a drive
+has both, else one camera) and the 1 s exclusion, every ``--every``-th query is measured once with the refined
+defaults and once with the earlier support (``n_views=2``, ``guided_radius_px=0``), in alternating order, from
+a full-scan retrieval. Per query: the pose's PnP inliers, the distinct query keypoints among them, the error
+against the query's geotag, and the query side's time (matching, RANSAC, guided matching, PnP; the database
+structure each view needs is built once and left out, as a store holds it). Nothing new is stored: ingest and
+storage cost the same. Writes ``docs/results/refined_support.json`` and its section of docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from measuring import REPO, Section, load_1min
+from visloc import Workspace  # noqa: E402
+from visloc.params import REFINED, MatchParams, RetrievalParams  # noqa: E402
+from visloc.pose.refined import PoseMeasurer, StructureCache  # noqa: E402
+from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
+from visloc.retrieval.retrievers import WindowRetriever  # noqa: E402
+from visloc.stats import summary_of  # noqa: E402
+
+SECTION = Section("refined-support", "refined_support", REPO / "docs" / "performance.md")
+CONFIGS = {"defaults": REFINED, "two views, no guided matching": REFINED.replace(n_views=2, guided_radius_px=0.0)}
+
+
+def measure_drive(ws: Workspace, folder: Path, every: int) -> dict:
+    protocol = drive_protocols(folder)[0]
+    db = ws.load_database(folder.name, protocol.db_camera)
+    queries = ws.load_queries(folder.name, protocol.query_camera)
+    truth = db.frame.to_local(queries.lat_deg, queries.lon_deg)
+    geometry = db.geometry()
+    cache = ws.pair_cache(db, queries, MatchParams())
+    retriever = WindowRetriever(db.timestamps_s, cache, RetrievalParams(exclusion_s=1.0))
+    structures = StructureCache()  # shared: each view's structure is built once, whichever configuration asks
+    measurers = {name: PoseMeasurer(db.east_north_m, geometry, queries.camera_model, params, structures=structures)
+                 for name, params in CONFIGS.items()}
+    rows: dict[str, list[dict]] = {name: [] for name in CONFIGS}
+    for n, i in enumerate(range(0, len(queries), every)):
+        q = queries.query(i)
+        retriever.reset()
+        retrieval = retriever.retrieve(q, None)
+        names = list(CONFIGS) if n % 2 == 0 else list(CONFIGS)[::-1]
+        for name in names:
+            m = measurers[name].measure(q, retrieval)
+            posed = m.source == "geometry"
+            rows[name].append({
+                "frame": int(queries.frames[i]), "source": m.source,
+                "error_m": float(np.linalg.norm(np.asarray(m.east_north_m) - truth[i])),
+                "inliers": int(m.n_pnp_inliers) if posed else 0,
+                "query_keypoints": len(np.unique(m.inliers.query_rows)) if posed else 0,
+                "query_side_ms": float(m.query_side_ms)})
+    out = {"drive": folder.name, "protocol": protocol.key, "protocol_label": protocol.label, "configs": {}}
+    for name, r in rows.items():
+        out["configs"][name] = {
+            "inliers": summary_of([x["inliers"] for x in r], ("min", "median", "max")),
+            "query_keypoints": summary_of([x["query_keypoints"] for x in r], ("min", "median", "max")),
+            "error_m": summary_of([x["error_m"] for x in r], ("median", "p90", "max"), count=True),
+            "query_side_ms": summary_of([x["query_side_ms"] for x in r], ("median", "p90")),
+            "geotag_fallbacks": sum(x["source"] != "geometry" for x in r), "frames": r}
+    return out
+
+
+def measure(a) -> dict:
+    ws = Workspace(a.db)
+    result = {"load_before": load_1min(), "cores": os.cpu_count(), "every": a.every, "drives": []}
+    for folder in drives_of(a.data):
+        d = measure_drive(ws, folder, a.every)
+        result["drives"].append(d)
+        for name, c in d["configs"].items():
+            print(f"{d['drive']} {name}: inliers {c['inliers']['median']:.0f}, distinct {c['query_keypoints']['median']:.0f}, "
+                  f"error {c['error_m']['median']:.3f}/{c['error_m']['p90']:.3f}/{c['error_m']['max']:.3f} m, "
+                  f"{c['query_side_ms']['median']:.0f} ms", flush=True)
+    result["load_after"] = load_1min()
+    return result
+
+
+def render(r: dict) -> str:
+    lines = [SECTION.begin,
+             "The refined measurement's support and what it costs per query, measured by `python "
+             f"benchmarks/refined_support.py --db out/results/visloc.sqlite --every {r['every']}`: every "
+             f"{r['every']}th query of each drive (1 s exclusion, full-scan retrieval), measured with the defaults "
+             "(four views, guided matching) and with two views and no guided matching, in alternating order (medians; "
+             f"load {r['load_before']:.1f} at the start, {r['load_after']:.1f} at the end). Query side: matching, "
+             "RANSAC, guided matching and PnP; each view's structure is built once and left out, as a store holds it. "
+             "Nothing new is stored, so ingest and storage cost what they did.", "",
+             "| drive | setup | configuration | PnP inliers min / median / max | distinct query keypoints median | "
+             "error median / p90 / max (m) | geotag fallbacks | query side median (ms) |",
+             "|---|---|---|---|---|---|---|---|"]
+    for d in r["drives"]:
+        for name, c in d["configs"].items():
+            i, e = c["inliers"], c["error_m"]
+            lines.append(f"| {d['drive']} | {d['protocol_label']} | {name} | {i['min']:.0f} / {i['median']:.0f} / "
+                         f"{i['max']:.0f} | {c['query_keypoints']['median']:.0f} | {e['median']:.3f} / {e['p90']:.3f} / "
+                         f"{e['max']:.3f} | {c['geotag_fallbacks']} | {c['query_side_ms']['median']:.0f} |")
+    lines += ["", SECTION.end]
+    return "\n".join(lines)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
+    p.add_argument("--db", type=Path, required=True, help="a store holding every drive's cameras ('visloc ingest')")
+    p.add_argument("--every", type=int, default=5, help="measure every n-th query (default %(default)s)")
+
+
+if __name__ == "__main__":
+    raise SystemExit(SECTION.main(__doc__, measure, render, add_arguments))
