@@ -89,6 +89,24 @@ def test_the_point_following_figures_are_what_their_json_renders():
         assert profile["n"] > 0 and profile["total_ms"] >= profile["stages_ms"]["sift_ms"] > 0
 
 
+def test_the_support_figures_are_what_their_json_renders():
+    """docs/performance.md's support table is rendered from docs/results/refined_support.json (written by
+    benchmarks/refined_support.py): every drive, both configurations, on the same frames."""
+    import json
+
+    import refined_support
+
+    result = json.loads(refined_support.SECTION.out.read_text())
+    assert refined_support.SECTION.updated_page(refined_support.render(result)) == \
+        (REPO / "docs" / "performance.md").read_text()
+    assert len(result["drives"]) == 3
+    for d in result["drives"]:
+        configs = list(d["configs"].values())
+        assert list(d["configs"]) == list(refined_support.CONFIGS)
+        frames = [[r["frame"] for r in c["frames"]] for c in configs]
+        assert frames[0] == frames[1] and len(frames[0]) == configs[0]["error_m"]["n"] > 0
+
+
 def test_the_sharding_figures_are_what_their_json_renders():
     """docs/sharding.md's tables (ingest on a local cluster against one file, the synthetic city) are rendered
     from docs/results/shard_scale.json, written by benchmarks/shard_scale.py: every drive, a city of a million
