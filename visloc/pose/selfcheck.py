@@ -53,10 +53,12 @@ class SelfCheckPose:
 
 
 def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S) -> str:
-    """What a stored self-check was made with: the structure's settings, the exclusion, the version."""
+    """What a stored self-check was made with: the structure's settings, the exclusion, the pose's own settings
+    (which views and correspondences it uses), the version. A self-check made with other values is made again."""
+    pose = {k: getattr(params, k) for k in ("top_k", "pnp_px", "n_views", "both_sides", "guided_radius_px",
+                                            "guided_ratio")}
     return json.dumps({"structure": json.loads(structure_settings_json(params)), "exclusion_s": exclusion_s,
-                       "top_k": params.top_k, "pnp_px": params.pnp_px, "version": SELF_CHECK_VERSION},
-                      sort_keys=True)
+                       **pose, "version": SELF_CHECK_VERSION}, sort_keys=True)
 
 
 def self_check_pose(k: int, geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray,
