@@ -290,6 +290,8 @@ def carry_over(digest: dict, previous: dict) -> None:
     if not previous:  # no earlier digest: nothing to carry, the page shows what this run measured
         return
     carried = previous.get("carried_over") or {k: previous.get(k) for k in ("commit", "started", "finished", "speed")}
+    if previous.get("speed"):  # a --speed-only run after the carried ones measured the speed sections last
+        carried = {**carried, "speed": previous["speed"]}
     digest["carried_over"] = carried
     for key in CARRIED_SECTIONS:  # a section measured by the run at hand (``--speed-only``) stays
         if previous.get(key) and not digest.get(key):

@@ -81,7 +81,7 @@ def digest_peer(peer_dirs: dict[str, Path], out: Path) -> dict:
             "visloc_inliers": summary_of([r["visloc_inliers"] for r in frames], INLIER_FIGURES),
             "visloc_query_keypoints": summary_of([r["visloc_query_keypoints"] for r in frames], INLIER_FIGURES),
             "visloc_better": sum(o < p for o, p in zip(ours_e, peer_e))}
-    return digest
+    return dict(sorted(digest.items()))  # by drive, as the digest's JSON keeps them
 
 
 def render_peer(peer: dict, add) -> None:
