@@ -20,6 +20,7 @@ from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.opening import open_source
 from visloc.stats import CHI2_2DOF_999
+from visloc.pose.selfcheck import self_check_settings_json
 from visloc.pose.structure import VARIANTS, ViewStructure, choose_variant, view_structures
 from visloc.store.build import build_global_vectors, build_structure
 from visloc.retrieval.matching import count_correspondences
@@ -132,6 +133,17 @@ def test_guided_matching_adds_support_at_the_same_place(store):
     distinct = [len(np.unique(m.inliers.query_rows)) for m in (plain, guided)]
     assert distinct[1] > distinct[0]
     assert np.linalg.norm(guided.east_north_m - plain.east_north_m) < 3 * plain.sigma_m + 0.05
+
+
+def test_the_self_check_poses_every_other_image(store):
+    """Ingest's self-check poses every other image of the drive (adjacent ones share their errors), and the
+    store's lever gain rests on those poses."""
+    ws = Workspace(store)
+    ids = ws.image_ids(SOURCE, "image_00").tolist()
+    assert len(ids) == N_FRAMES
+    assert ws.self_checked_ids(ids, self_check_settings_json(REFINED)) == set(ids[::2])
+    gain = ws.lever_gain(ws.load_database(SOURCE, "image_00"))
+    assert gain is not None and 0 < gain.n_both + gain.n_one <= len(ids[::2])
 
 
 def test_variants_keep_the_excluded_images_out_of_the_structure():

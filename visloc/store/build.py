@@ -17,7 +17,7 @@ from visloc.db import StructureRecord
 from visloc.features.vlad import train_encoder
 from visloc.params import FAST, REFINED, FastParams, RefinedParams, SiftParams
 from visloc.pose.refined import StructureCache, one_blas_thread
-from visloc.pose.selfcheck import pose_record, self_check, self_check_settings_json
+from visloc.pose.selfcheck import pose_record, self_check, self_check_settings_json, self_checked_indices
 from visloc.pose.structure import VARIANTS, seeded_structure_cache, structure_settings_json, view_structures
 from visloc.sources.drives import Drive
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
@@ -188,14 +188,17 @@ def structure_records(path: str, source: str, camera: str, params: RefinedParams
 
 def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedParams = REFINED,
                      progress: Progress = None, cluster=None) -> int:
-    """Pose every image of (source, camera) that has no self-check with ``params``' settings as a query
-    of its own drive (``visloc.pose.selfcheck``), committing every few images: an interrupted check
-    resumes. Nothing to do without calibration, attitudes or global vectors. Returns the images checked."""
+    """Pose the images of (source, camera) the self-check poses (``self_checked_indices``: every other one) that
+    have no self-check with ``params``' settings as queries of their own drive (``visloc.pose.selfcheck``),
+    committing every few images: an interrupted check resumes. Nothing to do without calibration, attitudes or
+    global vectors. Returns the images checked."""
     settings = self_check_settings_json(params)
-    ids = ws.image_ids(source, camera)
-    done = ws.self_checked_ids(ids.tolist(), settings)
-    if len(done) == len(ids):
+    ids = ws.image_ids(source, camera).tolist()
+    wanted = {ids[k] for k in self_checked_indices(len(ids))}
+    checked = ws.self_checked_ids(ids, settings)
+    if wanted <= checked:
         return 0
+    done = checked | (set(ids) - wanted)  # the images between are not checked
     db = ws.load_database(source, camera)
     geometry = db.geometry()
     index = ws.global_vectors.load_database_index(db)
