@@ -8,7 +8,8 @@ defaults and once with the earlier support (``n_views=2``, ``guided_radius_px=0`
 a full-scan retrieval. Per query: the pose's PnP inliers, the distinct query keypoints among them, the error
 against the query's geotag, and the query side's time (matching, RANSAC, guided matching, PnP; the database
 structure each view needs is built once and left out, as a store holds it). Nothing new is stored, and
-ingest's self-check keeps posing with two views and no guided matching. Writes ``docs/results/refined_support.json`` and its section of docs/performance.md.
+ingest's self-check keeps posing with two views and no guided matching. Writes
+``docs/results/refined_support.json`` and its section of docs/performance.md.
 """
 
 from __future__ import annotations

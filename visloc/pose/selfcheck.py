@@ -1,8 +1,8 @@
 """How well a database poses its own images: the measurement its lever gain is fitted on.
 
-Every other database image (``self_checked_indices``) is treated as a query of its own drive: the images closer to it in time than
-``SELF_CHECK_EXCLUSION_S`` (the evaluation's exclusion window) are left out, the ``top_k`` allowed
-images most like it by global vector are its candidates, and the refined measurement
+Every other database image (``self_checked_indices``) is treated as a query of its own drive: the images
+closer to it in time than ``SELF_CHECK_EXCLUSION_S`` (the evaluation's exclusion window) are left out, the
+``top_k`` allowed images most like it by global vector are its candidates, and the refined measurement
 (``visloc.pose.refined``: verification, structure with refined database poses, PnP) poses it. Its error
 against its own geotag, with the covariance the measurement gives without the lever term, says how
 far this database's poses are off per metre of lever (``visloc.pose.uncertainty.fit_lever_gain``).
@@ -59,7 +59,7 @@ class SelfCheckPose:
 def self_check_params(params: RefinedParams) -> RefinedParams:
     """The pose a self-check makes: ``params`` with two views and no guided matching. What the lever gain
     measures (the database's own pose errors per metre of lever) does not need the query's extra support, and
-    at ingest this pose costs about 60 % less per image."""
+    this pose costs about 40 % less per image (1.6 s against 2.5 s on drive 0001)."""
     return params.replace(n_views=2, guided_radius_px=0.0)
 
 
