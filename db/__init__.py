@@ -6,6 +6,18 @@ them back. ``store`` holds ``FeatureStore``, ``schema`` the tables and migration
 ``records`` the plain records and errors, ``structures`` the table of triangulated points, ``vectors`` global vectors and named arrays, ``selfchecks`` the database's self-checks.
 """
 
+import sys as _sys
+
+if "pandas" not in _sys.modules:
+    # sqlite-utils imports pandas when it can, only to map pandas.Timestamp to a column type; the store never
+    # passes pandas objects. Importing sqlite-utils with pandas hidden saves every visloc command about 0.2 s of
+    # start-up; pandas itself stays importable afterwards (a Dask cluster imports it for its own use).
+    _sys.modules["pandas"] = None  # an import of it now raises ImportError, which sqlite-utils catches
+    try:
+        import sqlite_utils  # noqa: F401
+    finally:
+        del _sys.modules["pandas"]
+
 from visloc.db.records import (
     CameraRecord,
     DamagedStoreError,

@@ -10,5 +10,8 @@ if ! { .venv/bin/python -m pip install --upgrade pip && .venv/bin/python -m pip 
     echo "setup: pip install failed (log above, also in $log)" >&2
     exit 1
 fi
+# Byte-compile visloc's own code once: an environment that turns Python's bytecode cache off
+# (PYTHONDONTWRITEBYTECODE) would otherwise compile it anew in every process, about 0.6 s of each command's start.
+.venv/bin/python -m compileall -q visloc db dashboard bench >/dev/null
 .venv/bin/python -c "import visloc, visloc.db, visloc.dashboard, visloc.bench, filterpy, pytest"  # fail here, not later, if the install is broken
 echo "setup: .venv ready ($(.venv/bin/python -c 'import visloc; print("visloc", visloc.__version__)'))"

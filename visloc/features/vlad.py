@@ -11,7 +11,6 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import faiss
 import numpy as np
 
 from visloc.errors import ParameterError
@@ -73,6 +72,8 @@ def train_codebook(sample_u8: np.ndarray, n_words: int, seed: int) -> np.ndarray
     x = np.ascontiguousarray(sample_u8, np.float32)
     if x.shape[0] < n_words:
         raise ParameterError(f"n_words={n_words}: the training sample has only {x.shape[0]} descriptors")
+    import faiss  # here: only training needs it, and it costs every command's start-up
+
     km = faiss.Kmeans(x.shape[1], n_words, niter=20, seed=seed, verbose=False)
     km.train(x)
     return np.ascontiguousarray(km.centroids, np.float32)

@@ -15,7 +15,6 @@ Pure functions over numpy arrays.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
@@ -42,6 +41,8 @@ def guided_matches(points_uv_px: np.ndarray, in_front: np.ndarray, point_descrip
     rows = np.flatnonzero(in_front & np.all(np.isfinite(points_uv_px), axis=1))
     if len(rows) == 0 or len(query_xy_px) == 0:
         return np.zeros((0, 2), np.int64)
+    from scipy.spatial import cKDTree  # here: scipy.spatial costs every command's start-up about 0.2 s
+
     tree = cKDTree(np.asarray(query_xy_px, float))
     near = tree.query_ball_point(points_uv_px[rows], r=radius_px)
     q_desc = np.asarray(query_descriptors, np.float32)

@@ -33,7 +33,6 @@ from collections.abc import Callable, Hashable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
-import faiss
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
@@ -178,6 +177,8 @@ def nearest_two_faiss(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestT
     n_query, n_db = q.shape[0], d.shape[0]
     if n_query == 0 or n_db < 2:
         return nearest_two(query_u8, database_u8)  # edge cases: the reference handles them
+    import faiss  # here: only this backend needs it, and it costs every command's start-up
+
     dist_sq, index = faiss.knn(q, d, 2)
     # faiss computes |q|^2 + |d|^2 - 2 q.d in float32 too: exact for integer descriptors
     q_sq = np.einsum("ij,ij->i", q, q)
