@@ -1,6 +1,6 @@
 """What the refined measurement's support costs: four views and guided matching against two views without it.
 
-    python benchmarks/refined_support.py [--data ROOT] --db out/results/visloc.sqlite [--every 5]
+    python benchmarks/refined_support.py [--data ROOT] [--db out/results/visloc.sqlite] [--every 5]
 
 On every drive of the data root, with its first protocol (left queries against the right camera where a drive
 has both, else one camera) and the 1 s exclusion, every ``--every``-th query is measured once with the refined
@@ -107,7 +107,8 @@ def render(r: dict) -> str:
 
 def add_arguments(p) -> None:
     p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-    p.add_argument("--db", type=Path, required=True, help="a store holding every drive's cameras ('visloc ingest')")
+    p.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite",
+                   help="a store holding every drive's cameras (default scripts/results.py's, out/results/visloc.sqlite)")
     p.add_argument("--every", type=int, default=5, help="measure every n-th query (default %(default)s)")
 
 
