@@ -205,6 +205,9 @@ def _close_pages_a_test_opened(request):
 # through another fixture. The marks are given here, from the fixtures, so they cannot lie; a test module
 # marks only ``slow`` itself.
 MARKED_BY_FIXTURE = {"kitti": "kitti_root", "browser": "browser"}
+# session fixtures made by one process on one core (a refined evaluation): the tests that use one run on the same
+# worker, so that the other worker goes on with other tests instead of waiting for it (about 50 s otherwise)
+ONE_WORKER_FIXTURES = {"kitti_refined"}
 SLOW_S = 5.0  # a test whose call takes longer is slow; the summary names those not marked so
 
 
@@ -227,6 +230,8 @@ def pytest_collection_modifyitems(config, items):
     for item in items:  # with pytest-xdist's --dist loadgroup: a module-scoped fixture is made on one worker
         if _module_fixtures(item):
             item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+        elif ONE_WORKER_FIXTURES & set(item.fixturenames):
+            item.add_marker(pytest.mark.xdist_group(min(ONE_WORKER_FIXTURES & set(item.fixturenames))))
 
 
 def pytest_runtest_setup(item):
