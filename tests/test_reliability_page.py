@@ -149,3 +149,24 @@ def test_the_command_line_start_times_are_what_their_json_renders():
     assert rendered in (REPO / "docs" / "performance.md").read_text()
     assert cli_startup.BARE in result["commands"] and "visloc --help" in result["commands"]
     assert result["commands"][cli_startup.BARE]["median_ratio_to_bare"] == 1.0
+
+
+def test_the_thinning_stress_is_what_its_json_renders():
+    """The thinning stress on docs/performance.md is rendered from docs/results/thinning_stress.json (written by
+    benchmarks/thinning_stress.py): every drive the peer measured, at the defaults and at every cap, both pipelines
+    on the same frames."""
+    import json
+
+    import thinning_stress
+
+    result = json.loads(thinning_stress.SECTION.out.read_text())
+    assert thinning_stress.SECTION.updated_page(thinning_stress.render(result)) == \
+        (REPO / "docs" / "performance.md").read_text()
+    caps = list(result["caps"])
+    assert caps[0] == thinning_stress.DEFAULT and len(caps) >= 2
+    drives = set(result["caps"][thinning_stress.DEFAULT]["drives"])
+    assert len(drives) == 3
+    for cap in caps:
+        assert set(result["caps"][cap]["drives"]) == drives
+        for d in result["caps"][cap]["drives"].values():
+            assert d["peer_error_m"]["n"] == d["visloc_error_m"]["n"] == len(d["frames"]) > 0

@@ -1,0 +1,164 @@
+"""Support thinned on purpose: visloc's refined measurement and the COLMAP-style peer with fewer keypoints per image.
+
+    python benchmarks/thinning_stress.py [--data ROOT] [--caps 1000,500] [--peer-python PEER_VENV/bin/python]
+    python benchmarks/thinning_stress.py --page   # its section of docs/performance.md from the JSON
+
+Where texture is thin, both pipelines find fewer keypoints, and a pose stands on fewer 2D-3D matches. This
+makes that happen on the shared drives: every image, database and query alike, keeps at most N keypoints
+(visloc: ``--sift-features N``, OpenCV's strongest N; the peer: ``--max-features N``, COLMAP's). Each cap gets
+its own store, ingested as a user would (features, structure, the self-check), and its own peer run.
+
+The queries are the frames the peer measured at its defaults (``docs/results/peer``, ``../shared/peer/results``),
+under the same protocol: the drive's first setup (left queries against the right camera where a drive has
+both, else one camera), the 1 s exclusion. visloc poses each one as the first step of a series (``--steps 1``:
+a full-scan retrieval, no filter), as the peer does; a failed pose counts with its fallback geotag's error on
+either side. Per drive and cap: both pipelines' errors (median, p90, max), their PnP inliers, and the NEES of
+visloc's measurements (the peer states no covariance). The row "default" is each pipeline at its own defaults
+(visloc keeps every SIFT keypoint, about 3,000-3,500 per image here; the peer at most 8192), on the peer's
+existing runs. Writes ``docs/results/thinning_stress.json`` and its section of docs/performance.md.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from measuring import REPO, Section, load_1min
+
+sys.path.insert(0, str(REPO / "scripts"))
+from results_peer import digest_peer  # noqa: E402
+from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
+from visloc.sources.drives import default_data_root  # noqa: E402
+
+SECTION = Section("thinning-stress", "thinning_stress", REPO / "docs" / "performance.md")
+WORK = REPO / "out" / "thinning"
+PEER_RUNS = {"peer/results": REPO.parent / "shared" / "peer" / "results",
+             "docs/results/peer": REPO / "docs" / "results" / "peer"}
+PEER_SCRIPT = REPO.parent / "shared" / "peer" / "colmap_baseline.py"
+DEFAULT = "default"
+RESULTS_STORE = REPO / "out" / "results" / "visloc.sqlite"  # scripts/results.py's store, made with the defaults
+
+
+def peer_runs() -> dict[str, Path]:
+    """drive -> the peer's JSON at its defaults (the first folder of ``PEER_RUNS`` that has the drive)."""
+    runs: dict[str, Path] = {}
+    for folder in PEER_RUNS.values():
+        for path in sorted(folder.glob("peer_*.json")) if folder.is_dir() else []:
+            runs.setdefault(json.loads(path.read_text())["params"]["drive"], path)
+    return runs
+
+
+def run(args: list[str], log: Path, made: Path) -> None:
+    """Run ``args`` unless ``made`` (what it writes) exists: an interrupted measurement goes on where it stopped."""
+    if made.is_file():
+        print("thinning: already measured:", made.relative_to(REPO), flush=True)
+        return
+    print("thinning:", " ".join(map(str, args)), flush=True)
+    with log.open("a") as f:
+        subprocess.run(list(map(str, args)), cwd=REPO, check=True, stdout=f, stderr=subprocess.STDOUT)
+
+
+def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
+    """Every drive at one cap: visloc's single measurements and the peer's, in ``WORK/cap_<cap>``."""
+    out = WORK / f"cap_{cap}"
+    out.mkdir(parents=True, exist_ok=True)
+    log = out / "log.txt"
+    store = out / "visloc.sqlite"
+    if cap == DEFAULT and RESULTS_STORE.is_file():  # the defaults, ingested already: only counts are added to it
+        store = RESULTS_STORE
+    sift = [] if cap == DEFAULT else ["--sift-features", cap]
+    commands = []
+    for drive_folder in drives_of(folder):
+        drive = drive_folder.name.removesuffix("_sync")
+        if drive not in peer:
+            continue
+        protocol = drive_protocols(drive_folder)[0]
+        frames = [q["query_frame"] for q in json.loads(peer[drive].read_text())["queries"]]
+        cameras = ["--query-camera", protocol.query_camera, "--db-camera", protocol.db_camera]
+        ours = ["-m", "visloc", "evaluate", folder, "--drive", drive, *cameras, "--db", store, *sift,
+                "--mode", "refined", "--steps", "1", "--exclusion-s", "1",
+                "--start-frames", ",".join(map(str, frames)),
+                "--json", out / f"{drive}_{protocol.key}_refined.json"]
+        run([sys.executable, *ours], log, out / f"{drive}_{protocol.key}_refined.json")
+        commands.append("python " + " ".join(map(str, ours)))
+        if cap == DEFAULT:  # the peer's own run at its defaults
+            shutil.copy(peer[drive], out / peer[drive].name)
+            continue
+        theirs = [PEER_SCRIPT, "--data", folder, "--drive", drive, "--db-camera", protocol.db_camera,
+                  "--query-camera", protocol.query_camera, "--query-frames", ",".join(map(str, frames)),
+                  "--variants", "counts", "--vlad-words", "0", "--max-features", cap,
+                  "--work", out / f"peer_work_{drive}", "--json", out / f"peer_{drive}.json", "--resume"]
+        run([a.peer_python, *theirs], log, out / f"peer_{drive}.json")
+        for partial in out.glob("peer_*.partial.json"):  # the peer's progress file, not a run
+            partial.unlink()
+        commands.append(f"{a.peer_python} " + " ".join(map(str, theirs)))
+    digest = digest_peer({f"out/thinning/cap_{cap}": out}, out)
+    for drive, d in digest.items():
+        report = json.loads((out / d["evaluation_file"]).read_text())
+        d["visloc_nees"] = report["measurement_nees"]
+        d["visloc_geotag_fallbacks"] = sum(r["visloc_geotag_fallbacks"] for r in d["frames"])
+    return {"commands": commands, "drives": digest}
+
+
+def measure(a) -> dict:
+    folder = Path(a.data)
+    peer = peer_runs()
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                            text=True).stdout.strip()
+    result = {"commit": commit, "cores": os.cpu_count(), "load_before": load_1min(), "caps": {}}
+    for cap in [DEFAULT, *a.caps.split(",")]:
+        result["caps"][cap] = measure_cap(a, cap, folder, peer)
+    result["load_after"] = load_1min()
+    return result
+
+
+def render(r: dict) -> str:
+    lines = [SECTION.begin, ""]
+    add = lines.append
+    add("**Support thinned on purpose.** Every image of the shared drives, database and queries alike, keeps at most "
+        "N SIFT keypoints (visloc `--sift-features N`, the peer `--max-features N`), so that the poses stand on "
+        "fewer matches, as where texture is thin. Each cap has its own store, ingested as a user would (structure "
+        "and self-check included), and its own peer run. Both pose the frames the peer measured at its defaults, "
+        "one measurement each (visloc: a one-step series, full-scan retrieval, no filter), same setup, 1 s "
+        "exclusion; a failed pose counts with its fallback geotag's error. \"default\": each at its own defaults "
+        "(visloc every SIFT keypoint, about 3,000-3,500 per image; the peer at most 8192). NEES: visloc's "
+        f"measurements posed from geometry (2 when honest). Measured by `python benchmarks/thinning_stress.py` at "
+        f"{r['commit']} ({r['cores']} cores, load {r['load_before']:.1f} at the start, {r['load_after']:.1f} at the end).")
+    add("")
+    add("| drive | keypoints per image | frames | peer error median / p90 / max (m) | visloc error median / p90 / max "
+        "(m) | peer inliers median | visloc inliers median | peer failures | visloc geotag fallbacks | visloc NEES "
+        "mean, inside 95 % |")
+    add("|---|---|---|---|---|---|---|---|---|---|")
+    drives = sorted({d for cap in r["caps"].values() for d in cap["drives"]})
+    for drive in drives:
+        for cap, c in r["caps"].items():
+            d = c["drives"].get(drive)
+            if d is None:
+                continue
+            p, v, nees = d["peer_error_m"], d["visloc_error_m"], d["visloc_nees"]
+            shown = "default" if cap == DEFAULT else f"at most {int(cap):,}"
+            nees_text = (f"{nees['mean']:.2f}, {100 * nees['fraction_within_95']:.0f} %" if nees and nees.get("n")
+                         else "-")
+            add(f"| {drive} | {shown} | {p['n']} | {p['median']:.2f} / {p['p90']:.2f} / {p['max']:.2f} | "
+                f"{v['median']:.2f} / {v['p90']:.2f} / {v['max']:.2f} | {d['peer_inliers']['median']:.0f} | "
+                f"{d['visloc_inliers']['median']:.0f} | {d['peer_failures']} | {d['visloc_geotag_fallbacks']} | "
+                f"{nees_text} |")
+    add("")
+    add(SECTION.end)
+    return "\n".join(lines)
+
+
+def add_arguments(p) -> None:
+    p.add_argument("--data", type=Path, default=default_data_root(), help="KITTI raw root (default the shared data)")
+    p.add_argument("--caps", default="1000,500", help="keypoints per image, comma-separated (default 1000,500)")
+    p.add_argument("--peer-python", default=str(REPO.parent / "peer-venv" / "bin" / "python"),
+                   help="the Python of a venv with the peer's packages (its README: pycolmap, numpy, "
+                        "opencv-python-headless, pyproj)")
+
+
+if __name__ == "__main__":
+    sys.exit(SECTION.main(__doc__, measure, render, add_arguments))
