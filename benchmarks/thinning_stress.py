@@ -14,8 +14,7 @@ both, else one camera), the 1 s exclusion. visloc poses each one as the first st
 a full-scan retrieval, no filter), as the peer does; a failed pose counts with its fallback geotag's error on
 either side. Per drive and cap: both pipelines' errors (median, p90, max), their PnP inliers, and the NEES of
 visloc's measurements (the peer states no covariance). The row "default" is each pipeline at its own defaults
-(visloc keeps every SIFT keypoint, about 3,000-3,500 per image here; the peer at most 8192), on the peer's
-existing runs. Writes ``docs/results/thinning_stress.json`` and its section of docs/performance.md.
+(visloc keeps every SIFT keypoint; the peer at most 8192), on the peer's existing runs. Writes ``docs/results/thinning_stress.json`` and its section of docs/performance.md.
 """
 
 from __future__ import annotations
@@ -125,7 +124,7 @@ def render(r: dict) -> str:
         "and self-check included), and its own peer run. Both pose the frames the peer measured at its defaults, "
         "one measurement each (visloc: a one-step series, full-scan retrieval, no filter), same setup, 1 s "
         "exclusion; a failed pose counts with its fallback geotag's error. \"default\": each at its own defaults "
-        "(visloc every SIFT keypoint, about 3,000-3,500 per image; the peer at most 8192). NEES: visloc's "
+        "(visloc every SIFT keypoint; the peer at most 8192). NEES: visloc's "
         f"measurements posed from geometry (2 when honest). Measured by `python benchmarks/thinning_stress.py` at "
         f"{r['commit']} ({r['cores']} cores, load {r['load_before']:.1f} at the start, {r['load_after']:.1f} at the end).")
     add("")
