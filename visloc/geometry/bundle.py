@@ -108,6 +108,24 @@ def _observation_jacobians(K: np.ndarray, R: np.ndarray, C: np.ndarray, X: np.nd
     return r, J_cam, J_point, z
 
 
+class _Groups:
+    """Sums of observation rows per camera (or per point): what ``np.add.at`` on zeros gives, by one
+    ``np.add.reduceat`` over the rows in group order, the grouping worked out once per adjustment."""
+
+    def __init__(self, index: np.ndarray, n: int):
+        self.order = np.argsort(index, kind="stable")
+        counts = np.bincount(index, minlength=n)
+        self.present = counts > 0
+        self.starts = (np.cumsum(counts) - counts)[self.present]
+        self.n = n
+
+    def sum(self, rows: np.ndarray) -> np.ndarray:
+        out = np.zeros((self.n,) + rows.shape[1:])
+        if len(self.starts):
+            out[self.present] = np.add.reduceat(rows[self.order], self.starts, axis=0)
+        return out
+
+
 def bundle_adjust(K: np.ndarray, T_world_cameras: np.ndarray, points_world: np.ndarray, xy_px: np.ndarray,
                   used: np.ndarray, priors: PosePriors, *, iterations: int = 15) -> BundleResult:
     """Refine C camera poses and M points, ``xy_px`` (M, C, 2) observed where ``used`` (M, C).
@@ -128,6 +146,7 @@ def bundle_adjust(K: np.ndarray, T_world_cameras: np.ndarray, points_world: np.n
                   np.full(n_cam, priors.sigma_up_m)]  # (C, 3)
     s_rot = priors.sigma_rot_rad
     R, C = R0.copy(), C0.copy()
+    by_camera, by_point = _Groups(obs_c, n_cam), _Groups(obs_m_all, n_pts)
 
     def cost(R, C, X) -> tuple[float, np.ndarray]:
         r, *_ = _observation_jacobians(K, R, C, X, obs_m_all, obs_c, obs_xy)
@@ -149,14 +168,10 @@ def bundle_adjust(K: np.ndarray, T_world_cameras: np.ndarray, points_world: np.n
         # normal equations: cameras (block diagonal A), points (block diagonal D), coupling B
         wJ_cam_t = np.swapaxes(J_cam, 1, 2) * w[:, None, None]  # (N, 6, 2)
         wJ_pt_t = np.swapaxes(J_pt, 1, 2) * w[:, None, None]  # (N, 3, 2)
-        A = np.zeros((n_cam, 6, 6))
-        np.add.at(A, obs_c, wJ_cam_t @ J_cam)
-        g_cam = np.zeros((n_cam, 6))
-        np.add.at(g_cam, obs_c, (wJ_cam_t @ r[:, :, None])[..., 0])
-        D = np.zeros((n_pts, 3, 3))
-        np.add.at(D, obs_m_all, wJ_pt_t @ J_pt)
-        g_pt = np.zeros((n_pts, 3))
-        np.add.at(g_pt, obs_m_all, (wJ_pt_t @ r[:, :, None])[..., 0])
+        A = by_camera.sum(wJ_cam_t @ J_cam)
+        g_cam = by_camera.sum((wJ_cam_t @ r[:, :, None])[..., 0])
+        D = by_point.sum(wJ_pt_t @ J_pt)
+        g_pt = by_point.sum((wJ_pt_t @ r[:, :, None])[..., 0])
         B = np.zeros((n_pts, n_cam, 6, 3))
         B[obs_m_all, obs_c] = wJ_cam_t @ J_pt  # each (point, camera) is observed once
         # priors: centre (identity Jacobian), attitude (about identity for small corrections)

@@ -41,8 +41,11 @@ def _dlt(P: np.ndarray, xy: np.ndarray, used: np.ndarray) -> np.ndarray:
     A = np.nan_to_num(A)
     scale = np.linalg.norm(A, axis=2, keepdims=True)
     A = A / np.where(scale > 0, scale, 1.0)
-    _, _, Vt = np.linalg.svd(A)
-    Xh = Vt[:, -1, :]
+    # the right singular vector of A with the smallest singular value is the eigenvector of A'A with the
+    # smallest eigenvalue: a 4x4 symmetric eigenproblem per point, far cheaper than an SVD of A (2C x 4),
+    # and the start Gauss-Newton refines
+    _, V = np.linalg.eigh(np.einsum("mki,mkj->mij", A, A))
+    Xh = np.where(used.sum(axis=1)[:, None] >= 2, V[:, :, 0], [0.0, 0.0, 0.0, 1.0])  # seen once: no point
     with np.errstate(divide="ignore", invalid="ignore"):
         return Xh[:, :3] / Xh[:, 3:4]
 
