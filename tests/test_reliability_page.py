@@ -170,3 +170,22 @@ def test_the_thinning_stress_is_what_its_json_renders():
         assert set(result["caps"][cap]["drives"]) == drives
         for d in result["caps"][cap]["drives"].values():
             assert d["peer_error_m"]["n"] == d["visloc_error_m"]["n"] == len(d["frames"]) > 0
+
+
+def test_the_structure_density_is_what_its_json_renders():
+    """The structure-density section of docs/performance.md is rendered from docs/results/structure_density.json
+    (written by benchmarks/structure_density.py): every drive the peer measured, each configuration posing the
+    peer's frames, the defaults first."""
+    import json
+
+    import structure_density
+
+    result = json.loads(structure_density.SECTION.out.read_text())
+    assert structure_density.SECTION.updated_page(structure_density.render(result)) == \
+        (REPO / "docs" / "performance.md").read_text()
+    assert len(result["drives"]) == 3
+    for d in result["drives"]:
+        assert list(d["configs"]) == list(structure_density.CONFIGS)
+        assert list(d["configs"].values())[0]["neighbour_baselines_m"] == [2.0, 5.0, 10.0]
+        for c in d["configs"].values():
+            assert c["error_m"]["n"] == len(d["frames"]) > 0 and c["structures_built"] > 0

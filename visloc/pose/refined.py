@@ -79,6 +79,11 @@ class StructureCache:
             self._pairs[(a, b)] = correspondences(geometry.descriptors_u8[a], geometry.descriptors_u8[b], match)
         return self._pairs[(a, b)]
 
+    @property
+    def pairs_matched(self) -> int:
+        """Database pairs matched so far (each once)."""
+        return len(self._pairs)
+
     def __len__(self) -> int:
         return len(self._views)
 
