@@ -31,6 +31,17 @@ SECTION = Section("refined-support", "refined_support", REPO / "docs" / "perform
 CONFIGS = {"defaults": REFINED, "two views, no guided matching": REFINED.replace(n_views=2, guided_radius_px=0.0)}
 
 
+def measured_row(frame: int, m, truth_east_north_m: np.ndarray) -> dict:
+    """One refined measurement of ``frame``: where it came from, its error against the frame's geotag, its PnP
+    inliers and the distinct query keypoints among them (0 for a geotag fallback), its query side's time."""
+    posed = m.source == "geometry"
+    return {"frame": frame, "source": m.source,
+            "error_m": float(np.linalg.norm(np.asarray(m.east_north_m) - truth_east_north_m)),
+            "inliers": int(m.n_pnp_inliers) if posed else 0,
+            "query_keypoints": len(np.unique(m.inliers.query_rows)) if posed else 0,
+            "query_side_ms": float(m.query_side_ms)}
+
+
 def measure_drive(ws: Workspace, folder: Path, every: int) -> dict:
     protocol = drive_protocols(folder)[0]
     db = ws.load_database(folder.name, protocol.db_camera)
@@ -49,14 +60,7 @@ def measure_drive(ws: Workspace, folder: Path, every: int) -> dict:
         retrieval = retriever.retrieve(q, None)
         names = list(CONFIGS) if n % 2 == 0 else list(CONFIGS)[::-1]
         for name in names:
-            m = measurers[name].measure(q, retrieval)
-            posed = m.source == "geometry"
-            rows[name].append({
-                "frame": int(queries.frames[i]), "source": m.source,
-                "error_m": float(np.linalg.norm(np.asarray(m.east_north_m) - truth[i])),
-                "inliers": int(m.n_pnp_inliers) if posed else 0,
-                "query_keypoints": len(np.unique(m.inliers.query_rows)) if posed else 0,
-                "query_side_ms": float(m.query_side_ms)})
+            rows[name].append(measured_row(int(queries.frames[i]), measurers[name].measure(q, retrieval), truth[i]))
     out = {"drive": folder.name, "protocol": protocol.key, "protocol_label": protocol.label, "configs": {}}
     for name, r in rows.items():
         out["configs"][name] = {

@@ -24,12 +24,15 @@ from __future__ import annotations
 import json
 import os
 import statistics
+import sys
 from pathlib import Path
 
-import numpy as np
-
 from measuring import REPO, Section, load_1min
+from refined_support import measured_row
 from thinning_stress import peer_runs
+
+sys.path.insert(0, str(REPO / "scripts"))
+from results_peer import peer_pose  # noqa: E402
 from visloc import Workspace  # noqa: E402
 from visloc.params import REFINED, MatchParams, RetrievalParams  # noqa: E402
 from visloc.pose.refined import PoseMeasurer, StructureCache  # noqa: E402
@@ -49,12 +52,9 @@ CONFIGS = {
 
 def peer_frames(path: Path) -> dict[int, dict]:
     """query frame -> the peer's inliers and error there (a failed pose: 0 inliers, its fallback's error)."""
-    out = {}
-    for q in json.loads(path.read_text())["queries"]:
-        pnp = q["variants"]["counts"]["pnp"]["12.0"]
-        out[int(q["query_frame"])] = {"inliers": int(pnp.get("num_inliers") or 0) if pnp["ok"] else 0,
-                                      "error_m": float(pnp["error_m"] if pnp["ok"] else pnp["fallback_error_m"])}
-    return out
+    poses = {int(q["query_frame"]): peer_pose(q) for q in json.loads(path.read_text())["queries"]}
+    return {f: {"inliers": int(p["inliers"] or 0) if p["ok"] else 0, "error_m": float(p["error_m"])}
+            for f, p in poses.items()}
 
 
 def measure_drive(ws: Workspace, folder: Path, peer: dict[int, dict]) -> dict:
@@ -79,12 +79,7 @@ def measure_drive(ws: Workspace, folder: Path, peer: dict[int, dict]) -> dict:
             i = index_of[f]
             q = queries.query(i)
             retriever.reset()
-            m = measurer.measure(q, retriever.retrieve(q, None))
-            posed = m.source == "geometry"
-            rows.append({"frame": f, "source": m.source,
-                         "error_m": float(np.linalg.norm(np.asarray(m.east_north_m) - truth[i])),
-                         "inliers": int(m.n_pnp_inliers) if posed else 0,
-                         "query_keypoints": len(np.unique(m.inliers.query_rows)) if posed else 0})
+            rows.append(measured_row(f, measurer.measure(q, retriever.retrieve(q, None)), truth[i]))
         views = max(len(cache), 1)
         out["configs"][name] = {
             "neighbour_baselines_m": list(params.neighbour_baselines_m), "min_baseline_m": params.min_baseline_m,

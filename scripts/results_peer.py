@@ -29,6 +29,14 @@ def protocol_key(query_camera: str, db_camera: str) -> str | None:
 INLIER_FIGURES = ("min", "median", "max")
 
 
+def peer_pose(query: dict) -> dict:
+    """One query of the peer's JSON at its default variant and threshold: ok, its inliers (None when it
+    failed) and its error (a failed pose: its fallback geotag's)."""
+    pnp = query["variants"][PEER_VARIANT]["pnp"][PEER_THRESHOLD]
+    return {"ok": bool(pnp["ok"]), "inliers": pnp.get("num_inliers"),
+            "error_m": pnp["error_m"] if pnp["ok"] else pnp["fallback_error_m"]}
+
+
 def digest_peer(peer_dirs: dict[str, Path], out: Path) -> dict:
     """drive -> the peer's and visloc's per-frame errors and support on the peer's frames, for every peer JSON
     that has a matching refined evaluation in ``out`` (evaluate-drives' per-drive JSON). ``peer_dirs``: how the
@@ -56,12 +64,12 @@ def digest_peer(peer_dirs: dict[str, Path], out: Path) -> dict:
                             (step.get("n_pnp_inliers", 0), step.get("n_pnp_query_keypoints", 0)))
         frames = []
         for q in peer["queries"]:
-            pnp = q["variants"][PEER_VARIANT]["pnp"][PEER_THRESHOLD]
+            pose = peer_pose(q)
             f = q["query_frame"]
             if f not in ours:
                 continue
-            frames.append({"frame": f, "peer_error_m": pnp["error_m"] if pnp["ok"] else pnp["fallback_error_m"],
-                           "peer_ok": bool(pnp["ok"]), "peer_inliers": pnp.get("num_inliers"),
+            frames.append({"frame": f, "peer_error_m": pose["error_m"], "peer_ok": pose["ok"],
+                           "peer_inliers": pose["inliers"],
                            "visloc_error_m": float(np.median(ours[f])),
                            "visloc_geotag_fallbacks": sum(s == "geotag" for s in sources[f]),
                            # a frame posed by no series has no support: 0, as a failed peer pose counts its own
