@@ -153,11 +153,12 @@ def test_essential_inliers_reject_wrong_matches_and_need_five_points():
 # -- the whole measurement -------------------------------------------------------------
 
 def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3, seed=11, geotag_sigma_m=0.01,
-                       lever_gain=None, yaw_error_rad=None):
+                       lever_gain=None, yaw_error_rad=None, north_error_m=None):
     """Database images at the given eastings (all heading east), a query, and descriptors per 3D point;
     the geotags state ``geotag_sigma_m`` as their accuracy, the database's self-check measured
     ``lever_gain`` (None: none, the default applies). ``yaw_error_rad`` (one per image): how far each
-    database camera's recorded yaw is off the true one (the images are taken at the true poses)."""
+    database camera's recorded yaw is off the true one (the images are taken at the true poses);
+    ``north_error_m`` (one per image): how far each image's geotag and recorded pose lie north of the truth."""
     rng = np.random.default_rng(seed)
     points = street(n_points=n_points, seed=seed)
     descriptors = rng.integers(0, 256, (n_points, 128)).astype(np.uint8)
@@ -176,7 +177,10 @@ def synthetic_database(db_east_m, query_east_m=-2.0, n_points=1500, noise_px=0.3
                                 descriptors_u8=tuple(descs), camera=CAMERA, geotag_sigma_m=np.full(len(poses), geotag_sigma_m),
                                 lever_gain=lever_gain,
                                 heading_spread_rad=None if yaw_error_rad is None else float(np.std(yaw_error_rad)))
-    imu_positions = np.array([(T @ T_CAMERA_IMU)[:2, 3] for T in poses])
+    if north_error_m is not None:
+        recorded = [camera_pose(east, north_m=err)[0] for east, err in zip(db_east_m, north_error_m)]
+        geometry = replace(geometry, T_world_camera=np.array(recorded))
+    imu_positions = np.array([(T @ T_CAMERA_IMU)[:2, 3] for T in (poses if north_error_m is None else recorded)])
     return geometry, imu_positions, xq[vq], descriptors[vq], Tq_imu[:2, 3]
 
 
@@ -223,6 +227,34 @@ def test_views_are_taken_on_both_sides_of_the_query_when_the_database_has_both()
     # with both_sides off, the same retrieval is posed from behind only
     one_side = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(both_sides=False))
     assert (geotags[list(one_side.view_indices), 0] < truth[0]).all()
+
+
+def test_views_posed_apart_and_averaged_keep_both_sides_where_their_geotags_disagree():
+    # the images behind the query were geotagged 0.6 m north of where they were taken, those ahead exactly: each
+    # side's structure is consistent in itself (the views' neighbours lie on their own side), the sides disagree
+    east_m = [-18.0, -15.0, -12.0, -9.0, 9.0, 12.0, 15.0, 18.0]
+    geometry, geotags, xq, dq, truth = synthetic_database(east_m, query_east_m=0.0, north_error_m=[0.6] * 4 + [0.0] * 4)
+    retrieval = Retrieval(candidates=np.array([0, 1, 2, 5, 6, 7]), counts=np.array([50, 60, 80, 70, 55, 45]),
+                          best_index=2)
+    params = RefinedParams(neighbour_baselines_m=(3.0,), max_neighbour_gap=1, n_views=2)
+    pooled = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)
+    fused = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(fuse_views=True))
+    assert pooled.source == fused.source == GEOMETRY, (pooled.fallback_reason, fused.fallback_reason)
+    behind = geotags[:, 0] < truth[0]
+    assert set(behind[list(pooled.view_indices)].tolist()) == set(behind[list(fused.view_indices)].tolist()) == {0, 1}
+    # one PnP over both sides' points keeps one side's: the other's lie pixels off its pose
+    assert len(set(behind[pooled.inliers.view_of].tolist())) == 1
+    # each view posed alone: both sides count, and the measurement lies between them
+    assert set(behind[fused.inliers.view_of].tolist()) == {0, 1}
+    assert fused.n_pnp_inliers > 1.3 * pooled.n_pnp_inliers
+    assert fused.east_north_m[1] - truth[1] == pytest.approx(0.3, abs=0.05)
+    # and their disagreement is in its covariance: the spread of two poses 0.6 m apart, north
+    assert fused.cov_terms_m2["views"][1, 1] == pytest.approx(0.3**2, rel=0.3)
+    np.testing.assert_allclose(fused.cov_m2, sum(fused.cov_terms_m2.values()))
+    # where the geotags agree, the views posed apart give back the known position
+    geometry, geotags, xq, dq, truth = synthetic_database(east_m, query_east_m=0.0)
+    agreed = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(fuse_views=True))
+    assert agreed.source == GEOMETRY and np.linalg.norm(agreed.east_north_m - truth) < 0.05
 
 
 def test_the_covariance_is_relative_to_the_map_and_grows_with_the_lever_to_the_nearest_view():

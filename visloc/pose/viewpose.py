@@ -171,6 +171,9 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
     and the fast path (structure read from the store). With ``query_descriptors`` (and
     ``params.guided_radius_px`` above 0) the first pose's views are matched again, guided by it
     (``guided_pairs``), and the query posed on both."""
+    if params.fuse_views:
+        return _views_fused(query_xy, usable, pairs_of, structure_of, neighbours_used, db_east_north_m, geometry,
+                            query_camera, params, query_descriptors)
     spent = {"structure_ms": 0.0}
     structures: dict[int, dict] = {}
     support: dict = {}
@@ -181,10 +184,7 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
                 structures[i], ms = structure_of(i)
                 spent["structure_ms"] += ms
         views = _correspondences(chosen, pairs, structures, query_xy)
-        pnp = solve_pnp(views.points_world, views.pixels, query_camera.K, reprojection_px=params.pnp_px,
-                        iterations=params.pnp_iterations, seed=params.seed, min_inliers=params.min_pnp_inliers,
-                        points_cov=views.points_cov)
-        return pnp, views
+        return _solve(views, query_camera, params), views
 
     def describe(chosen: list[int], views: _Views) -> None:
         support.update(view_indices=tuple(chosen), n_correspondences_3d=len(views.points_world),
@@ -234,36 +234,145 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
         return failed(f"views {sorted(per_view)} disagree: their own poses lie {spread_m:.1f} m apart "
                       f"(limit {params.max_view_spread_m:g} m)")
     T_world_imu = imu_pose_from_camera(pnp.T_world_camera, query_camera.T_camera_imu)
-    east_north = T_world_imu[:2, 3].copy()
-    anchor = chosen[0]
-    offset_m = float(np.linalg.norm(east_north - np.asarray(db_east_north_m[anchor], float)))
-    if not np.all(np.isfinite(east_north)) or offset_m > params.max_offset_m:
-        return failed(f"PnP pose {offset_m:.1f} m from the geotag of view {anchor} (limit "
-                      f"{params.max_offset_m:g} m)")
-    heading = heading_deg_of(T_world_imu)
-    view_heading = heading_deg_of(geometry.T_world_camera[anchor] @ geometry.camera.T_camera_imu)
-    turn_deg = abs((heading - view_heading + 180.0) % 360.0 - 180.0)
-    if turn_deg > params.max_heading_diff_deg:
-        return failed(f"PnP pose faces {turn_deg:.0f} deg away from view {anchor} (limit "
-                      f"{params.max_heading_diff_deg:g} deg)")
-
-    # 5. covariance (visloc.pose.uncertainty): relative to the map, PnP's + the views' spread + what the
-    #    database's poses get wrong over the lever to the nearest view; the geotags' stated accuracy apart
-    sides = {_side(geometry.T_world_camera[i][:3, 3], pnp.T_world_camera) for i in chosen}
-    side = "both" if len(sides) == 2 else "one"
-    lever_m = float(min(np.linalg.norm(east_north - np.asarray(db_east_north_m[i], float)) for i in chosen))
-    gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
-    terms = {"pnp": imu_east_north_covariance(pnp, query_camera.T_camera_imu),
-             "views": _mean_covariance(list(per_view.values())),
-             "lever": lever_covariance_m2(gain.of(side), lever_m)}
-    cov = terms["pnp"] + terms["views"] + terms["lever"]
-    absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
     k = pnp.inliers
     inliers = MapCorrespondences(views.rows[k, 0], views.view_of[k], views.rows[k, 1], views.points_world[k],
                                  views.points_cov[k], pnp.T_world_camera,
                                  {i: tuple(neighbours_used[i]) for i in chosen}, {i: structures[i] for i in chosen})
-    return PosedViews(None, support, spent["structure_ms"], east_north, cov, anchor, pnp.reprojection_rms_px,
+    return _finish(T_world_imu[:2, 3].copy(), T_world_imu, chosen[0], chosen, per_view,
+                   imu_east_north_covariance(pnp, query_camera.T_camera_imu), pnp.reprojection_rms_px, inliers,
+                   support, spent["structure_ms"], db_east_north_m, geometry, params)
+
+
+def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen: list[int],
+            per_view: dict[int, np.ndarray], pnp_cov_m2: np.ndarray, reprojection_rms_px: float,
+            inliers: MapCorrespondences, support: dict, structure_ms: float, db_east_north_m: np.ndarray,
+            geometry: DatabaseGeometry, params: RefinedParams) -> PosedViews:
+    """The checks of step 4 that need the pose, and step 5's covariance: a posed ``PosedViews``, or why not.
+    ``T_world_imu``: the query vehicle's pose (its heading and height); ``east_north`` its position."""
+    offset_m = float(np.linalg.norm(east_north - np.asarray(db_east_north_m[anchor], float)))
+    if not np.all(np.isfinite(east_north)) or offset_m > params.max_offset_m:
+        return PosedViews(f"PnP pose {offset_m:.1f} m from the geotag of view {anchor} (limit "
+                          f"{params.max_offset_m:g} m)", support, structure_ms)
+    heading = heading_deg_of(T_world_imu)
+    view_heading = heading_deg_of(geometry.T_world_camera[anchor] @ geometry.camera.T_camera_imu)
+    turn_deg = abs((heading - view_heading + 180.0) % 360.0 - 180.0)
+    if turn_deg > params.max_heading_diff_deg:
+        return PosedViews(f"PnP pose faces {turn_deg:.0f} deg away from view {anchor} (limit "
+                          f"{params.max_heading_diff_deg:g} deg)", support, structure_ms)
+
+    # 5. covariance (visloc.pose.uncertainty): relative to the map, PnP's + the views' spread + what the
+    #    database's poses get wrong over the lever to the nearest view; the geotags' stated accuracy apart
+    sides = {_side(geometry.T_world_camera[i][:3, 3], inliers.T_world_camera) for i in chosen}
+    side = "both" if len(sides) == 2 else "one"
+    lever_m = float(min(np.linalg.norm(east_north - np.asarray(db_east_north_m[i], float)) for i in chosen))
+    gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
+    terms = {"pnp": pnp_cov_m2, "views": _mean_covariance(list(per_view.values())),
+             "lever": lever_covariance_m2(gain.of(side), lever_m)}
+    cov = terms["pnp"] + terms["views"] + terms["lever"]
+    absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
+    return PosedViews(None, support, structure_ms, east_north, cov, anchor, reprojection_rms_px,
                       float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m, inliers)
+
+
+def _solve(views: _Views, query_camera: CameraModel, params: RefinedParams) -> PnPResult | str:
+    return solve_pnp(views.points_world, views.pixels, query_camera.K, reprojection_px=params.pnp_px,
+                     iterations=params.pnp_iterations, seed=params.seed, min_inliers=params.min_pnp_inliers,
+                     points_cov=views.points_cov)
+
+
+def _pose_alone(i: int, pairs: np.ndarray, structure: dict, query_xy: np.ndarray, query_descriptors: np.ndarray | None,
+                geometry: DatabaseGeometry, query_camera: CameraModel,
+                params: RefinedParams) -> tuple[PnPResult | str, _Views]:
+    """The query posed against view ``i`` alone: PnP on its correspondences, then guided matching from that pose
+    (as ``pose_from_views`` does for the pooled views), kept when it finds at least as many inliers."""
+    views = _correspondences([i], {i: pairs}, {i: structure}, query_xy)
+    pnp = _solve(views, query_camera, params)
+    if not isinstance(pnp, str) and query_descriptors is not None and params.guided_radius_px > 0:
+        guided = guided_pairs(pnp, views, [i], {i: structure}, query_xy, query_descriptors, geometry, query_camera,
+                              params)
+        again_views = _correspondences([i], guided, {i: structure}, query_xy)
+        again = _solve(again_views, query_camera, params)
+        if not isinstance(again, str) and len(again.inliers) >= len(pnp.inliers):
+            pnp, views = again, again_views
+    return pnp, views
+
+
+def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np.ndarray], structure_of,
+                 neighbours_used: dict[int, Sequence[int]], db_east_north_m: np.ndarray, geometry: DatabaseGeometry,
+                 query_camera: CameraModel, params: RefinedParams, query_descriptors: np.ndarray | None) -> PosedViews:
+    """``pose_from_views`` with ``params.fuse_views``: the query posed against each view alone, and the mean of
+    those positions. Views are chosen as for one PnP (the best, then as many on each side of the best view's
+    pose as the database has); a view farther than ``max_view_spread_m`` from the others' median is dropped, and
+    the measurement rejected when the rest still disagree. Covariance: the mean of the views' PnP covariances over
+    their number (independent poses), the spread of their positions and the lever term, as for one PnP. The
+    inliers a tracker follows are every kept view's, with the pose of the best verified view."""
+    spent = 0.0
+    structures: dict[int, dict] = {}
+    alone: dict[int, tuple[PnPResult | str, _Views]] = {}
+
+    def pose_alone(i: int) -> PnPResult | str:
+        nonlocal spent
+        if i not in alone:
+            if i not in structures:
+                structures[i], ms = structure_of(i)
+                spent += ms
+            alone[i] = _pose_alone(i, pairs_of[i], structures[i], query_xy, query_descriptors, geometry,
+                                   query_camera, params)
+        return alone[i][0]
+
+    def posed(views: list[int]) -> list[int]:
+        return [i for i in views if not isinstance(pose_alone(i), str)]
+
+    chosen = usable[: params.n_views]
+    kept = posed(chosen)
+    if params.both_sides and kept:
+        reference = alone[max(kept, key=lambda i: len(alone[i][0].inliers))][0].T_world_camera
+        side = {i: _side(geometry.T_world_camera[i][:3, 3], reference) for i in usable}
+        behind, ahead = [i for i in usable if side[i] < 0], [i for i in usable if side[i] > 0]
+        if behind and ahead:
+            balanced_choice = [i for pair in zip(behind, ahead) for i in pair][: max(params.n_views, 2)]
+            balanced = posed(balanced_choice)
+            if set(balanced_choice) != set(chosen) and len({side[i] for i in balanced}) == 2:
+                chosen, kept = balanced_choice, balanced
+    support: dict = {"view_indices": tuple(chosen), "neighbour_indices": tuple(j for i in chosen for j in neighbours_used[i]),
+                     "n_correspondences_3d": sum(len(alone[i][1].points_world) for i in chosen)}
+    if not kept:
+        return PosedViews(alone[chosen[0]][0], support, spent)
+
+    positions = {i: imu_pose_from_camera(alone[i][0].T_world_camera, query_camera.T_camera_imu)[:2, 3].copy()
+                 for i in kept}
+    if len(positions) >= 3:
+        centre = np.median(np.array(list(positions.values())), axis=0)
+        far = [i for i, p in positions.items() if np.linalg.norm(p - centre) > params.max_view_spread_m]
+        if far and len(far) < len(positions):
+            kept = [i for i in kept if i not in far]
+            positions = {i: positions[i] for i in kept}
+    pnps = [alone[i][0] for i in kept]
+    support.update(view_indices=tuple(kept), neighbour_indices=tuple(j for i in kept for j in neighbours_used[i]),
+                   n_correspondences_3d=sum(len(alone[i][1].points_world) for i in kept),
+                   n_pnp_inliers=sum(len(p.inliers) for p in pnps))
+    spread_m = _spread_m(list(positions.values()))
+    if spread_m > params.max_view_spread_m:
+        return PosedViews(f"views {sorted(positions)} disagree: their own poses lie {spread_m:.1f} m apart "
+                          f"(limit {params.max_view_spread_m:g} m)", support, spent)
+    anchor = kept[0]  # the best verified, as for one PnP
+    T_world_imu = imu_pose_from_camera(alone[anchor][0].T_world_camera, query_camera.T_camera_imu)
+    T_world_imu[2, 3] = float(np.mean([imu_pose_from_camera(p.T_world_camera, query_camera.T_camera_imu)[2, 3]
+                                       for p in pnps]))
+    pnp_cov_m2 = sum(imu_east_north_covariance(p, query_camera.T_camera_imu) for p in pnps) / len(pnps) ** 2
+    rms_px = float(np.sqrt(sum(len(p.inliers) * p.reprojection_rms_px ** 2 for p in pnps)
+                           / sum(len(p.inliers) for p in pnps)))
+    parts = [(alone[i][1], alone[i][0].inliers) for i in kept]
+    inliers = MapCorrespondences(np.concatenate([v.rows[k, 0] for v, k in parts]),
+                                 np.concatenate([v.view_of[k] for v, k in parts]),
+                                 np.concatenate([v.rows[k, 1] for v, k in parts]),
+                                 np.concatenate([v.points_world[k] for v, k in parts]),
+                                 np.concatenate([v.points_cov[k] for v, k in parts]),
+                                 alone[anchor][0].T_world_camera, {i: tuple(neighbours_used[i]) for i in kept},
+                                 {i: structures[i] for i in kept})
+    east_north = np.mean(np.array(list(positions.values())), axis=0)
+    return _finish(east_north, T_world_imu, anchor, kept, positions, pnp_cov_m2, rms_px, inliers, support, spent,
+                   db_east_north_m, geometry, params)
 
 
 def guided_pairs(pnp: PnPResult, views: _Views, chosen: list[int], structures: dict[int, dict], query_xy: np.ndarray,
