@@ -237,8 +237,8 @@ def test_views_posed_apart_and_averaged_keep_both_sides_where_their_geotags_disa
     retrieval = Retrieval(candidates=np.array([0, 1, 2, 5, 6, 7]), counts=np.array([50, 60, 80, 70, 55, 45]),
                           best_index=2)
     params = RefinedParams(neighbour_baselines_m=(3.0,), max_neighbour_gap=1, n_views=2)
-    pooled = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)
-    fused = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(fuse_views=True))
+    pooled = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(fuse_views=False))
+    fused = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)  # the default
     assert pooled.source == fused.source == GEOMETRY, (pooled.fallback_reason, fused.fallback_reason)
     behind = geotags[:, 0] < truth[0]
     assert set(behind[list(pooled.view_indices)].tolist()) == set(behind[list(fused.view_indices)].tolist()) == {0, 1}
@@ -253,7 +253,7 @@ def test_views_posed_apart_and_averaged_keep_both_sides_where_their_geotags_disa
     np.testing.assert_allclose(fused.cov_m2, sum(fused.cov_terms_m2.values()))
     # where the geotags agree, the views posed apart give back the known position
     geometry, geotags, xq, dq, truth = synthetic_database(east_m, query_east_m=0.0)
-    agreed = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(fuse_views=True))
+    agreed = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)
     assert agreed.source == GEOMETRY and np.linalg.norm(agreed.east_north_m - truth) < 0.05
 
 

@@ -67,8 +67,10 @@ class Method:
 PAPER_METHOD = Method("paper")
 REFINED_METHOD = Method("refined", pose=REFINED)
 # the camera-rate path: keypoints found at a reduced scale are less precise (PnP at 3 px); two views and no
-# guided matching, for its latency; few candidates per frame inside the gate, more for a frame without one
-REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=3.0, n_views=2, guided_radius_px=0.0),
+# guided matching, for its latency; one PnP over both views, so that the points it follows from frame to frame
+# agree with one pose; few candidates per frame inside the gate, more for a frame without one
+REFINED_FAST_METHOD = Method("refined-fast", pose=REFINED.replace(pnp_px=3.0, n_views=2, guided_radius_px=0.0,
+                                                                  fuse_views=False),
                              shortlist=FAST.replace(shortlist_size=3, lost_shortlist_size=16), camera_rate=True,
                              min_matches=20)
 METHODS = {m.name: m for m in (PAPER_METHOD, REFINED_METHOD, REFINED_FAST_METHOD)}

@@ -38,10 +38,10 @@ class RefinedParams(Params):
     both_sides: bool = _refined(True, "choose the views on both sides of the query where the database has both "
                                       "(best first otherwise)", kind="bool")
     fuse_views: bool = _refined(
-        False, "pose the query against each view alone (its own RANSAC and guided matching) and average the views' "
-               "positions, in place of one PnP over every view's points: each view's structure is adjusted on its own, "
-               "and where geotags disagree by more than the PnP threshold (float GPS) one PnP keeps only the views "
-               "that agree, often those on one side. The store's lever gain was measured with one PnP",
+        True, "pose the query against each view alone (its own RANSAC and guided matching) and average the views' "
+              "positions; off: one PnP over every view's points. Each view's structure is adjusted on its own, and where "
+              "geotags disagree by more than the PnP threshold (float GPS) one PnP keeps only the views that agree, "
+              "often those on one side (refined-fast: off, for the points it follows between frames)",
         kind="bool")
     neighbour_baselines_m: tuple[float, ...] = _refined(
         (2.0, 5.0, 10.0), "a view's structure comes from triangulating it with database images before and after it "

@@ -23,7 +23,9 @@ For a query whose retrieval has ranked the database candidates by correspondence
    The query is also posed against each view alone (from the pooled pose, on that view's
    inliers): a view whose pose lies more than ``max_view_spread_m`` from the others' is
    dropped, and a measurement whose views still disagree, that faces away from its views,
-   or lies far from them, is rejected with the reason.
+   or lies far from them, is rejected with the reason. With ``fuse_views`` the query is posed against each
+   view alone instead (its own RANSAC and guided matching) and the measurement is the mean of those poses:
+   views whose separately adjusted structures disagree by more than the PnP threshold then all count.
 5. **Uncertainty**, the sum of three parts, none fitted to a drive: the PnP covariance
    (residual variance times the inverse normal matrix) propagated to east/north; the
    spread of the per-view poses (the covariance of their mean: what one view's geotags

@@ -171,10 +171,12 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
     and the fast path (structure read from the store). With ``query_descriptors`` (and
     ``params.guided_radius_px`` above 0) the first pose's views are matched again, guided by it
     (``guided_pairs``), and the query posed on both."""
-    if params.fuse_views:
-        return _views_fused(query_xy, usable, pairs_of, structure_of, neighbours_used, db_east_north_m, geometry,
-                            query_camera, params, query_descriptors)
     spent = {"structure_ms": 0.0}
+    if params.fuse_views:
+        fused, spent["structure_ms"] = _views_fused(query_xy, usable, pairs_of, structure_of, neighbours_used,
+                                                    db_east_north_m, geometry, query_camera, params, query_descriptors)
+        if fused is not None:
+            return fused
     structures: dict[int, dict] = {}
     support: dict = {}
 
@@ -299,11 +301,14 @@ def _pose_alone(i: int, pairs: np.ndarray, structure: dict, query_xy: np.ndarray
 
 def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np.ndarray], structure_of,
                  neighbours_used: dict[int, Sequence[int]], db_east_north_m: np.ndarray, geometry: DatabaseGeometry,
-                 query_camera: CameraModel, params: RefinedParams, query_descriptors: np.ndarray | None) -> PosedViews:
+                 query_camera: CameraModel, params: RefinedParams,
+                 query_descriptors: np.ndarray | None) -> tuple[PosedViews | None, float]:
     """``pose_from_views`` with ``params.fuse_views``: the query posed against each view alone, and the mean of
-    those positions. Views are chosen as for one PnP (the best, then as many on each side of the best view's
-    pose as the database has); a view farther than ``max_view_spread_m`` from the others' median is dropped, and
-    the measurement rejected when the rest still disagree. Covariance: the mean of the views' PnP covariances over
+    those positions, with the milliseconds spent building structure. None (one PnP over every view's points
+    decides) when fewer than two views pose the query alone: where each view has too few points for a pose of
+    its own, their points together may still make one. Views are chosen as for one PnP (the best, then as many
+    on each side of the best view's pose as the database has); a view farther than ``max_view_spread_m`` from
+    the others' median is dropped, and the measurement rejected when the rest still disagree. Covariance: the mean of the views' PnP covariances over
     their number (independent poses), the spread of their positions and the lever term, as for one PnP. The
     inliers a tracker follows are every kept view's, with the pose of the best verified view."""
     spent = 0.0
@@ -334,10 +339,9 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
             balanced = posed(balanced_choice)
             if set(balanced_choice) != set(chosen) and len({side[i] for i in balanced}) == 2:
                 chosen, kept = balanced_choice, balanced
-    support: dict = {"view_indices": tuple(chosen), "neighbour_indices": tuple(j for i in chosen for j in neighbours_used[i]),
-                     "n_correspondences_3d": sum(len(alone[i][1].points_world) for i in chosen)}
-    if not kept:
-        return PosedViews(alone[chosen[0]][0], support, spent)
+    if len(kept) < 2:
+        return None, spent
+    support: dict = {}
 
     positions = {i: imu_pose_from_camera(alone[i][0].T_world_camera, query_camera.T_camera_imu)[:2, 3].copy()
                  for i in kept}
@@ -354,7 +358,7 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
     spread_m = _spread_m(list(positions.values()))
     if spread_m > params.max_view_spread_m:
         return PosedViews(f"views {sorted(positions)} disagree: their own poses lie {spread_m:.1f} m apart "
-                          f"(limit {params.max_view_spread_m:g} m)", support, spent)
+                          f"(limit {params.max_view_spread_m:g} m)", support, spent), spent
     anchor = kept[0]  # the best verified, as for one PnP
     T_world_imu = imu_pose_from_camera(alone[anchor][0].T_world_camera, query_camera.T_camera_imu)
     T_world_imu[2, 3] = float(np.mean([imu_pose_from_camera(p.T_world_camera, query_camera.T_camera_imu)[2, 3]
@@ -372,7 +376,7 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
                                  {i: structures[i] for i in kept})
     east_north = np.mean(np.array(list(positions.values())), axis=0)
     return _finish(east_north, T_world_imu, anchor, kept, positions, pnp_cov_m2, rms_px, inliers, support, spent,
-                   db_east_north_m, geometry, params)
+                   db_east_north_m, geometry, params), spent
 
 
 def guided_pairs(pnp: PnPResult, views: _Views, chosen: list[int], structures: dict[int, dict], query_xy: np.ndarray,
