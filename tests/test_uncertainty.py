@@ -6,7 +6,7 @@ import pytest
 from visloc.geometry.bundle import heading_spread_rad
 from visloc.pose.selfcheck import MIN_POSES_PER_SIDE, SelfCheckPose, lever_gain_from
 from visloc.stats import CHI2_2DOF_95, chi2_2dof_quantile
-from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, calibration,
+from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, calibration, common_lever_covariance_m2,
                                 fit_lever_gain, nees)
 
 
@@ -103,3 +103,27 @@ def test_the_heading_spread_sees_an_ins_heading_that_strays_from_the_course():
     assert np.degrees(heading_spread_rad(en, yaw + wander)) == pytest.approx(np.degrees(np.std(wander)), rel=0.2)
     # too few images far enough apart to tell
     assert heading_spread_rad(en[:3], yaw[:3]) is None
+
+
+def test_views_posed_apart_share_only_part_of_the_lever_error():
+    """Views posed apart: each pose's error is a part common to the views plus one of its own, and the gain was
+    measured on single poses. Their mean's covariance, the spread's covariance of the mean plus the common part
+    of the lever term, holds the mean's errors nearly as a Gaussian's would (a little large: the clipping at zero
+    of a spread estimated from four poses errs on the side of caution); adding the whole lever term would not."""
+    rng = np.random.default_rng(5)
+    sigma_common_m, sigma_own_m, n = 0.03, 0.05, 4
+    lever_m2 = (sigma_common_m**2 + sigma_own_m**2) * np.eye(2)  # what the self-check's single poses carry
+    shared, whole = [], []
+    for _ in range(4000):
+        poses = rng.normal(scale=sigma_common_m, size=2) + rng.normal(scale=sigma_own_m, size=(n, 2))
+        mean = poses.mean(axis=0)
+        d = poses - mean
+        views_m2 = d.T @ d / (n * (n - 1))
+        shared.append(nees(mean, views_m2 + common_lever_covariance_m2(lever_m2, views_m2, n)))
+        whole.append(nees(mean, views_m2 + lever_m2))
+    assert 1.5 < np.mean(shared) < 2.2 and 0.94 < np.mean(np.array(shared) <= CHI2_2DOF_95) < 0.98
+    assert np.mean(whole) < 0.9  # the whole lever term: ellipses far too large
+    # where the views disagree more than the gain says, their spread alone stands for it; never negative
+    wide = common_lever_covariance_m2(0.01 * np.eye(2), np.diag([0.01, 0.0001]), 4)
+    np.testing.assert_allclose(wide, np.diag([0.0, 0.0096]), atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(wide) >= -1e-15)

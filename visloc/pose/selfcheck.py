@@ -62,7 +62,7 @@ def self_check_params(params: RefinedParams) -> RefinedParams:
     support, and this pose costs about 40 % less per image (1.6 s against 2.5 s on drive 0001). One PnP: the
     gain then holds for the camera-rate path's poses, which are made so, and the query's views posed apart add
     their disagreement to its covariance themselves (a gain fitted on two views posed apart made the refined
-    mode's ellipses too small: NEES 3.0-3.9 on drives 0005 and 0027, against 0.9-2.5)."""
+    mode's ellipses too small on drives 0005 and 0027)."""
     return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False)
 
 

@@ -8,7 +8,8 @@ the query's true position has two parts, kept apart here:
   and what the database's poses get wrong over the metres between the query and its nearest view
   (a residual bend of the structure, a heading or a scale a little off: an error that grows with
   that *lever*, and faster where every view lies on one side of the query, as a ruler read beyond
-  its end). The filter fuses this part: it differs from one query to the next.
+  its end; for views posed apart and averaged, the part of it the views share,
+  ``common_lever_covariance_m2``). The filter fuses this part: it differs from one query to the next.
 * the **absolute** part, the error the map's geotags share with any map of that receiver (the
   stated accuracy of the views' geotags: OXTS ``pos_accuracy``). No number of queries averages it
   away, so it is not fed to the filter: it is stated beside the estimate (``absolute_cov_m2``).
@@ -67,6 +68,21 @@ DEFAULT_LEVER_GAIN = LeverGain(both_sides=0.016, one_side=0.018)
 def lever_covariance_m2(gain: float, lever_m: float) -> np.ndarray:
     """(2, 2) covariance of the database's error carried over a lever: (gain * lever)^2 per axis."""
     return (float(gain) * float(lever_m)) ** 2 * np.eye(2)
+
+
+def common_lever_covariance_m2(lever_m2: np.ndarray, views_m2: np.ndarray, n_views: int) -> np.ndarray:
+    """(2, 2) the part of the lever's covariance ``lever_m2`` that views posed apart share, for a mean of
+    ``n_views`` poses whose spread gives the covariance of their mean ``views_m2``.
+
+    Each view's pose carries the database's error over the lever, ``lever_m2`` per pose (the gain was
+    measured on such poses): a part c common to the views (what they share: the drive's scale, a heading) and
+    a part u_v of each view's own (its structure, its neighbours' geotags). Their mean carries c and the mean
+    of the u_v, whose covariance ``views_m2`` estimates from their spread; one view's own part is then about
+    ``n_views * views_m2``, and what of ``lever_m2`` is left is the common part: lever_m2 - n views_m2,
+    clipped at zero (where the views disagree more than the gain says, their spread alone stands for it)."""
+    d = np.asarray(lever_m2, float) - int(n_views) * np.asarray(views_m2, float)
+    w, V = np.linalg.eigh((d + d.T) / 2.0)
+    return (V * np.maximum(w, 0.0)) @ V.T
 
 
 def nees(error_m: np.ndarray, cov_m2: np.ndarray) -> float:

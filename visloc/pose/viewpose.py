@@ -17,7 +17,7 @@ from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, 
                              refine_pose, solve_pnp)
 from visloc.params import RefinedParams
 from visloc.pose.guided import descriptor_distances, guided_matches, project_points
-from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, lever_covariance_m2
+from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2, lever_covariance_m2
 
 
 @dataclass(frozen=True)
@@ -248,9 +248,11 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
 def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen: list[int],
             per_view: dict[int, np.ndarray], pnp_cov_m2: np.ndarray, reprojection_rms_px: float,
             inliers: MapCorrespondences, support: dict, structure_ms: float, db_east_north_m: np.ndarray,
-            geometry: DatabaseGeometry, params: RefinedParams) -> PosedViews:
+            geometry: DatabaseGeometry, params: RefinedParams, posed_apart: bool = False) -> PosedViews:
     """The checks of step 4 that need the pose, and step 5's covariance: a posed ``PosedViews``, or why not.
-    ``T_world_imu``: the query vehicle's pose (its heading and height); ``east_north`` its position."""
+    ``T_world_imu``: the query vehicle's pose (its heading and height); ``east_north`` its position;
+    ``posed_apart``: ``per_view`` are the views' own poses and ``east_north`` their mean (the lever term is then
+    the part of it the views share, ``common_lever_covariance_m2``)."""
     offset_m = float(np.linalg.norm(east_north - np.asarray(db_east_north_m[anchor], float)))
     if not np.all(np.isfinite(east_north)) or offset_m > params.max_offset_m:
         return PosedViews(f"PnP pose {offset_m:.1f} m from the geotag of view {anchor} (limit "
@@ -270,6 +272,8 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
     gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
     terms = {"pnp": pnp_cov_m2, "views": _mean_covariance(list(per_view.values())),
              "lever": lever_covariance_m2(gain.of(side), lever_m)}
+    if posed_apart and len(per_view) >= 2:
+        terms["lever"] = common_lever_covariance_m2(terms["lever"], terms["views"], len(per_view))
     cov = terms["pnp"] + terms["views"] + terms["lever"]
     absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
     return PosedViews(None, support, structure_ms, east_north, cov, anchor, reprojection_rms_px,
@@ -308,8 +312,9 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
     decides) when fewer than two views pose the query alone: where each view has too few points for a pose of
     its own, their points together may still make one. Views are chosen as for one PnP (the best, then as many
     on each side of the best view's pose as the database has); a view farther than ``max_view_spread_m`` from
-    the others' median is dropped, and the measurement rejected when the rest still disagree. Covariance: the mean of the views' PnP covariances over
-    their number (independent poses), the spread of their positions and the lever term, as for one PnP. The
+    the others' median is dropped, and the measurement rejected when the rest still disagree. Covariance: the
+    views' PnP covariances summed over the square of their number (independent poses), the covariance of their
+    mean from their spread, and the part of the lever term the views share (``common_lever_covariance_m2``). The
     inliers a tracker follows are every kept view's, with the pose of the best verified view."""
     spent = 0.0
     structures: dict[int, dict] = {}
@@ -376,7 +381,7 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
                                  {i: structures[i] for i in kept})
     east_north = np.mean(np.array(list(positions.values())), axis=0)
     return _finish(east_north, T_world_imu, anchor, kept, positions, pnp_cov_m2, rms_px, inliers, support, spent,
-                   db_east_north_m, geometry, params), spent
+                   db_east_north_m, geometry, params, posed_apart=True), spent
 
 
 def guided_pairs(pnp: PnPResult, views: _Views, chosen: list[int], structures: dict[int, dict], query_xy: np.ndarray,
