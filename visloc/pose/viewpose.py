@@ -102,6 +102,35 @@ def _per_view_positions(pnp: PnPResult, views: _Views, query_camera: CameraModel
     return out
 
 
+def _both_sides(usable: list[int], T_world_camera_query: np.ndarray, geometry: "DatabaseGeometry",
+                params: RefinedParams) -> tuple[dict[int, int], list[int]]:
+    """Each usable view's side of the query camera at ``T_world_camera_query`` (+1 ahead, -1 behind), and as many
+    views on each side as the database has, best first and alternating (empty when all lie on one side)."""
+    side = {i: _side(geometry.T_world_camera[i][:3, 3], T_world_camera_query) for i in usable}
+    behind, ahead = [i for i in usable if side[i] < 0], [i for i in usable if side[i] > 0]
+    if not (behind and ahead):
+        return side, []
+    return side, [i for pair in zip(behind, ahead) for i in pair][: max(params.n_views, 2)]
+
+
+def _far_views(positions: dict[int, np.ndarray], limit_m: float) -> list[int]:
+    """Among three or more views' own positions, those farther than ``limit_m`` from their median (none when
+    every view is, or fewer than three)."""
+    if len(positions) < 3:
+        return []
+    centre = np.median(np.array(list(positions.values())), axis=0)
+    far = [i for i, p in positions.items() if np.linalg.norm(p - centre) > limit_m]
+    return far if len(far) < len(positions) else []
+
+
+def _disagreement(positions: dict[int, np.ndarray], limit_m: float) -> str | None:
+    """Why the views' own positions cannot make one measurement (they lie more than ``limit_m`` apart), or None."""
+    spread_m = _spread_m(list(positions.values()))
+    if spread_m > limit_m:
+        return f"views {sorted(positions)} disagree: their own poses lie {spread_m:.1f} m apart (limit {limit_m:g} m)"
+    return None
+
+
 def _mean_covariance(positions: list[np.ndarray]) -> np.ndarray:
     """Covariance of the mean of independent estimates, from their spread (zero for fewer than two)."""
     if len(positions) < 2:
@@ -199,14 +228,11 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
     chosen = usable[: params.n_views]
     pnp, views = solve(chosen)
     if params.both_sides and not isinstance(pnp, str):
-        side = {i: _side(geometry.T_world_camera[i][:3, 3], pnp.T_world_camera) for i in usable}
-        behind, ahead = [i for i in usable if side[i] < 0], [i for i in usable if side[i] > 0]
-        if behind and ahead:  # as many views on each side, best first
-            balanced_choice = [i for pair in zip(behind, ahead) for i in pair][: max(params.n_views, 2)]
-            if set(balanced_choice) != set(chosen):
-                balanced, balanced_views = solve(balanced_choice)
-                if not isinstance(balanced, str):
-                    pnp, views, chosen = balanced, balanced_views, balanced_choice
+        _, balanced_choice = _both_sides(usable, pnp.T_world_camera, geometry, params)
+        if balanced_choice and set(balanced_choice) != set(chosen):
+            balanced, balanced_views = solve(balanced_choice)
+            if not isinstance(balanced, str):
+                pnp, views, chosen = balanced, balanced_views, balanced_choice
     if (not isinstance(pnp, str) and query_descriptors is not None and params.guided_radius_px > 0):
         guided = guided_pairs(pnp, views, chosen, structures, query_xy, query_descriptors, geometry, query_camera,
                               params)
@@ -220,21 +246,18 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
     # 4. each view alone: drop a view that disagrees with the others, reject if they still disagree
     min_points = max(6, params.min_pnp_inliers // 2)
     per_view = _per_view_positions(pnp, views, query_camera, min_points)
-    if len(per_view) >= 3:
-        centre = np.median(np.array(list(per_view.values())), axis=0)
-        far = [i for i, p in per_view.items() if np.linalg.norm(p - centre) > params.max_view_spread_m]
-        if far and len(far) < len(per_view):
-            kept = [i for i in chosen if i not in far]
-            again, again_views = solve(kept, pairs_of)
-            if not isinstance(again, str):
-                pnp, views, chosen = again, again_views, kept
-                describe(chosen, views)
-                per_view = _per_view_positions(pnp, views, query_camera, min_points)
-    spread_m = _spread_m(list(per_view.values()))
+    far = _far_views(per_view, params.max_view_spread_m)
+    if far:
+        kept = [i for i in chosen if i not in far]
+        again, again_views = solve(kept, pairs_of)
+        if not isinstance(again, str):
+            pnp, views, chosen = again, again_views, kept
+            describe(chosen, views)
+            per_view = _per_view_positions(pnp, views, query_camera, min_points)
     support.update(n_pnp_inliers=len(pnp.inliers))
-    if spread_m > params.max_view_spread_m:
-        return failed(f"views {sorted(per_view)} disagree: their own poses lie {spread_m:.1f} m apart "
-                      f"(limit {params.max_view_spread_m:g} m)")
+    disagree = _disagreement(per_view, params.max_view_spread_m)
+    if disagree:
+        return failed(disagree)
     T_world_imu = imu_pose_from_camera(pnp.T_world_camera, query_camera.T_camera_imu)
     k = pnp.inliers
     inliers = MapCorrespondences(views.rows[k, 0], views.view_of[k], views.rows[k, 1], views.points_world[k],
@@ -337,33 +360,26 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
     kept = posed(chosen)
     if params.both_sides and kept:
         reference = alone[max(kept, key=lambda i: len(alone[i][0].inliers))][0].T_world_camera
-        side = {i: _side(geometry.T_world_camera[i][:3, 3], reference) for i in usable}
-        behind, ahead = [i for i in usable if side[i] < 0], [i for i in usable if side[i] > 0]
-        if behind and ahead:
-            balanced_choice = [i for pair in zip(behind, ahead) for i in pair][: max(params.n_views, 2)]
+        side, balanced_choice = _both_sides(usable, reference, geometry, params)
+        if balanced_choice and set(balanced_choice) != set(chosen):
             balanced = posed(balanced_choice)
-            if set(balanced_choice) != set(chosen) and len({side[i] for i in balanced}) == 2:
+            if len({side[i] for i in balanced}) == 2:
                 chosen, kept = balanced_choice, balanced
     if len(kept) < 2:
         return None, spent
-    support: dict = {}
 
     positions = {i: imu_pose_from_camera(alone[i][0].T_world_camera, query_camera.T_camera_imu)[:2, 3].copy()
                  for i in kept}
-    if len(positions) >= 3:
-        centre = np.median(np.array(list(positions.values())), axis=0)
-        far = [i for i, p in positions.items() if np.linalg.norm(p - centre) > params.max_view_spread_m]
-        if far and len(far) < len(positions):
-            kept = [i for i in kept if i not in far]
-            positions = {i: positions[i] for i in kept}
+    far = _far_views(positions, params.max_view_spread_m)
+    kept = [i for i in kept if i not in far]
+    positions = {i: positions[i] for i in kept}
     pnps = [alone[i][0] for i in kept]
-    support.update(view_indices=tuple(kept), neighbour_indices=tuple(j for i in kept for j in neighbours_used[i]),
+    support = dict(view_indices=tuple(kept), neighbour_indices=tuple(j for i in kept for j in neighbours_used[i]),
                    n_correspondences_3d=sum(len(alone[i][1].points_world) for i in kept),
                    n_pnp_inliers=sum(len(p.inliers) for p in pnps))
-    spread_m = _spread_m(list(positions.values()))
-    if spread_m > params.max_view_spread_m:
-        return PosedViews(f"views {sorted(positions)} disagree: their own poses lie {spread_m:.1f} m apart "
-                          f"(limit {params.max_view_spread_m:g} m)", support, spent), spent
+    disagree = _disagreement(positions, params.max_view_spread_m)
+    if disagree:
+        return PosedViews(disagree, support, spent), spent
     anchor = kept[0]  # the best verified, as for one PnP
     T_world_imu = imu_pose_from_camera(alone[anchor][0].T_world_camera, query_camera.T_camera_imu)
     T_world_imu[2, 3] = float(np.mean([imu_pose_from_camera(p.T_world_camera, query_camera.T_camera_imu)[2, 3]
