@@ -89,7 +89,10 @@ def replay(report: dict) -> dict:
             if kind == "engine":
                 params, gated = args
                 steps = run_filter(zs, params, covariances_m2=Rs, gate_chi2=refined.gate_chi2 if gated else 0.0,
-                                   reinit_after_gated=refined.reinit_after_gated if gated else 0)
+                                   reinit_after_gated=refined.reinit_after_gated if gated else 0,
+                                   correlated=[r["measurement_source"] == "geometry" for r in series],
+                                   corr_fraction=refined.error_correlation,
+                                   corr_time_s=refined.error_correlation_time_s)
                 final = steps[-1].x[:2]
                 d2[name] += [s.innovation.mahalanobis**2 for s in steps[2:] if s.innovation is not None]
             else:

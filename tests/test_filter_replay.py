@@ -34,7 +34,8 @@ def evaluation(n_series: int = 6, fallback_last: bool = False) -> dict:
             z[-1] += [7.0, 0.0]
             covs = [R] * 5 + [11.12**2 * np.eye(2)]
         steps = run_filter(list(z), fp, covariances_m2=covs, gate_chi2=rp.gate_chi2,
-                           reinit_after_gated=rp.reinit_after_gated)
+                           reinit_after_gated=rp.reinit_after_gated, correlated=[c[0, 0] <= 1 for c in covs],
+                           corr_fraction=rp.error_correlation, corr_time_s=rp.error_correlation_time_s)
         records = []
         for i in range(6):
             t_lat, t_lon = frame.to_geo(truth[i])

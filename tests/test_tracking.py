@@ -5,7 +5,8 @@ import pytest
 
 from visloc.params import FilterParams
 from visloc.stats import CHI2_2DOF_999
-from visloc.tracking.kalman import ConstantVelocityKalman, process_noise, run_filter, transition_matrix
+from visloc.stats import error_correlation_by_lag, fit_error_correlation
+from visloc.tracking.kalman import ConstantVelocityKalman, process_noise, rts_smooth, run_filter, transition_matrix
 
 
 def test_transition_and_process_noise_match_equation_6_and_the_white_acceleration_model():
@@ -352,3 +353,98 @@ def test_a_track_chooses_only_its_first_measurement_with_its_first_rule():
     b = loc.step(q, first=first)
     assert seen == [retrieval]  # asked once, while the filter held no track
     assert a.measurement.fallback_reason == "first fix" and b.measurement.fallback_reason == "no pose"
+
+
+def _correlated_drive(rng, n_steps: int, dt_s: float, fraction: float, time_s: float, sigma_m: float):
+    """A car at 8 m/s east and measurements of it whose errors share ``fraction`` of their variance as a
+    Gauss-Markov process of correlation time ``time_s`` (the rest white): (truth, measurements)."""
+    phi = np.exp(-dt_s / time_s)
+    truth = np.stack([8.0 * dt_s * np.arange(n_steps), np.zeros(n_steps)], axis=1)
+    shared = np.zeros((n_steps, 2))
+    shared[0] = rng.normal(size=2)
+    for k in range(1, n_steps):
+        shared[k] = phi * shared[k - 1] + np.sqrt(1 - phi**2) * rng.normal(size=2)
+    error = sigma_m * (np.sqrt(fraction) * shared + np.sqrt(1 - fraction) * rng.normal(size=(n_steps, 2)))
+    return truth, truth + error
+
+
+def _estimate_nees(steps, truth) -> np.ndarray:
+    return np.array([(s.x[:2] - t) @ np.linalg.solve(s.P[:2, :2], s.x[:2] - t) for s, t in zip(steps, truth)])
+
+
+def test_measurements_sharing_their_errors_at_ten_hertz_keep_the_estimate_honest_only_when_modelled():
+    """Ten measurements a second whose errors share 55 % of their variance over 0.76 s: a filter that takes
+    them as independent claims far too small an ellipse; with the shared part modelled its NEES is near 2 and
+    about 95 % of estimates lie inside their 95 % ellipse, and it is as accurate."""
+    rng = np.random.default_rng(7)
+    fp = FilterParams(dt_s=0.1, meas_var_m2=1.0, accel_var_m2_s4=1.0, init_var=1000.0)
+    sigma_m = 0.2
+    R = sigma_m**2 * np.eye(2)
+    nees = {0.0: [], 0.55: []}
+    errors = {0.0: [], 0.55: []}
+    for _ in range(40):
+        truth, z = _correlated_drive(rng, 150, 0.1, 0.55, 0.76, sigma_m)
+        for c in nees:
+            steps = run_filter(list(z), fp, covariances_m2=[R] * len(z), corr_fraction=c, corr_time_s=0.76)
+            nees[c].append(_estimate_nees(steps, truth)[20:])
+            errors[c].append(np.linalg.norm(np.array([s.x[:2] for s in steps]) - truth, axis=1)[20:])
+    independent, modelled = np.concatenate(nees[0.0]), np.concatenate(nees[0.55])
+    assert independent.mean() > 4.0 and np.mean(independent <= 5.991) < 0.85
+    assert 1.6 < modelled.mean() < 2.5 and 0.92 < np.mean(modelled <= 5.991) < 0.98
+    assert np.mean(np.concatenate(errors[0.55])) <= 1.02 * np.mean(np.concatenate(errors[0.0]))
+
+
+def test_the_shared_error_changes_nothing_at_one_hertz_and_a_geotag_fallback_is_read_without_it():
+    """A measurement alone keeps its covariance R whatever is shared; at 1 Hz with a 0.76 s correlation time the
+    filter barely differs from one that takes measurements as independent; a measurement marked not
+    correlated (a geotag fallback) is applied with its whole R and leaves the shared part as it was."""
+    fp = FilterParams(dt_s=1.0, meas_var_m2=1.0, accel_var_m2_s4=1.0, init_var=1000.0)
+    R = np.array([[0.04, 0.01], [0.01, 0.09]])
+    first = ConstantVelocityKalman(fp, corr_fraction=0.55, corr_time_s=0.76).step(np.array([3.0, 4.0]), R)
+    np.testing.assert_allclose(first.x[:2], [3.0, 4.0], atol=1e-3)
+    np.testing.assert_allclose(first.P[:2, :2], np.linalg.inv(np.linalg.inv(R) + np.eye(2) / 1000), rtol=1e-3)
+    zs = [np.array([10.0 * k, 0.1 * (-1) ** k]) for k in range(8)]
+    plain = run_filter(zs, fp, covariances_m2=[R] * 8)
+    shared = run_filter(zs, fp, covariances_m2=[R] * 8, corr_fraction=0.55, corr_time_s=0.76)
+    for a, b in zip(plain, shared):
+        np.testing.assert_allclose(b.x[:2], a.x[:2], atol=0.01)
+        np.testing.assert_allclose(b.P[:2, :2], a.P[:2, :2], rtol=0.15)
+    kf = ConstantVelocityKalman(FilterParams(dt_s=0.1, meas_var_m2=1.0, accel_var_m2_s4=1.0, init_var=1000.0),
+                                corr_fraction=0.55, corr_time_s=0.76)
+    for k in range(5):
+        kf.step(np.array([0.8 * k, 0.0]), R)
+    bias_before = kf.x[4:].copy()
+    step = kf.step(np.array([4.0, 0.0]), 25.0 * np.eye(2), correlated=False)
+    np.testing.assert_allclose(step.innovation.S - step.P_prior[:2, :2], 25.0 * np.eye(2))
+    np.testing.assert_allclose(step.x[4:], kf.F[4:, 4:] @ bias_before, atol=0.05)
+
+
+def test_the_smoother_runs_over_the_state_with_the_shared_error():
+    """The Rauch-Tung-Striebel smoother uses each step's own transition: over measurements of a straight drive
+    its positions are at least as close as the filter's, and its covariances are no larger."""
+    rng = np.random.default_rng(3)
+    fp = FilterParams(dt_s=0.1, meas_var_m2=1.0, accel_var_m2_s4=1.0, init_var=1000.0)
+    truth, z = _correlated_drive(rng, 80, 0.1, 0.55, 0.76, 0.2)
+    steps = run_filter(list(z), fp, covariances_m2=[0.04 * np.eye(2)] * 80, corr_fraction=0.55, corr_time_s=0.76)
+    smoothed = rts_smooth(steps, 0.1)
+    assert all(s.x.shape == (6,) for s in smoothed)
+    err_f = np.mean([np.linalg.norm(s.x[:2] - t) for s, t in zip(steps, truth)])
+    err_s = np.mean([np.linalg.norm(s.x[:2] - t) for s, t in zip(smoothed, truth)])
+    assert err_s <= err_f
+    assert all(np.trace(s.P[:2, :2]) <= np.trace(f.P[:2, :2]) + 1e-9 for s, f in zip(smoothed, steps))
+
+
+def test_measured_correlations_give_back_the_shared_fraction_and_time():
+    """``error_correlation_by_lag`` and ``fit_error_correlation`` on simulated errors of known shared fraction and
+    correlation time find them again."""
+    rng = np.random.default_rng(11)
+    times, whitened = [], []
+    for run in range(30):
+        _, z = _correlated_drive(rng, 200, 0.1, 0.5, 0.8, 1.0)
+        truth = np.stack([0.8 * np.arange(200), np.zeros(200)], axis=1)
+        times.append(100.0 * run + 0.1 * np.arange(200))
+        whitened.append(z - truth)
+    lags, rho, pairs = error_correlation_by_lag(np.concatenate(times), np.concatenate(whitened), max_lag_s=3.0)
+    assert lags[0] == pytest.approx(0.1) and pairs[0] == 30 * 199
+    fraction, time_s = fit_error_correlation(lags, rho, pairs)
+    assert fraction == pytest.approx(0.5, abs=0.05) and time_s == pytest.approx(0.8, rel=0.2)

@@ -52,6 +52,16 @@ class Method:
         """Gated measurements in a row that restart the track; 0: never."""
         return self.pose.reinit_after_gated if self.pose is not None else 0
 
+    @property
+    def filter_options(self) -> dict:
+        """How the filter reads this method's measurements (``visloc.tracking.kalman.ConstantVelocityKalman``'s
+        options): the gate, the restart after gated measurements, and the error two pose measurements share
+        (none for the paper's geotags)."""
+        if self.pose is None:
+            return {"gate_chi2": 0.0, "reinit_after_gated": 0, "corr_fraction": 0.0, "corr_time_s": 1.0}
+        return {"gate_chi2": self.pose.gate_chi2, "reinit_after_gated": self.pose.reinit_after_gated,
+                "corr_fraction": self.pose.error_correlation, "corr_time_s": self.pose.error_correlation_time_s}
+
     def replace(self, **changes) -> "Method":
         unknown = set(changes) - {f.name for f in fields(self)}
         if unknown:

@@ -117,16 +117,19 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
 
 
 def filter_measurements(measurements: Sequence[Measurement], filter_params: FilterParams, *,
-                        gate_chi2: float = 0.0, reinit_after_gated: int = 0) -> list[FilterStep]:
+                        gate_chi2: float = 0.0, reinit_after_gated: int = 0, corr_fraction: float = 0.0,
+                        corr_time_s: float = 1.0) -> list[FilterStep]:
     """Re-run only the filter over measurements already made (no image work).
 
     Each measurement's own covariance is used where it has one, the filter's R
     (``filter_params.meas_var_m2``) otherwise; ``gate_chi2`` 0 = no gate; ``reinit_after_gated``
-    gated measurements in a row restart the track (0 = never).
+    gated measurements in a row restart the track (0 = never); ``corr_fraction`` of a pose measurement's
+    covariance is shared with its neighbours' over ``corr_time_s`` (``visloc.tracking.kalman``; 0 = none).
     """
     return run_filter([m.east_north_m for m in measurements], filter_params,
                       covariances_m2=[m.cov_m2 for m in measurements], gate_chi2=gate_chi2,
-                      reinit_after_gated=reinit_after_gated)
+                      reinit_after_gated=reinit_after_gated, correlated=[m.source == GEOMETRY for m in measurements],
+                      corr_fraction=corr_fraction, corr_time_s=corr_time_s)
 
 
 def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filter_params: FilterParams, *,
@@ -134,9 +137,10 @@ def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filte
     """Run the Kalman filter over a drive's measurements and describe every step against its
     ground truth. A refined measurement brings its own covariance; geotags use
     ``filter_params``' R. ``gate_chi2`` defaults to the method's gate (0 = off)."""
-    gate_chi2 = matches.method.gate_chi2 if gate_chi2 is None else gate_chi2
-    filtered = filter_measurements(matches.measurements, filter_params, gate_chi2=gate_chi2,
-                                   reinit_after_gated=matches.method.reinit_after_gated if gate_chi2 > 0 else 0)
+    options = dict(matches.method.filter_options)
+    options["gate_chi2"] = options["gate_chi2"] if gate_chi2 is None else gate_chi2
+    options["reinit_after_gated"] = options["reinit_after_gated"] if options["gate_chi2"] > 0 else 0
+    filtered = filter_measurements(matches.measurements, filter_params, **options)
     no_time = StepTimings(0.0, 0.0, 0.0)
     results = [StepResult(queries.query(int(q)), retrieval, m, f, no_time) for q, retrieval, m, f in
                zip(matches.query_indices, matches.retrievals, matches.measurements, filtered)]

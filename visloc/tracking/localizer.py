@@ -23,7 +23,7 @@ from typing import Protocol
 import numpy as np
 
 from visloc.features.sift import Query
-from visloc.pose.measurement import Measurement, Measurer
+from visloc.pose.measurement import GEOMETRY, Measurement, Measurer
 from visloc.params import FilterParams
 from visloc.retrieval.retrievers import Prediction, Retrieval
 from visloc.tracking.kalman import ConstantVelocityKalman, FilterStep
@@ -74,19 +74,22 @@ class Localizer:
     """Retrieval against a geotagged database, a measurement, and the constant-velocity filter."""
 
     def __init__(self, retriever: Retriever, measurer: Measurer, filter_params: FilterParams, *,
-                 gate_chi2: float = 0.0, reinit_after_gated: int = 0):
+                 gate_chi2: float = 0.0, reinit_after_gated: int = 0, corr_fraction: float = 0.0,
+                 corr_time_s: float = 1.0):
         self.retriever = retriever
         self.measurer = measurer
         self.filter_params = filter_params
         self.gate_chi2 = float(gate_chi2)  # 0: every measurement is applied
         self.reinit_after_gated = int(reinit_after_gated)  # 0: never restart the track
+        self.corr_fraction, self.corr_time_s = float(corr_fraction), float(corr_time_s)  # 0: independent measurements
         self.reset()
 
     def reset(self) -> None:
         """Forget the track: the next query scans the whole database again."""
         self.retriever.reset()
         self._kalman = ConstantVelocityKalman(self.filter_params, gate_chi2=self.gate_chi2,
-                                              reinit_after_gated=self.reinit_after_gated)
+                                              reinit_after_gated=self.reinit_after_gated,
+                                              corr_fraction=self.corr_fraction, corr_time_s=self.corr_time_s)
 
     def prediction(self) -> Prediction:
         """The filter's predicted position and covariance for the next step (None before the first)."""
@@ -117,7 +120,8 @@ class Localizer:
              measurement_ms: float = 0.0) -> StepResult:
         """The filter's step with ``measurement`` (one query's, made by ``measure`` or otherwise)."""
         t0 = time.perf_counter()
-        filtered = self._kalman.step(measurement.east_north_m, measurement.cov_m2)
+        filtered = self._kalman.step(measurement.east_north_m, measurement.cov_m2,
+                                     correlated=measurement.source == GEOMETRY)
         filter_ms = (time.perf_counter() - t0) * 1000.0
         return StepResult(query, retrieval, measurement, filtered, StepTimings(retrieval_ms, measurement_ms, filter_ms))
 

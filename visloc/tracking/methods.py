@@ -74,8 +74,7 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
                                 query_what=query_what)
     if memoise:
         measurer = MemoisedMeasurer(measurer)
-    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
-                     reinit_after_gated=method.reinit_after_gated)
+    return Localizer(retriever, measurer, filter_params, **method.filter_options)
 
 
 def _camera_rate_localizer(method: Method, db: GeoDatabase, retrieval: RetrievalParams, filter_params: FilterParams,
@@ -88,5 +87,4 @@ def _camera_rate_localizer(method: Method, db: GeoDatabase, retrieval: Retrieval
                                 query_what=query_what, db_name=f"{db.source}/{db.camera}")  # refuses first
     index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
     retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, matcher, retrieval)
-    return Localizer(retriever, measurer, filter_params, gate_chi2=method.gate_chi2,
-                     reinit_after_gated=method.reinit_after_gated)
+    return Localizer(retriever, measurer, filter_params, **method.filter_options)
