@@ -60,7 +60,8 @@ def render_camera_rate(d: dict, add) -> None:
         if any(t.get("calibration") for t in tracks.values()):
             add("How honest its ellipses are at the camera's rate (NEES, 2 if honest, and the share inside the 95 % "
                 "ellipse; the geometry measurements against their own covariance, the estimates against the "
-                "filter's P; see the [method notes](method.md) for why the estimates' are too small at 10 Hz):")
+                "filter's P, which models the error consecutive measurements share: see the "
+                "[method notes](method.md)):")
             add("")
             add("| drive / setup | measurements: all | views on both sides | on one side | estimates |")
             add("|---|---|---|---|---|")
