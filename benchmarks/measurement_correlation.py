@@ -16,29 +16,16 @@ NEES and share inside its 95 % ellipse. Writes docs/results/measurement_correlat
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from measuring import REPO, Section, load_1min  # noqa: E402
+from measuring import REPO, Section, drives_and_store_arguments, load_1min, load_line, track_run  # noqa: E402
 
 SECTION = Section("measurement-correlation", "measurement_correlation", REPO / "docs" / "performance.md")
 BEGIN, END = SECTION.begin, SECTION.end
-VISLOC = [sys.executable, "-m", "visloc"]
 STRIDES = {"10 Hz": 1, "1 Hz": 10}
-
-
-def _track(root: Path, drive: str, db: Path, out: Path) -> dict:
-    cmd = [*VISLOC, "track", str(root), "--drive", drive, "--camera", "image_00", "--db-camera", "image_00",
-           "--db", str(db), "--exclusion-s", "1", "--json", str(out)]
-    done = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
-    if done.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed: {done.stderr.strip().splitlines()[-1:]}")
-    return json.loads(out.read_text())
 
 
 def whitened_errors(frames: list[dict]) -> tuple[np.ndarray, np.ndarray]:
@@ -87,7 +74,7 @@ def measure(root: Path, db: Path) -> dict:
     times, errors = [], []
     with tempfile.TemporaryDirectory() as tmp:
         for n, drive in enumerate(drives):
-            run = _track(root, drive, db, Path(tmp) / f"{drive}.json")
+            run = track_run(root, drive, db, [], Path(tmp) / f"{drive}.json")
             t, w = whitened_errors(run["per_frame"])
             times.append(t + 1e6 * n)  # drives apart: no pair across two drives
             errors.append(w)
@@ -141,17 +128,12 @@ def render(result: dict) -> str:
             a, b = f["independent"], f["shared"]
             lines.append(f"| {drive} | {rate} | {a['error_mean_m']:.3f} m, {a['nees_mean']:.2f}, {a['inside_95']:.0%} | "
                          f"{b['error_mean_m']:.3f} m, {b['nees_mean']:.2f}, {b['inside_95']:.0%} |")
-    lines += ["", f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} "
-              "after; 2 cores.", END]
+    lines += ["", load_line(result), END]
     return "\n".join(lines)
 
 
 def main() -> int:
-    def arguments(parser):
-        parser.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-        parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
-
-    return SECTION.main(__doc__, lambda a: measure(a.root, a.db), render, arguments)
+    return SECTION.main(__doc__, lambda a: measure(a.root, a.db), render, drives_and_store_arguments)
 
 
 if __name__ == "__main__":

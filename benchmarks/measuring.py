@@ -32,6 +32,32 @@ def load_1min() -> float:
     return os.getloadavg()[0]
 
 
+def load_line(result: dict) -> str:
+    """The footer of a section: the load average before and after the measuring run (``load_1min_before``,
+    ``load_1min_after`` of its JSON)."""
+    return (f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} after; "
+            "2 cores.")
+
+
+def drives_and_store_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--root`` (the KITTI raw root, default the shared data) and ``--db`` (the results' store)."""
+    parser.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
+    parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
+
+
+def track_run(root: Path, drive: str, db: Path, flags: list[str], out: Path) -> dict:
+    """``visloc track`` on every frame of ``drive``'s image_00 against its own image_00 in ``db`` with the 1 s
+    exclusion window (the evaluation protocol) and ``flags``: its JSON (written to ``out``)."""
+    import subprocess
+
+    cmd = [sys.executable, "-m", "visloc", "track", str(root), "--drive", drive, "--camera", "image_00",
+           "--db-camera", "image_00", "--db", str(db), "--exclusion-s", "1", *flags, "--json", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return json.loads(Path(out).read_text())
+
+
 def median_s(fn: Callable[[], object], repeats: int = 1) -> float:
     """The median wall time of ``repeats`` calls of ``fn``, s."""
     import statistics

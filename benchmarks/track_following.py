@@ -20,29 +20,16 @@ docs/results/track_following.json; ``--page`` renders its section of docs/perfor
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 
-from measuring import REPO, Section, load_1min  # noqa: E402
+from measuring import REPO, Section, drives_and_store_arguments, load_1min, load_line, track_run  # noqa: E402
 
 SECTION = Section("track-following", "track_following", REPO / "docs" / "performance.md")
 OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
 
 RUNS = {"full": [], "follow": ["--follow-points"], "follow_paced": ["--follow-points", "--pace-hz", "10"]}
-VISLOC = [sys.executable, "-m", "visloc"]
-
-
-def _track(root: Path, drive: str, db: Path, flags: list[str], out: Path) -> dict:
-    cmd = [*VISLOC, "track", str(root), "--drive", drive, "--camera", "image_00", "--db-camera", "image_00",
-           "--db", str(db), "--exclusion-s", "1", *flags, "--json", str(out)]
-    done = subprocess.run(cmd, capture_output=True, text=True, stdin=subprocess.DEVNULL)
-    if done.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed: {done.stderr.strip().splitlines()[-1:]}")
-    return json.loads(out.read_text())
 
 
 def _digest(run: dict) -> dict:
@@ -59,7 +46,7 @@ def measure(root: Path, db: Path) -> dict:
     out = {"root": str(root), "store": str(db), "load_1min_before": load_1min(), "drives": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for drive in drives:
-            runs = {name: _digest(_track(root, drive, db, flags, Path(tmp) / f"{drive}_{name}.json"))
+            runs = {name: _digest(track_run(root, drive, db, flags, Path(tmp) / f"{drive}_{name}.json"))
                     for name, flags in RUNS.items()}
             print(f"{drive}: " + "; ".join(f"{n} p95 {r['latency_ms']['p95']:.0f} ms, error {r['error_mean_m']:.3f} m"
                                           for n, r in runs.items()), flush=True)
@@ -107,21 +94,16 @@ def render(result: dict) -> str:
             lines.append(f"| {drive} | {t['flow_ms']:.1f} / {t['geometry_ms']:.1f} / {t['filter_ms']:.1f} | "
                          f"{rel['per_s']:.1f} | {st['sift_ms']:.0f} / {st['retrieval_ms']:.0f} / "
                          f"{st['measurement_ms']:.0f} / {st['points_ms']:.0f} / {rel['total_ms']:.0f} |")
-    lines += ["", f"Load average (1 min) {result['load_1min_before']:.1f} before, {result['load_1min_after']:.1f} "
-              "after; 2 cores.", END]
+    lines += ["", load_line(result), END]
     return "\n".join(lines)
 
 
 def main() -> int:
-    def arguments(parser):
-        parser.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-        parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
-
     def measure_into_store(a):
         a.db.parent.mkdir(parents=True, exist_ok=True)
         return measure(a.root, a.db)
 
-    return SECTION.main(__doc__, measure_into_store, render, arguments)
+    return SECTION.main(__doc__, measure_into_store, render, drives_and_store_arguments)
 
 
 if __name__ == "__main__":

@@ -5,6 +5,8 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
 from fault_table import FAULT_MODULES, all_faults
 from helpers import REPO
 
@@ -189,3 +191,22 @@ def test_the_structure_density_is_what_its_json_renders():
         assert list(d["configs"].values())[0]["neighbour_baselines_m"] == [2.0, 5.0, 10.0]
         for c in d["configs"].values():
             assert c["error_m"]["n"] == len(d["frames"]) > 0 and c["structures_built"] > 0
+
+
+def test_the_shared_error_figures_are_what_their_json_renders_and_the_parameters_are_their_fit():
+    """docs/performance.md's table of the error consecutive measurements share is rendered from
+    docs/results/measurement_correlation.json (written by benchmarks/measurement_correlation.py), every drive at
+    10 Hz and 1 Hz, and the refined parameters are the fit over all drives it records."""
+    import json
+
+    import measurement_correlation
+
+    from visloc.params import REFINED
+
+    result = json.loads(measurement_correlation.SECTION.out.read_text())
+    assert measurement_correlation.render(result) in (REPO / "docs" / "performance.md").read_text()
+    assert len(result["drives"]) == 3
+    assert all(set(r["filters"]) == {"10 Hz", "1 Hz"} for r in result["drives"].values())
+    fit = result["pooled"]["fit"]
+    assert REFINED.error_correlation == pytest.approx(fit["fraction"], abs=0.01)
+    assert REFINED.error_correlation_time_s == pytest.approx(fit["time_s"], abs=0.01)
