@@ -18,7 +18,8 @@ class Method:
     name:       what reports and the command line call it
     pose:       None: the paper's measurement, the best match's geotag. ``RefinedParams``: a metric
                 pose from the database's own geometry (falling back to the geotag with a reason),
-                and the filter skips measurements beyond ``pose.gate_chi2``.
+                and the filter skips measurements beyond ``pose.gate_chi2`` and models the error they
+                share (``filter_options``).
     shortlist:  None: the paper's retrieval. ``FastParams``: the fast retrieval (filter gate,
                 global-vector shortlist, exact counts on the shortlist).
     camera_rate: the camera-rate refined path (needs ``pose`` and ``shortlist``): candidates counted
@@ -41,16 +42,6 @@ class Method:
     @property
     def measures_pose(self) -> bool:
         return self.pose is not None
-
-    @property
-    def gate_chi2(self) -> float:
-        """The filter's Mahalanobis gate (2 dof); 0: every measurement is applied."""
-        return self.pose.gate_chi2 if self.pose is not None else 0.0
-
-    @property
-    def reinit_after_gated(self) -> int:
-        """Gated measurements in a row that restart the track; 0: never."""
-        return self.pose.reinit_after_gated if self.pose is not None else 0
 
     @property
     def filter_options(self) -> dict:
