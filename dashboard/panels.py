@@ -222,7 +222,7 @@ def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.Drive
     refined = (f"geometry on {100 * summary['geometry_fraction']:.0f}% of steps, {summary['gated_steps']} gated; "
                if matches.method.measures_pose else "")
     exclusion = matches.retrieval_params.exclusion_s
-    same = bool(records) and records[0].truth_shares_map
+    same = any(r.truth_shares_map for r in records)  # the queries' own drive (a few of its geotags may be no fix)
     warning = ("**Warning: exclusion 0 s with a database of the queries' own drive**: a query may be posed from its own "
                "image or its stereo twin, and its error then says nothing of how well visloc localizes. " if same and
                exclusion == 0 else "")

@@ -285,14 +285,15 @@ class FeatureStore:
                              "position_accuracy_m IS NULL", [source, camera])
         return {r["frame"] for r in rows}
 
-    def set_position_accuracies(self, source: str, camera: str, accuracies_m: dict[int, float]) -> int:
-        """Fill the stated geotag accuracy (metres) of stored frames, in one transaction. Returns rows changed."""
+    def set_position_accuracies(self, source: str, camera: str, accuracies_m: dict[int, float | None]) -> int:
+        """Set the stated geotag accuracy (metres; None: unknown) of stored frames, in one transaction. Returns
+        rows changed."""
         changed = 0
         with self.db.atomic():
             for frame, sigma_m in accuracies_m.items():
                 cur = self.db.execute("UPDATE images SET position_accuracy_m = ? "
                                       "WHERE source = ? AND camera = ? AND frame = ?",
-                                      [float(sigma_m), source, camera, int(frame)])
+                                      [None if sigma_m is None else float(sigma_m), source, camera, int(frame)])
                 changed += cur.rowcount
         return changed
 

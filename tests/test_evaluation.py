@@ -95,3 +95,19 @@ def test_a_cache_for_other_thresholds_is_refused(drives):
     cache = PairCountCache(db.descriptors_u8, MatchParams(tau1=0.7))
     with pytest.raises(ParameterError, match="cache holds counts for"):
         evaluate(queries, db, MatchParams(), RetrievalParams(), PAPER_FILTER, n_steps=3, cache=cache)
+
+
+def test_a_truth_that_is_no_fix_is_held_to_the_unknown_accuracy_and_not_to_the_map():
+    """A query whose recorded geotag states no accuracy where its drive's others do (an OXTS record KITTI filled
+    in) is not the receiver's fix: its own error counts beside the measurement's, and it does not share the map's."""
+    from visloc.params import REFINED
+    from visloc.protocols.records import QueryTruth
+
+    frames, coords = np.arange(3), np.zeros(3)
+    truth = QueryTruth(frames, coords, coords, np.array([np.nan, 0.05, 0.05]), shares_map=True)
+    assert (truth.sigma(0), truth.shares_map_at(0)) == (REFINED.geotag_sigma_m, False)
+    assert (truth.sigma(1), truth.shares_map_at(1)) == (0.05, True)
+    alike = QueryTruth(frames, coords, coords, np.full(3, np.nan), shares_map=True)  # a drive stating none
+    assert (alike.sigma(0), alike.shares_map_at(0)) == (None, True)
+    other = QueryTruth(frames, coords, coords, np.array([np.nan, 0.05, 0.05]), shares_map=False)
+    assert other.shares_map_at(1) is False

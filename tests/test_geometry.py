@@ -274,7 +274,8 @@ def test_the_covariance_is_relative_to_the_map_and_grows_with_the_lever_to_the_n
     for m, truth in ((m_near, near[4]), (m_far, far[4])):
         # the parts, each named, add up to the covariance the filter takes
         np.testing.assert_allclose(m.cov_m2, sum(m.cov_terms_m2.values()))
-        assert set(m.cov_terms_m2) == {"pnp", "views", "lever"}
+        assert set(m.cov_terms_m2) == {"pnp", "views", "lever", "geotags"}
+        assert not m.cov_terms_m2["geotags"].any()  # every geotag states its accuracy
         # every view lies ahead of these queries: one side, the lever to the nearest view's geotag
         assert m.side == "one"
         assert m.lever_m == pytest.approx(np.linalg.norm(near[1][list(m.view_indices)] - m.east_north_m, axis=1).min())
@@ -302,6 +303,32 @@ def test_views_on_both_sides_use_the_both_sides_gain():
     assert m.side == "both"
     np.testing.assert_allclose(m.cov_terms_m2["lever"], shared_lever(m, 0.01))
     assert m.lever_m == pytest.approx(np.linalg.norm(geotags[list(m.view_indices)] - m.east_north_m, axis=1).min())
+
+
+def test_views_whose_geotags_are_no_fix_carry_their_error_in_the_covariance():
+    """The first images' geotags were filled in (no position solution: no stated accuracy, 0.8 m off), the rest are
+    fixes stated at 1 cm. Posed on the filled-in ones, the measurement is 0.8 m off: its covariance says so, where
+    it claimed centimetres when every geotag was taken at its word."""
+    east_m = [3.0, 6.0, 9.0, 12.0, 15.0, 18.0, 21.0, 24.0]
+    geometry, geotags, xq, dq, truth = synthetic_database(east_m, north_error_m=[0.8] * 5 + [0.0] * 3,
+                                                          lever_gain=LeverGain(0.0, 0.0))
+    retrieval = Retrieval(candidates=np.arange(8), counts=np.array([60, 70, 80, 50, 45, 20, 20, 20]), best_index=2)
+    params = RefinedParams(neighbour_baselines_m=(3.0,), max_neighbour_gap=1, n_views=2)
+    filled = replace(geometry, geotag_sigma_m=np.array([np.nan] * 5 + [0.01] * 3))
+    taken = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)
+    said = pose_measurement(xq, dq, retrieval, geotags, filled, CAMERA, params)
+    assert taken.source == said.source == GEOMETRY, (taken.fallback_reason, said.fallback_reason)
+    np.testing.assert_allclose(said.east_north_m, taken.east_north_m)  # the same pose, another covariance
+    assert {*said.view_indices, *said.neighbour_indices} <= set(range(5))
+    np.testing.assert_allclose(said.cov_terms_m2["geotags"], params.geotag_sigma_m ** 2 * np.eye(2))
+    np.testing.assert_allclose(said.cov_m2, sum(said.cov_terms_m2.values()))
+    error = said.east_north_m - truth
+    assert np.linalg.norm(error) > 0.6
+    assert error @ np.linalg.solve(taken.cov_m2, error) > 100  # overconfident
+    assert error @ np.linalg.solve(said.cov_m2, error) < 5.99  # inside its 95 % ellipse
+    # a database that states no accuracy anywhere: its geotags are all alike, nothing is added
+    alike = replace(geometry, geotag_sigma_m=np.full(8, np.nan))
+    assert not pose_measurement(xq, dq, retrieval, geotags, alike, CAMERA, params).cov_terms_m2["geotags"].any()
 
 
 def test_refined_database_poses_straighten_a_structure_built_on_wrong_headings():

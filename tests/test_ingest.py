@@ -156,3 +156,12 @@ def test_reingest_fills_the_geotag_accuracy_a_version_2_store_lacks(tmp_path):
         assert [im.image_id for im in store.images()] == ids_before
         assert [im.position_accuracy_m for im in store.images()] == [0.3, 0.4, 0.5]
         assert ingest(store, seq, SiftParams(), workers=1).n_accuracies_filled == 0
+        # a record read as no position solution now (once read with its copied accuracy) loses it, and only it
+        record = sorted((drive / "oxts" / "data").glob("*.txt"))[1]
+        values = record.read_text().split()
+        values[27] = "-1"  # field 28, posmode
+        record.write_text(" ".join(values) + "\n")
+        assert ingest(store, open_kitti(tmp_path / "kitti", None, "image_01"), SiftParams(),
+                      workers=1).n_accuracies_filled == 1
+        assert [im.position_accuracy_m for im in store.images()] == [0.3, None, 0.5]
+        assert [im.image_id for im in store.images()] == ids_before

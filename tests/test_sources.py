@@ -10,7 +10,7 @@ from visloc.errors import InputError
 from visloc.sources.drives import load_gray, open_csv, open_kitti
 from visloc.sources.opening import open_source
 
-from helpers import make_fake_kitti, write_csv_drive
+from helpers import make_fake_kitti, run_cli, write_csv_drive
 
 
 def test_fake_kitti_reads_geotags_timestamps_and_calibration(tmp_path):
@@ -147,6 +147,29 @@ def test_kitti_position_accuracy_is_field_24(tmp_path, accuracy, expected):
     seq = open_kitti(tmp_path, None, "image_00")
     assert seq.frames[1].position_accuracy_m == expected
     assert seq.frames[0].position_accuracy_m is None  # make_fake_kitti states 0: unknown
+
+
+@pytest.mark.parametrize("posmode,expected", [("6", 0.3), ("0", 0.3), ("-1", None), ("-1.00000000000000", None)])
+def test_a_kitti_record_with_no_position_solution_states_no_accuracy(tmp_path, posmode, expected):
+    """A record KITTI filled in (position mode -1, as 2011_10_03_drive_0027's first 14) copies the next real record's
+    accuracy: it is not its own."""
+    drive = make_fake_kitti(tmp_path, n_frames=2)
+    record = drive / "oxts" / "data" / "0000000001.txt"
+    values = record.read_text().split()
+    values[23], values[27] = "0.3", posmode  # fields 24 (pos_accuracy) and 28 (posmode)
+    record.write_text(" ".join(values) + "\n")
+    assert open_kitti(tmp_path, None, "image_00").frames[1].position_accuracy_m == expected
+
+
+def test_info_says_how_many_geotags_are_no_fix(tmp_path):
+    drive = make_fake_kitti(tmp_path, n_frames=3)
+    for i, record in enumerate(sorted((drive / "oxts" / "data").glob("*.txt"))):
+        values = record.read_text().split()
+        values[23], values[27] = "0.05", "-1" if i == 0 else "6"
+        record.write_text(" ".join(values) + "\n")
+    result = run_cli("info", tmp_path, "--camera", "image_00")
+    assert result.returncode == 0, result.stderr
+    assert "stated geotag accuracy 0.05-0.05 m (none for 1 of them: no position fix" in result.stdout, result.stdout
 
 
 def test_extrinsics_need_every_calibration_file(tmp_path):

@@ -39,4 +39,6 @@ def _describe(seq) -> None:
           + (", its pose on the vehicle known" if seq.T_camera_imu is not None else ", its pose on the vehicle unknown")
           + f"; {with_attitude} of {len(seq)} frames with attitude; "
           + (f"stated geotag accuracy {min(accuracies):.3g}-{max(accuracies):.3g} m" if accuracies
-             else "no stated geotag accuracy"))
+             else "no stated geotag accuracy")
+          + (f" (none for {len(seq) - len(accuracies)} of them: no position fix, each taken as an error of its own)"
+             if accuracies and len(accuracies) < len(seq) else ""))

@@ -86,7 +86,9 @@ class RefinedParams(Params):
                                            unit="deg", low=0, open_low=True)
     geotag_sigma_m: float = _refined(
         1.0, "accuracy (standard deviation per axis) assumed for database geotags whose source states none; stated "
-             "accuracies (OXTS pos_accuracy, a CSV's accuracy_m) are used as they are",
+             "accuracies (OXTS pos_accuracy, a CSV's accuracy_m) are used as they are. Where a drive states the "
+             "others', a geotag that states none (an OXTS record with no position solution) is no fix of the "
+             "receiver, and the structure built on it carries this error into the measurement's covariance",
         unit="m", low=0, high=MAX_GEOTAG_SIGMA_M)
     gate_chi2: float = _refined(
         CHI2_2DOF_999, "a measurement whose squared Mahalanobis distance y' S^-1 y to the prediction exceeds this is not "

@@ -53,7 +53,7 @@ class Measurement:
                          error, which ``cov_m2`` (relative to the map) leaves out; see ``visloc.pose.uncertainty``.
     side, lever_m:       geometry: "both" when its views lie on both sides of it, else "one"; the distance
                          to the nearest view's geotag, m.
-    cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever").
+    cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever", "geotags").
     inliers:             geometry: the pose's 2D-3D inliers (``visloc.pose.viewpose.MapCorrespondences``), what
                          ``visloc.pose.flowtrack`` follows into the next frame.
     compute_ms:          wall time this measurement took when it was made (query side: matching,

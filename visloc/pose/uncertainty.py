@@ -85,6 +85,29 @@ def common_lever_covariance_m2(lever_m2: np.ndarray, views_m2: np.ndarray, n_vie
     return (V * np.maximum(w, 0.0)) @ V.T
 
 
+def unstated_geotags(geotag_sigma_m: np.ndarray | None) -> np.ndarray:
+    """(N,) bool: the geotags that state no accuracy of their own in a database whose other geotags do (an OXTS
+    record with no position solution, which KITTI filled in by extrapolating; an empty ``accuracy_m`` cell). Those
+    are not the receiver's fixes, so their error is not the map's shared one: it is their own. A database that
+    states no accuracy anywhere has none such (its geotags are all alike)."""
+    if geotag_sigma_m is None:
+        return np.zeros(0, bool)
+    stated = np.isfinite(np.asarray(geotag_sigma_m, float))
+    return ~stated if stated.any() else np.zeros(len(stated), bool)
+
+
+def unstated_geotag_covariance_m2(views: dict[int, Sequence[int]], unstated: np.ndarray, sigma_m: float) -> np.ndarray:
+    """(2, 2) what a measurement posed on ``views`` (view -> the images its structure was triangulated with) takes
+    from geotags that state no accuracy (``unstated_geotags``), each taken as ``sigma_m`` per axis: a view's
+    structure lies where the mean of its images' geotags puts it, so it carries the share f of those that are
+    unstated times their error, (f sigma)^2; such geotags err alike (an extrapolation), so the views' shares are
+    averaged as variances, not divided by their number."""
+    if not len(unstated) or not views:
+        return np.zeros((2, 2))
+    shares = [float(np.mean(unstated[[int(view), *(int(j) for j in images)]])) for view, images in views.items()]
+    return float(np.mean([(f * sigma_m) ** 2 for f in shares])) * np.eye(2)
+
+
 def nees(error_m: np.ndarray, cov_m2: np.ndarray) -> float:
     """e' C^-1 e of a 2-D error: chi-square with 2 degrees of freedom when C is honest (mean 2)."""
     e = np.asarray(error_m, float).reshape(2)

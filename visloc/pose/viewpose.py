@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -17,7 +18,8 @@ from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, 
                              refine_pose, solve_pnp)
 from visloc.params import RefinedParams
 from visloc.pose.guided import descriptor_distances, guided_matches, project_points
-from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2, lever_covariance_m2
+from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2, lever_covariance_m2,
+                                     unstated_geotag_covariance_m2, unstated_geotags)
 
 
 @dataclass(frozen=True)
@@ -42,6 +44,11 @@ class DatabaseGeometry:
     geotag_sigma_m: np.ndarray | None = None  # (N,) stated accuracy of each geotag, per axis, NaN if unknown
     heading_spread_rad: float | None = None
     lever_gain: LeverGain | None = None  # measured by the store's self-check; None: DEFAULT_LEVER_GAIN
+
+    @cached_property
+    def unstated_geotags(self) -> np.ndarray:
+        """(N,) bool: geotags with no accuracy of their own among others that state one (``unstated_geotags``)."""
+        return unstated_geotags(self.geotag_sigma_m)
 
 
 def require_calibrated(geometry: DatabaseGeometry, query_camera: CameraModel | None, query_what: str) -> None:
@@ -151,7 +158,7 @@ class PosedViews:
 
     support: view_indices, neighbour_indices, n_correspondences_3d and n_pnp_inliers (Measurement fields).
     cov_m2 is the relative covariance (``visloc.pose.uncertainty``): the sum of ``cov_terms_m2`` ("pnp",
-    "views", "lever"); side: "both" or "one" (the views' sides of the pose); lever_m: the distance
+    "views", "lever", "geotags"); side: "both" or "one" (the views' sides of the pose); lever_m: the distance
     from the pose to its nearest view's geotag; absolute_sigma_m: the views' geotags' stated accuracy."""
 
     reason: str | None
@@ -288,7 +295,8 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
                           f"{params.max_heading_diff_deg:g} deg)", support, structure_ms)
 
     # 5. covariance (visloc.pose.uncertainty): relative to the map, PnP's + the views' spread + what the
-    #    database's poses get wrong over the lever to the nearest view; the geotags' stated accuracy apart
+    #    database's poses get wrong over the lever to the nearest view + the views' geotags that are no fix;
+    #    the geotags' stated accuracy apart
     sides = {_side(geometry.T_world_camera[i][:3, 3], inliers.T_world_camera) for i in chosen}
     side = "both" if len(sides) == 2 else "one"
     lever_m = float(min(np.linalg.norm(east_north - np.asarray(db_east_north_m[i], float)) for i in chosen))
@@ -297,7 +305,9 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
              "lever": lever_covariance_m2(gain.of(side), lever_m)}
     if posed_apart and len(per_view) >= 2:
         terms["lever"] = common_lever_covariance_m2(terms["lever"], terms["views"], len(per_view))
-    cov = terms["pnp"] + terms["views"] + terms["lever"]
+    terms["geotags"] = unstated_geotag_covariance_m2(inliers.neighbours or {}, geometry.unstated_geotags,
+                                                     params.geotag_sigma_m)
+    cov = terms["pnp"] + terms["views"] + terms["lever"] + terms["geotags"]
     absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
     return PosedViews(None, support, structure_ms, east_north, cov, anchor, reprojection_rms_px,
                       float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m, inliers)

@@ -180,7 +180,7 @@ class Evaluation:
             # every one and split by the side their views lie on, and the estimates' (the filter's P)
             "calibration": measurement_calibration(records) if refined else None,
             "estimate_calibration": calibration([r.estimate_nees for r in records]).as_dict() if refined else None,
-            "truth_shares_map": bool(records[0].truth_shares_map) if records else None,
+            "truth_shares_map": any(r.truth_shares_map for r in records) if records else None,
             "smoothed_error_m": self._per_step("smoothed_error_m") if self.smoothed else None,
             "structure_build_ms": self.structure_build_ms if refined else None,
             "params": self.params,

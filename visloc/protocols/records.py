@@ -20,6 +20,8 @@ from visloc.geo import LocalFrame, geodesic_distance_m, haversine_distance_m
 from visloc.tracking.localizer import StepResult
 from visloc.pose.measurement import GEOMETRY, GEOTAG
 from visloc.tracking.kalman import SmoothedStep
+from visloc.params import REFINED
+from visloc.pose.uncertainty import unstated_geotags
 
 Position = tuple[float, float]  # (east_m, north_m) in the database's local frame
 
@@ -211,8 +213,21 @@ class QueryTruth:
                    same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg))
 
     def sigma(self, index: int) -> float | None:
+        """Query ``index``'s truth's accuracy, None where taken as exact (its drive states no accuracy at all). A
+        truth that states none where its drive's other records do (a record with no position solution) is taken as
+        good to ``REFINED.geotag_sigma_m``, what visloc assumes for a geotag of unknown accuracy."""
         value = float(self.sigma_m[index])
-        return value if np.isfinite(value) else None
+        if np.isfinite(value):
+            return value
+        return REFINED.geotag_sigma_m if self._unstated[index] else None
+
+    def shares_map_at(self, index: int) -> bool:
+        """Whether query ``index``'s truth shares the map's error: not where it is no fix of the receiver."""
+        return self.shares_map and not self._unstated[index]
+
+    @property
+    def _unstated(self) -> np.ndarray:
+        return unstated_geotags(self.sigma_m)
 
 
 def records_of(results: Sequence[StepResult], latencies_ms: Sequence[float], indices: Sequence[int],
@@ -224,7 +239,7 @@ def records_of(results: Sequence[StepResult], latencies_ms: Sequence[float], ind
     smoothed = [None] * len(results) if smoothed is None else smoothed
     return [step_record(k, result, db, query_frame=int(truth.frames[q]), truth_lat_deg=truth.lat_deg[q],
                         truth_lon_deg=truth.lon_deg[q], latency_ms=float(latency), keep_counts=keep_counts,
-                        smoothed=sm, truth_sigma_m=truth.sigma(q), truth_shares_map=truth.shares_map)
+                        smoothed=sm, truth_sigma_m=truth.sigma(q), truth_shares_map=truth.shares_map_at(q))
             for k, (q, result, latency, sm) in enumerate(zip(indices, results, latencies_ms, smoothed))]
 
 

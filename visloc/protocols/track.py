@@ -20,7 +20,8 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from visloc.store.database import GeoDatabase, same_drive
+from visloc.store.database import GeoDatabase
+from visloc.protocols.records import QueryTruth
 from visloc.errors import InputError
 from visloc.geo import geodesic_distance_m
 from visloc.geometry.projective import CameraModel
@@ -184,13 +185,13 @@ class TrackRun:
 
 
 def _frame_record(seq: Drive, i: int, r: StepResult, latency: float, db: GeoDatabase,
-                  truth_shares_map: bool) -> TrackFrame:
+                  truths: QueryTruth) -> TrackFrame:
     fr, m = seq.frames[i], r.measurement
     truth = (fr.lat_deg, fr.lon_deg)
     truth_m = np.asarray(db.frame.to_local(*truth), float)
     a_map = m.absolute_sigma_m or 0.0
-    s_truth = fr.position_accuracy_m if fr.position_accuracy_m is not None else 0.0
-    extra = 0.0 if truth_shares_map else a_map**2 + s_truth**2
+    s_truth = truths.sigma(i) or 0.0
+    extra = 0.0 if truths.shares_map_at(i) else a_map**2 + s_truth**2
 
     def nees(position: np.ndarray | None, cov: np.ndarray | None) -> float | None:
         if position is None or cov is None or not np.all(np.isfinite(position)):
@@ -248,7 +249,7 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
                     **(path_params or {})},
                    frame_origin_deg=(db.frame.origin_lat_deg, db.frame.origin_lon_deg), pace_hz=params.pace_hz)
     localizer.reset()
-    shares = same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg)
+    truths = QueryTruth.of_drive(seq, db)
     start, cpu_start = time.perf_counter(), time.process_time()
     if params.follow_points and pose is not None:
         follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose,
@@ -259,7 +260,7 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
                  steps_of(localizer, extract_queries(seq, indices, sift, paced_hz=params.pace_hz), cancelled=cancelled,
                           first=lambda m, retrieval: first_fix(m, retrieval, db.east_north_m)))
     for n, (i, step) in enumerate(zip(indices, steps), 1):
-        record = _frame_record(seq, i, step.result, step.latency_ms, db, shares)
+        record = _frame_record(seq, i, step.result, step.latency_ms, db, truths)
         run.frames.append(replace(record, kind=step.kind, flow_ms=step.flow_ms, followed_points=step.followed_points,
                                   relocalize_reason=step.relocalize_reason, merged=step.merged,
                                   relocalization_ms=step.relocalization_ms))

@@ -12,7 +12,10 @@ KITTI raw layout: ``ROOT/<date>/<date>_drive_<NNNN>_sync/`` with ``image_0X/data
 seconds; each line must be later than the one before. Every text file is read as UTF-8.
 
 KITTI's OXTS record also states its position accuracy (field 24, ``pos_accuracy``, metres,
-north/east): read as ``Frame.position_accuracy_m``, the standard deviation per horizontal axis.
+north/east): read as ``Frame.position_accuracy_m``, the standard deviation per horizontal axis. A record
+whose position mode (field 28, ``posmode``) is negative had no position solution: KITTI filled it in (its
+position extrapolated, its other fields copied from the next real record), so its stated accuracy is not
+its own and is read as unknown (None).
 
 CSV: a header with ``file,timestamp,lat,lon`` and optionally ``alt`` (metres), ``heading``
 (compass degrees, 0 = north, clockwise), ``roll_deg``, ``pitch_deg`` and ``accuracy_m``;
@@ -61,6 +64,7 @@ from visloc.geometry.projective import CameraModel
 KITTI_CAMERAS = ("image_00", "image_01", "image_02", "image_03")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 OXTS_FIELDS = ("lat", "lon", "alt", "roll", "pitch", "yaw")  # the first 6 of an OXTS record's 30
+OXTS_POS_ACCURACY, OXTS_POSMODE = 24, 28  # 1-based field numbers of pos_accuracy and posmode
 
 
 @dataclass(frozen=True)
@@ -220,7 +224,7 @@ def oxts_records(folder: Path) -> tuple[np.ndarray, np.ndarray]:
 
 def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, float, float | None]:
     """(lat_deg, lon_deg, alt_m, heading_deg, roll_rad, pitch_rad, yaw_rad, position_accuracy_m) of one
-    OXTS record; the accuracy (field 24, ``pos_accuracy``) is None when absent, not finite or not > 0."""
+    OXTS record; the accuracy is None when the record states none of its own (``_stated_accuracy_m``)."""
     tokens = read_text(path).split()
     values = []
     for i, token in enumerate(tokens, 1):
@@ -238,8 +242,20 @@ def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, fl
     lat, lon, alt, roll, pitch, yaw = values[:6]
     if not (-90 <= lat <= 90 and -180 <= lon <= 180):
         raise InputError(f"{path}: lat/lon out of range ({lat}, {lon})")
-    accuracy = values[23] if len(values) >= 24 and math.isfinite(values[23]) and values[23] > 0 else None
-    return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw, accuracy
+    return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw, _stated_accuracy_m(values)
+
+
+def _stated_accuracy_m(values: list[float]) -> float | None:
+    """An OXTS record's stated position accuracy (field 24), None when absent, not finite, not > 0, or not the
+    record's own: a record with a negative position mode (field 28) had no position solution."""
+    if len(values) < OXTS_POS_ACCURACY:
+        return None
+    accuracy = values[OXTS_POS_ACCURACY - 1]
+    if not (math.isfinite(accuracy) and accuracy > 0):
+        return None
+    if len(values) >= OXTS_POSMODE and values[OXTS_POSMODE - 1] < 0:
+        return None
+    return accuracy
 
 
 def open_kitti(root: Path, drive: str | None, camera: str) -> Drive:

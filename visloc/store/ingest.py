@@ -382,10 +382,15 @@ def _refuse_mixed_undistortion(store: FeatureStore, sequence: Drive) -> None:
 
 def backfill_accuracies(store: FeatureStore, sequence: Drive) -> int:
     """Fill the stated geotag accuracy that a store built before schema version 3 lacks, from
-    ``sequence``; features are untouched. Returns the number of images filled."""
+    ``sequence``, and forget one the source no longer states (an OXTS record KITTI filled in, whose
+    accuracy was once read as stated); features are untouched. Returns the number of images changed."""
     lacking = store.frames_without_accuracy(sequence.source, sequence.camera)
     accuracies = {f.frame: f.position_accuracy_m for f in sequence.frames
                   if f.frame in lacking and f.position_accuracy_m is not None}
+    unstated = {f.frame for f in sequence.frames if f.position_accuracy_m is None and f.frame not in lacking}
+    if unstated:
+        stored = {im.frame for im in store.images(sequence.source, sequence.camera)}
+        accuracies.update({frame: None for frame in unstated & stored})
     return store.set_position_accuracies(sequence.source, sequence.camera, accuracies) if accuracies else 0
 
 
