@@ -164,7 +164,9 @@ def measurement_sigma_note(rec: visloc.StepRecord) -> str:
         return " (the filter's R)"
     if rec.measurement_source != visloc.GEOMETRY:
         return ""
-    parts = ", ".join(f"{name} {sigma:.2f}" for name, sigma in rec.measurement_term_sigma_m.items())
+    # a term that is zero wherever the drive's geotags are all fixes is named only where it counts
+    parts = ", ".join(f"{name} {sigma:.2f}" for name, sigma in rec.measurement_term_sigma_m.items()
+                      if name != "geotags" or sigma > 0)
     side = {"both": "views on both sides", "one": "views on one side"}.get(rec.measurement_side or "", "")
     lever = "" if rec.measurement_lever_m is None else f", {rec.measurement_lever_m:.1f} m from the nearest"
     return f" (relative to the map; {parts}; {side}{lever})" if parts else ""

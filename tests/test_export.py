@@ -97,3 +97,16 @@ def test_an_unknown_suffix_is_refused_naming_the_file(tmp_path):
     with pytest.raises(visloc.ParameterError, match=r"t\.kml: .*\.geojson, \.json or \.csv"):
         visloc.write_trajectory(tmp_path / "t.kml", [[record(0)]], visloc.LocalFrame(*ORIGIN), name="x")
     assert not (tmp_path / "t.kml").exists()
+
+
+def test_the_step_panel_names_the_geotags_term_only_where_it_counts():
+    from dataclasses import replace
+
+    from visloc.dashboard.panels import measurement_sigma_note
+
+    posed = replace(record(0, source="geometry"), measurement_side="one", measurement_lever_m=4.0,
+                    measurement_term_sigma_m={"pnp": 0.03, "views": 0.01, "lever": 0.02, "geotags": 0.0})
+    assert measurement_sigma_note(posed) == (" (relative to the map; pnp 0.03, views 0.01, lever 0.02; views on one "
+                                             "side, 4.0 m from the nearest)")
+    unfixed = replace(posed, measurement_term_sigma_m={**posed.measurement_term_sigma_m, "geotags": 0.5})
+    assert "lever 0.02, geotags 0.50;" in measurement_sigma_note(unfixed)
