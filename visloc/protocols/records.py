@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -225,7 +226,7 @@ class QueryTruth:
         """Whether query ``index``'s truth shares the map's error: not where it is no fix of the receiver."""
         return self.shares_map and not self._unstated[index]
 
-    @property
+    @cached_property
     def _unstated(self) -> np.ndarray:
         return unstated_geotags(self.sigma_m)
 

@@ -387,10 +387,9 @@ def backfill_accuracies(store: FeatureStore, sequence: Drive) -> int:
     lacking = store.frames_without_accuracy(sequence.source, sequence.camera)
     accuracies = {f.frame: f.position_accuracy_m for f in sequence.frames
                   if f.frame in lacking and f.position_accuracy_m is not None}
-    unstated = {f.frame for f in sequence.frames if f.position_accuracy_m is None and f.frame not in lacking}
-    if unstated:
-        stored = {im.frame for im in store.images(sequence.source, sequence.camera)}
-        accuracies.update({frame: None for frame in unstated & stored})
+    # a frame the store does not hold changes no row
+    accuracies.update({f.frame: None for f in sequence.frames
+                       if f.position_accuracy_m is None and f.frame not in lacking})
     return store.set_position_accuracies(sequence.source, sequence.camera, accuracies) if accuracies else 0
 
 

@@ -124,16 +124,17 @@ def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: n
 
 
 def shared_map_error(m: Measurement, frames: int) -> Measurement:
-    """A tracked measurement whose map part of the covariance (the views' spread, the lever and the unstated geotags: errors of
-    the map points, which every frame posed on the same points repeats) counts ``frames`` times: the filter, which takes
-    measurements as independent, then learns from ``frames`` frames on the same points what it would learn from
-    one about the map's error, and keeps the pixel noise (PnP's term), which is new in each frame."""
+    """A tracked measurement whose map part of the covariance (the views' spread, the lever and the geotags that are
+    no fix: errors of the map points, which every frame posed on the same points repeats) counts ``frames`` times:
+    the filter, which takes measurements as independent, then learns from ``frames`` frames on the same points what
+    it would learn from one about the map's error, and keeps the pixel noise (PnP's term), new in each frame."""
     terms = m.cov_terms_m2
     if m.cov_m2 is None or frames <= 1 or not {"pnp", "views", "lever"} <= set(terms):
         return m
     map_terms = [k for k in ("views", "lever", "geotags") if k in terms]
     cov = np.asarray(terms["pnp"], float) + frames * sum(np.asarray(terms[k], float) for k in map_terms)
-    return replace(m, cov_m2=cov, cov_terms_m2={**terms, **{k: frames * np.asarray(terms[k], float) for k in map_terms}})
+    counted = {k: frames * np.asarray(terms[k], float) for k in map_terms}
+    return replace(m, cov_m2=cov, cov_terms_m2={**terms, **counted})
 
 
 def _disagree(a: Measurement, b: Measurement) -> bool:
