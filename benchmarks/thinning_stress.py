@@ -1,6 +1,7 @@
 """Support thinned on purpose: visloc's refined measurement and the COLMAP-style peer with fewer keypoints per image.
 
     python benchmarks/thinning_stress.py [--data ROOT] [--caps 1000,500] [--peer-python PEER_VENV/bin/python]
+    python benchmarks/thinning_stress.py --peer-from docs/results/thinning_stress.json   # the peer's side reused
     python benchmarks/thinning_stress.py --page   # its section of docs/performance.md from the JSON
 
 Where texture is thin, both pipelines find fewer keypoints, and a pose stands on fewer 2D-3D matches. This
@@ -15,6 +16,10 @@ a full-scan retrieval, no filter), as the peer does; a failed pose counts with i
 either side. Per drive and cap: both pipelines' errors (median, p90, max), their PnP inliers, and the NEES of
 visloc's measurements (the peer states no covariance). The row "default" is each pipeline at its own defaults
 (visloc keeps every SIFT keypoint; the peer at most 8192), on the peer's existing runs. Writes ``docs/results/thinning_stress.json`` and its section of docs/performance.md.
+
+The peer takes 10-20 s per query. ``--peer-from`` takes its side, frame by frame, from an earlier run of this
+benchmark (same frames, caps and data; the peer's code is not this project's and does not change) where its own
+run is not in ``out/thinning`` yet, and the page says which commit measured it.
 """
 
 from __future__ import annotations
@@ -29,7 +34,7 @@ from pathlib import Path
 from measuring import REPO, Section, load_1min
 
 sys.path.insert(0, str(REPO / "scripts"))
-from results_peer import digest_peer  # noqa: E402
+from results_peer import PEER_THRESHOLD, PEER_VARIANT, digest_peer  # noqa: E402
 from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
 from visloc.sources.drives import default_data_root  # noqa: E402
 
@@ -61,6 +66,22 @@ def run(args: list[str], log: Path, made: Path) -> None:
         subprocess.run(list(map(str, args)), cwd=REPO, check=True, stdout=f, stderr=subprocess.STDOUT)
 
 
+def reuse_peer(earlier: dict, cap: str, drive: str, protocol, path: Path) -> bool:
+    """Write the peer's run of ``drive`` at ``cap`` as ``earlier`` (a previous result of this benchmark) measured
+    it, in the peer's JSON layout, to ``path``; False when it has none."""
+    d = earlier["caps"].get(cap, {}).get("drives", {}).get(drive)
+    if d is None:
+        return False
+    queries = [{"query_frame": r["frame"], "variants": {PEER_VARIANT: {"pnp": {PEER_THRESHOLD: {
+        "ok": r["peer_ok"], "num_inliers": r["peer_inliers"] if r["peer_ok"] else None,
+        "error_m": r["peer_error_m"], "fallback_error_m": r["peer_error_m"]}}}}} for r in d["frames"]]
+    path.write_text(json.dumps({"params": {"drive": drive, "query_camera": protocol.query_camera,
+                                           "db_camera": protocol.db_camera},
+                                "versions": d.get("peer_versions", {}), "queries": queries,
+                                "reused_from": f"docs/results/thinning_stress.json at {earlier['commit']}"}))
+    return True
+
+
 def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
     """Every drive at one cap: visloc's single measurements and the peer's, in ``WORK/cap_<cap>``."""
     out = WORK / f"cap_{cap}"
@@ -87,6 +108,9 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
         if cap == DEFAULT:  # the peer's own run at its defaults
             shutil.copy(peer[drive], out / peer[drive].name)
             continue
+        if a.earlier is not None and not (out / f"peer_{drive}.json").is_file():
+            if reuse_peer(a.earlier, cap, drive, protocol, out / f"peer_{drive}.json"):
+                print(f"thinning: the peer's {drive} at {cap} taken from {a.earlier['commit']}", flush=True)
         theirs = [PEER_SCRIPT, "--data", folder, "--drive", drive, "--db-camera", protocol.db_camera,
                   "--query-camera", protocol.query_camera, "--query-frames", ",".join(map(str, frames)),
                   "--variants", "counts", "--vlad-words", "0", "--max-features", cap,
@@ -97,6 +121,8 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
         commands.append(f"{a.peer_python} " + " ".join(map(str, theirs)))
     digest = digest_peer({f"out/thinning/cap_{cap}": out}, out)
     for drive, d in digest.items():
+        d["peer_reused_from"] = json.loads((out / f"peer_{drive}.json").read_text()).get("reused_from") \
+            if cap != DEFAULT else None
         report = json.loads((out / d["evaluation_file"]).read_text())
         d["visloc_nees"] = report["measurement_nees"]
         d["visloc_geotag_fallbacks"] = sum(r["visloc_geotag_fallbacks"] for r in d["frames"])
@@ -106,6 +132,7 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
 def measure(a) -> dict:
     folder = Path(a.data)
     peer = peer_runs()
+    a.earlier = json.loads(Path(a.peer_from).read_text()) if a.peer_from else None
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
                             text=True).stdout.strip()
     result = {"commit": commit, "cores": os.cpu_count(), "load_before": load_1min(), "caps": {}}
@@ -126,7 +153,8 @@ def render(r: dict) -> str:
         "exclusion; a failed pose counts with its fallback geotag's error. \"default\": each at its own defaults "
         "(visloc every SIFT keypoint; the peer at most 8192). NEES: visloc's "
         f"measurements posed from geometry (2 when honest). Measured by `python benchmarks/thinning_stress.py` at "
-        f"{r['commit']} ({r['cores']} cores, load {r['load_before']:.1f} at the start, {r['load_after']:.1f} at the end).")
+        f"{r['commit']} ({r['cores']} cores, load {r['load_before']:.1f} at the start, {r['load_after']:.1f} at the end)"
+        + reused_note(r) + ".")
     add("")
     add("| drive | keypoints per image | frames | peer error median / p90 / max (m) | visloc error median / p90 / max "
         "(m) | peer inliers median | visloc inliers median | peer failures | visloc geotag fallbacks | visloc NEES "
@@ -151,9 +179,18 @@ def render(r: dict) -> str:
     return "\n".join(lines)
 
 
+def reused_note(r: dict) -> str:
+    """How the page says that the peer's capped runs were taken from an earlier measurement (empty if not)."""
+    sources = sorted({d["peer_reused_from"] for c in r["caps"].values() for d in c["drives"].values()
+                      if d.get("peer_reused_from")})
+    return f"; the peer's capped runs are those of {', '.join(sources)}, its code and inputs unchanged" if sources else ""
+
+
 def add_arguments(p) -> None:
     p.add_argument("--data", type=Path, default=default_data_root(), help="KITTI raw root (default the shared data)")
     p.add_argument("--caps", default="1000,500", help="keypoints per image, comma-separated (default 1000,500)")
+    p.add_argument("--peer-from", default=None,
+                   help="an earlier JSON of this benchmark whose peer runs are reused where out/thinning has none")
     p.add_argument("--peer-python", default=str(REPO.parent / "peer-venv" / "bin" / "python"),
                    help="the Python of a venv with the peer's packages (its README: pycolmap, numpy, "
                         "opencv-python-headless, pyproj)")

@@ -18,6 +18,7 @@ from visloc.features.sift import Query
 from visloc.pose.measurement import GEOMETRY, GEOTAG, geotag_measurement
 from visloc.params import FilterParams, RefinedParams
 from visloc.pose.refined import PoseMeasurer, StructureCache, pose_measurement
+from visloc.pose.selfcheck import self_check_params
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.retrievers import Retrieval
 from visloc.tracking.kalman import run_filter
@@ -199,6 +200,7 @@ def test_measurement_gives_back_the_known_query_position_within_centimetres():
     assert m.source == GEOMETRY and m.fallback_reason is None, m.fallback_reason
     assert np.linalg.norm(m.east_north_m - truth) < 0.05
     assert m.n_pnp_inliers > 100 and m.sigma_m < 0.1 and m.heading_deg == pytest.approx(90 - np.degrees(0.02), abs=0.2)
+    assert not m.thin_support  # plenty of support: posed at pnp_px
     assert len(cache) > 0
     # the exact path verifies: its count is essential-matrix inliers, the camera-rate path's count stays unset
     assert m.n_verified_inliers == max(m.candidate_inliers.values()) >= params.min_verified_inliers
@@ -366,6 +368,24 @@ def test_too_few_points_fall_back_with_the_reason():
     m = pose_measurement(xq, dq, retrieval_over(3), geotags, geometry, CAMERA,
                          RefinedParams(max_neighbour_gap=1, min_verified_inliers=60))
     assert m.source == GEOTAG and m.fallback_reason.startswith("verification: best candidate has")
+
+
+def test_thin_support_is_posed_again_looser_and_says_so():
+    # few points seen with 2 px of noise: at 2 px no pose keeps 15 inliers, at 4 px one keeps 10 or more
+    geometry, geotags, xq, dq, truth = synthetic_database([3.0, 6.0, 9.0, 12.0, 15.0], n_points=30, noise_px=2.0)
+    params = RefinedParams(neighbour_baselines_m=(2.0, 5.0), max_neighbour_gap=2, n_views=2, triangulation_px=5.0,
+                           min_verified_inliers=8, essential_px=3.0)
+    strict = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA,
+                              params.replace(thin_support_pnp_px=0.0))
+    assert strict.source == GEOTAG and strict.fallback_reason.startswith("PnP RANSAC"), strict.fallback_reason
+    m = pose_measurement(xq, dq, retrieval_over(5), geotags, geometry, CAMERA, params)
+    assert m.source == GEOMETRY and m.thin_support, m.fallback_reason
+    assert params.thin_support_min_inliers <= m.n_pnp_inliers
+    error = m.east_north_m - truth
+    assert np.linalg.norm(error) < 0.5
+    assert error @ np.linalg.solve(m.cov_m2, error) < 13.82  # its looser pose says so: inside its 99.9 % ellipse
+    # a store's self-check poses at the strict threshold only, so what it stored stays valid
+    assert self_check_params(params).thin_support_pnp_px == 0.0
 
 
 @pytest.mark.parametrize("what,reason", [

@@ -76,6 +76,11 @@ class RefinedParams(Params):
                                    low=0, high=1, open_low=True)
     pnp_iterations: int = _refined(1000, "PnP RANSAC iterations", kind="integer", low=1)
     min_pnp_inliers: int = _refined(15, "fewer PnP inliers than this: fall back to the geotag", kind="integer", low=6)
+    thin_support_pnp_px: float = _refined(
+        4.0, "where support is thin (no pose reaches min_pnp_inliers at pnp_px: little texture, few keypoints), the "
+             "query is posed again at this PnP threshold before falling back to the geotag; the pose's covariance "
+             "comes from its own residuals, so a looser pose says it is looser (0: never)", unit="px", low=0)
+    thin_support_min_inliers: int = _refined(10, "... needing this many PnP inliers", kind="integer", low=6)
     max_offset_m: float = _refined(30.0, "a pose farther than this from the geotag of the view it was solved against "
                                          "is rejected", unit="m", low=0, open_low=True)
     max_view_spread_m: float = _refined(

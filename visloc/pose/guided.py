@@ -14,7 +14,13 @@ Pure functions over numpy arrays.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
+
+if TYPE_CHECKING:
+    from visloc.geometry.projective import CameraModel, PnPResult
+    from visloc.params import RefinedParams
 
 
 def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
@@ -71,3 +77,36 @@ def descriptor_distances(query_descriptors: np.ndarray, view_descriptors: np.nda
     q = np.asarray(query_descriptors, np.float32)[pairs[:, 0]]
     v = np.asarray(view_descriptors, np.float32)[pairs[:, 1]]
     return np.linalg.norm(q - v, axis=1)
+
+
+def guided_pairs(pnp: "PnPResult", views, chosen: list[int], structures: dict[int, dict], query_xy: np.ndarray,
+                 query_descriptors: np.ndarray, geometry, query_camera: "CameraModel",
+                 params: "RefinedParams") -> dict[int, np.ndarray]:
+    """Each chosen view's pairs (query row, keypoint row) that the pose ``pnp`` kept as inliers among ``views``
+    (the correspondences it was solved on: their ``rows`` and ``view_of``), with those guided matching adds
+    (``guided_matches``): the view's other 3D points, projected by the pose and
+    matched to the query keypoints within ``guided_radius_px`` of where they land, by Lowe's ratio
+    ``guided_ratio`` among those, and no farther in descriptor space than the farthest of the pose's
+    own inliers (a match the first pose confirmed). The first pose's outliers are dropped: the points they
+    claimed are matched again. ``geometry``: the database (``visloc.pose.viewpose.DatabaseGeometry``)."""
+    k = pnp.inliers
+    distances = np.concatenate([descriptor_distances(query_descriptors, geometry.descriptors_u8[i],
+                                                     views.rows[k][views.view_of[k] == i]) for i in chosen])
+    max_distance = float(distances.max()) if len(distances) else 0.0
+    out = {}
+    for i in chosen:
+        pairs = views.rows[k][views.view_of[k] == i]  # the first pose's inliers: its outliers free their points
+        d_rows = np.array(sorted(structures[i]), np.int64)
+        if len(d_rows) == 0:
+            out[i] = pairs
+            continue
+        points = np.array([structures[i][r][0] for r in d_rows.tolist()])
+        uv, front = project_points(points, pnp.T_world_camera, query_camera.K)
+        found = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], query_xy, query_descriptors,
+                               radius_px=params.guided_radius_px, ratio=params.guided_ratio,
+                               max_distance=max_distance)
+        new = np.c_[found[:, 1], d_rows[found[:, 0]]]
+        taken_q, taken_d = set(pairs[:, 0].tolist()), set(pairs[:, 1].tolist())
+        new = np.array([(q, d) for q, d in new.tolist() if q not in taken_q and d not in taken_d], np.int64)
+        out[i] = np.concatenate([pairs, new.reshape(-1, 2)]) if len(new) else pairs
+    return out

@@ -53,6 +53,8 @@ class Measurement:
                          error, which ``cov_m2`` (relative to the map) leaves out; see ``visloc.pose.uncertainty``.
     side, lever_m:       geometry: "both" when its views lie on both sides of it, else "one"; the distance
                          to the nearest view's geotag, m.
+    thin_support:        geometry: no pose reached ``min_pnp_inliers`` at ``pnp_px``, so this one was made at
+                         ``thin_support_pnp_px`` with ``thin_support_min_inliers`` (``viewpose.thin_support_params``).
     cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever", "geotags").
     inliers:             geometry: the pose's 2D-3D inliers (``visloc.pose.viewpose.MapCorrespondences``), what
                          ``visloc.pose.flowtrack`` follows into the next frame.
@@ -78,6 +80,7 @@ class Measurement:
     absolute_sigma_m: float | None = None
     side: str | None = None
     lever_m: float | None = None
+    thin_support: bool = False
     cov_terms_m2: dict = field(default_factory=dict, repr=False)
     compute_ms: float = 0.0
     structure_ms: float = 0.0
@@ -113,7 +116,8 @@ def posed_measurement(posed: "PosedViews", **extra) -> Measurement:
         posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
         reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
         absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m,
-        cov_terms_m2=posed.cov_terms_m2, inliers=posed.inliers, **posed.support, **extra)
+        cov_terms_m2=posed.cov_terms_m2, inliers=posed.inliers, thin_support=posed.thin_support, **posed.support,
+        **extra)
 
 
 def query_pixels(keypoints_f32: np.ndarray | None, descriptors_u8: np.ndarray) -> np.ndarray | None:

@@ -62,8 +62,10 @@ def self_check_params(params: RefinedParams) -> RefinedParams:
     support, and this pose costs about 40 % less per image (1.6 s against 2.5 s on drive 0001). One PnP: the
     gain then holds for the camera-rate path's poses, which are made so, and the query's views posed apart add
     their disagreement to its covariance themselves (a gain fitted on two views posed apart made the refined
-    mode's ellipses too small on drives 0005 and 0027)."""
-    return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False)
+    mode's ellipses too small on drives 0005 and 0027). No second, looser pose where support is thin: the gain is
+    fitted on the poses the strict threshold makes, and a store's self-check stays valid whatever
+    ``thin_support_pnp_px`` is."""
+    return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False, thin_support_pnp_px=0.0)
 
 
 def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S) -> str:

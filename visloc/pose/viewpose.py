@@ -17,7 +17,7 @@ from visloc.errors import InputError
 from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, imu_east_north_covariance, imu_pose_from_camera,
                              refine_pose, solve_pnp)
 from visloc.params import RefinedParams
-from visloc.pose.guided import descriptor_distances, guided_matches, project_points
+from visloc.pose.guided import guided_pairs
 from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2, lever_covariance_m2,
                                      unstated_geotag_covariance_m2, unstated_geotags)
 
@@ -175,6 +175,7 @@ class PosedViews:
     lever_m: float | None = None
     absolute_sigma_m: float | None = None
     inliers: "MapCorrespondences | None" = None  # the PnP inliers, what a tracker follows to the next frame
+    thin_support: bool = False  # posed at thin_support_pnp_px with thin_support_min_inliers (``thin_support_params``)
 
 
 @dataclass(frozen=True)
@@ -248,6 +249,12 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
             pnp, views, pairs_of = again, again_views, guided
     describe(chosen, views)
     if isinstance(pnp, str):
+        if params.thin_support_pnp_px > 0:  # thin support: pose again, looser, before giving up
+            thin = pose_from_views(query_xy, usable, pairs_of, structure_of, neighbours_used, db_east_north_m,
+                                   geometry, query_camera, thin_support_params(params), query_descriptors)
+            thin.structure_ms += spent["structure_ms"]
+            thin.thin_support = True
+            return thin
         return failed(pnp)
 
     # 4. each view alone: drop a view that disagrees with the others, reject if they still disagree
@@ -273,6 +280,16 @@ def pose_from_views(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int,
     return _finish(T_world_imu[:2, 3].copy(), T_world_imu, chosen[0], chosen, per_view,
                    imu_east_north_covariance(pnp, query_camera.T_camera_imu), pnp.reprojection_rms_px, inliers,
                    support, spent["structure_ms"], db_east_north_m, geometry, params)
+
+
+def thin_support_params(params: RefinedParams) -> RefinedParams:
+    """The settings of a second pose where support is thin: PnP at ``thin_support_pnp_px`` needing
+    ``thin_support_min_inliers`` (never stricter than ``params``), and no third attempt. True inliers of a
+    query's 2D-3D matches scatter a pixel or two (more for large keypoints) beyond ``pnp_px``; where many
+    matches exist the strict threshold loses little, where a few exist it leaves fewer than a pose needs."""
+    return params.replace(pnp_px=max(params.pnp_px, params.thin_support_pnp_px),
+                          min_pnp_inliers=min(params.min_pnp_inliers, params.thin_support_min_inliers),
+                          thin_support_pnp_px=0.0)
 
 
 def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen: list[int],
@@ -408,38 +425,6 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
     east_north = np.mean(np.array(list(positions.values())), axis=0)
     return _finish(east_north, T_world_imu, anchor, kept, positions, pnp_cov_m2, rms_px, inliers, support, spent,
                    db_east_north_m, geometry, params, posed_apart=True), spent
-
-
-def guided_pairs(pnp: PnPResult, views: _Views, chosen: list[int], structures: dict[int, dict], query_xy: np.ndarray,
-                 query_descriptors: np.ndarray, geometry: DatabaseGeometry, query_camera: CameraModel,
-                 params: RefinedParams) -> dict[int, np.ndarray]:
-    """Each chosen view's pairs (query row, keypoint row) that the pose ``pnp`` kept as inliers, with those
-    guided matching adds (``visloc.pose.guided``): the view's other 3D points, projected by the pose and
-    matched to the query keypoints within ``guided_radius_px`` of where they land, by Lowe's ratio
-    ``guided_ratio`` among those, and no farther in descriptor space than the farthest of the pose's
-    own inliers (a match the first pose confirmed). The first pose's outliers are dropped: the points they
-    claimed are matched again."""
-    k = pnp.inliers
-    distances = np.concatenate([descriptor_distances(query_descriptors, geometry.descriptors_u8[i],
-                                                     views.rows[k][views.view_of[k] == i]) for i in chosen])
-    max_distance = float(distances.max()) if len(distances) else 0.0
-    out = {}
-    for i in chosen:
-        pairs = views.rows[k][views.view_of[k] == i]  # the first pose's inliers: its outliers free their points
-        d_rows = np.array(sorted(structures[i]), np.int64)
-        if len(d_rows) == 0:
-            out[i] = pairs
-            continue
-        points = np.array([structures[i][r][0] for r in d_rows.tolist()])
-        uv, front = project_points(points, pnp.T_world_camera, query_camera.K)
-        found = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], query_xy, query_descriptors,
-                               radius_px=params.guided_radius_px, ratio=params.guided_ratio,
-                               max_distance=max_distance)
-        new = np.c_[found[:, 1], d_rows[found[:, 0]]]
-        taken_q, taken_d = set(pairs[:, 0].tolist()), set(pairs[:, 1].tolist())
-        new = np.array([(q, d) for q, d in new.tolist() if q not in taken_q and d not in taken_d], np.int64)
-        out[i] = np.concatenate([pairs, new.reshape(-1, 2)]) if len(new) else pairs
-    return out
 
 
 def _geotag_sigma_m(geometry: DatabaseGeometry, i: int, params: RefinedParams) -> float:

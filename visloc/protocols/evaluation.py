@@ -168,6 +168,9 @@ class Evaluation:
             # refined mode: of the steps with a measurement, the fraction where geometry fell back to the geotag
             "geometry_fallback_fraction": (len(fallbacks) / len(measured) if measured else None) if refined else None,
             "fallback_reasons": dict(sorted(reasons.items(), key=lambda kv: -kv[1])) if refined else None,
+            # refined mode: of the steps with a measurement, the fraction posed at the looser thin-support threshold
+            "thin_support_fraction": (sum(r.thin_support for r in measured) / len(measured) if measured else None)
+            if refined else None,
             "gated_fraction": (sum(r.gated for r in records) / n_queries if n_queries else None),
             "measurement_sigma_m": self._per_step("measurement_sigma_m"),
             # mean of e' R^-1 e over geometry measurements: 2 if their covariances are honest (chi-square, 2 dof)

@@ -78,6 +78,7 @@ class StepRecord:
     neighbour_db_frames: list[int] = field(default_factory=list)  # refined: frames triangulated with those views
     n_pnp_inliers: int = 0  # refined: the pose's 2D-3D inliers (a query keypoint seen in two views counts twice)
     n_pnp_query_keypoints: int = 0  # refined: the distinct query keypoints among them
+    thin_support: bool = False  # refined: posed at the looser thin-support threshold (Measurement.thin_support)
     measurement_ms: float = 0.0  # time the measurement took on the query side (refined: matching, RANSAC, PnP)
     measurement_heading_deg: float | None = None  # refined: compass heading of the pose
     smoothed_m: Position | None = None  # RTS smoother (evaluate --smooth)
@@ -170,6 +171,7 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         neighbour_db_frames=[int(db.images[i].frame) for i in m.neighbour_indices],
         n_pnp_inliers=int(m.n_pnp_inliers),
         n_pnp_query_keypoints=0 if m.inliers is None else len(np.unique(m.inliers.query_rows)),
+        thin_support=bool(m.thin_support),
         measurement_ms=float(m.query_side_ms),
         measurement_heading_deg=m.heading_deg, smoothed_m=s_m, smoothed_error_m=s_err,
     )

@@ -119,8 +119,8 @@ def summary_text(summary: dict) -> str:
         nees = summary["measurement_nees"] or {}
         lines += [
             f"mode {summary['mode']}: geometry {_cell(src['geometry'], '.0%')} of steps, geotag fallback "
-            f"{_cell(summary['geometry_fallback_fraction'], '.1%')} of measurements, gated "
-            f"{_cell(summary['gated_fraction'], '.1%')}",
+            f"{_cell(summary['geometry_fallback_fraction'], '.1%')} of measurements, posed on thin support "
+            f"{_cell(summary.get('thin_support_fraction'), '.1%')}, gated {_cell(summary['gated_fraction'], '.1%')}",
             f"{'mean measurement 1-sigma (m)':28}" + "".join(f"{_cell(v, '.2f'):>9}" for v in summary["measurement_sigma_m"]),
             f"geometry NEES mean {_cell(nees.get('mean'), '.2f')} (2 if honest), within 95 %: "
             f"{_cell(nees.get('fraction_within_95'), '.0%')}",
