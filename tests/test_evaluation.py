@@ -111,3 +111,21 @@ def test_a_truth_that_is_no_fix_is_held_to_the_unknown_accuracy_and_not_to_the_m
     assert (alike.sigma(0), alike.shares_map_at(0)) == (None, True)
     other = QueryTruth(frames, coords, coords, np.array([np.nan, 0.05, 0.05]), shares_map=False)
     assert other.shares_map_at(1) is False
+    # a run that assumes another accuracy for geotags stating none holds such a truth to that one
+    assert QueryTruth(frames, coords, coords, np.array([np.nan, 0.05, 0.05]), True, unstated_sigma_m=2.5).sigma(0) == 2.5
+
+
+def test_one_rule_holds_every_position_to_its_truth():
+    """The NEES of a measurement and of an estimate, in evaluations and camera-rate runs alike: the covariance
+    alone where the truth shares the map's receiver, else with the map's and the truth's errors added."""
+    from visloc.protocols.records import nees_against_truth, truth_extra_m2
+
+    assert truth_extra_m2(0.3, 0.1, truth_shares_map=True) == 0.0
+    assert truth_extra_m2(0.3, 0.1, truth_shares_map=False) == pytest.approx(0.1)
+    assert truth_extra_m2(None, float("nan"), truth_shares_map=False) == 0.0
+    cov = np.diag([0.04, 0.01])
+    assert nees_against_truth([0.2, 0.1], cov, [0.0, 0.0], 0.0) == pytest.approx(2.0)
+    assert nees_against_truth([0.2, 0.1], cov, [0.0, 0.0], 0.01) == pytest.approx(0.04 / 0.05 + 0.01 / 0.02)
+    assert nees_against_truth(None, cov, [0.0, 0.0], 0.0) is None
+    assert nees_against_truth([np.nan, 0.0], cov, [0.0, 0.0], 0.0) is None
+    assert nees_against_truth([0.2, 0.1], None, [0.0, 0.0], 0.0) is None

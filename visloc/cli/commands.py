@@ -195,7 +195,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
     steps = run_queries(localizer, extract_queries(seq, indices, sift),
                         progress=lambda done: progress(done, len(indices)))
     records = records_of([s.result for s in steps], [s.latency_ms for s in steps], indices,
-                         QueryTruth.of_drive(seq, db), db, keep_counts=True)
+                         QueryTruth.of_drive(seq, db, method.geotag_sigma_m), db, keep_counts=True)
     print(f"queries: {seq.name} frames {[seq.frames[i].frame for i in indices]}   "
           f"database: {db.source}/{db.camera} ({len(db)} images)   exclusion {retrieval.exclusion_s} s   "
           f"mode {method.name}")

@@ -44,6 +44,12 @@ class Method:
         return self.pose is not None
 
     @property
+    def geotag_sigma_m(self) -> float:
+        """The accuracy taken for a geotag that states none: the pose's ``geotag_sigma_m`` (the paper's method,
+        which has none of its own: the refined default)."""
+        return (self.pose or REFINED).geotag_sigma_m
+
+    @property
     def filter_options(self) -> dict:
         """How the filter reads this method's measurements (``visloc.tracking.kalman.ConstantVelocityKalman``'s
         options): the gate, the restart after gated measurements, and the error two pose measurements share

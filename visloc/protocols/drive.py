@@ -145,7 +145,7 @@ def track_drive(matches: DriveMatches, queries: QuerySet, db: GeoDatabase, filte
     results = [StepResult(queries.query(int(q)), retrieval, m, f, no_time) for q, retrieval, m, f in
                zip(matches.query_indices, matches.retrievals, matches.measurements, filtered)]
     return records_of(results, matches.latency_ms, [int(q) for q in matches.query_indices],
-                      QueryTruth.of_queries(queries, db), db, keep_counts=True)
+                      QueryTruth.of_queries(queries, db, matches.method.geotag_sigma_m), db, keep_counts=True)
 
 
 def drive_summary(records: Sequence[StepRecord]) -> dict:

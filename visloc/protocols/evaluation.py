@@ -235,7 +235,7 @@ def evaluate(
                                 counter=cache, shortlist_index=shortlist_index, structures=structures, memoise=True,
                                 stored=stored)
     latency_cache = None if method.camera_rate else cache  # the camera-rate path counts without the cache
-    truth = QueryTruth.of_queries(queries, db)
+    truth = QueryTruth.of_queries(queries, db, method.geotag_sigma_m)
     series = []
     for done, indices in enumerate(schedule, 1):
         localizer.reset()

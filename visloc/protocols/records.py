@@ -89,6 +89,26 @@ def _position(xy) -> Position:
     return float(xy[0]), float(xy[1])
 
 
+def truth_extra_m2(absolute_sigma_m: float | None, truth_sigma_m: float | None, truth_shares_map: bool) -> float:
+    """What the truth a position is compared with adds to its covariance, per axis (m^2): nothing where the truth
+    shares the map's receiver (its absolute error then cancels), else the map's absolute error a^2 and the
+    truth's own s^2 (``visloc.pose.uncertainty``; None or NaN: none)."""
+    if truth_shares_map:
+        return 0.0
+    a = float(absolute_sigma_m) if absolute_sigma_m is not None else 0.0
+    s = float(truth_sigma_m) if truth_sigma_m is not None and np.isfinite(truth_sigma_m) else 0.0
+    return a**2 + s**2
+
+
+def nees_against_truth(position_m, cov_m2, truth_m, extra_m2: float) -> float | None:
+    """NEES of a position against the truth: e' (cov + extra I)^-1 e (2 on average when honest); None without
+    a finite position or a covariance. The one rule every run's records use."""
+    if position_m is None or cov_m2 is None or not np.all(np.isfinite(position_m)):
+        return None
+    e = np.asarray(position_m, float)[:2] - np.asarray(truth_m, float)[:2]
+    return float(e @ np.linalg.solve(np.asarray(cov_m2, float) + extra_m2 * np.eye(2), e))
+
+
 def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: int, truth_lat_deg: float,
                 truth_lon_deg: float, latency_ms: float, keep_counts: bool = False,
                 smoothed: SmoothedStep | None = None, truth_sigma_m: float | None = None,
@@ -117,16 +137,12 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         m_hav = float(haversine_distance_m(*m_lat_lon, *truth))
     # the measurement's own covariance (a refined pose's; the filter's R for a geotag): what its error is held to
     R = m.cov_m2 if m.cov_m2 is not None else result.filter.R
-    s_truth = float(truth_sigma_m) if truth_sigma_m is not None and np.isfinite(truth_sigma_m) else 0.0
-    a_map = float(m.absolute_sigma_m) if m.absolute_sigma_m is not None else 0.0
-    # what the error is measured against adds to the covariance, unless it shares the map's receiver
-    extra_m2 = 0.0 if truth_shares_map else a_map**2 + s_truth**2
+    extra_m2 = truth_extra_m2(m.absolute_sigma_m, truth_sigma_m, truth_shares_map)
     nees = m_sigma = e_nees = None
     if R is not None and m.east_north_m is not None:
         m_sigma = float(np.sqrt(np.linalg.eigvalsh(R).max()))
-        e = np.asarray(m.east_north_m, float) - truth_m
-        # NEES = e' (R + extra I)^-1 e
-        nees = float(e @ np.linalg.solve(np.asarray(R, float) + extra_m2 * np.eye(2), e))
+        nees = nees_against_truth(m.east_north_m, R, truth_m, extra_m2)
+    s_truth = float(truth_sigma_m) if truth_sigma_m is not None and np.isfinite(truth_sigma_m) else 0.0
     s_m = s_err = None
     if smoothed is not None and np.all(np.isfinite(smoothed.x)):
         s_m = _position(smoothed.x[:2])
@@ -143,8 +159,7 @@ def step_record(step: int, result: StepResult, db: GeoDatabase, *, query_frame: 
         e_hav = float(haversine_distance_m(float(lat), float(lon), *truth))
         sigma = float(np.sqrt(np.linalg.eigvalsh(result.filter.position_cov_m2).max()))
         cov = result.filter.position_cov_m2.tolist()
-        e = np.asarray(result.filter.x[:2], float) - truth_m
-        e_nees = float(e @ np.linalg.solve(result.filter.position_cov_m2 + extra_m2 * np.eye(2), e))
+        e_nees = nees_against_truth(result.filter.x[:2], result.filter.position_cov_m2, truth_m, extra_m2)
     return StepRecord(
         step=step, query_frame=int(query_frame), query_timestamp_s=float(result.query.timestamp_s),
         truth_geotag_deg=truth, truth_m=_position(truth_m), n_candidates=int(candidates.size),
@@ -198,31 +213,33 @@ class QueryTruth:
     lon_deg: np.ndarray
     sigma_m: np.ndarray
     shares_map: bool
+    unstated_sigma_m: float = REFINED.geotag_sigma_m  # a no-fix truth's accuracy: the run's geotag_sigma_m
 
     @classmethod
-    def of_queries(cls, queries: QuerySet, db: GeoDatabase) -> "QueryTruth":
+    def of_queries(cls, queries: QuerySet, db: GeoDatabase,
+                   unstated_sigma_m: float = REFINED.geotag_sigma_m) -> "QueryTruth":
         """Stored queries' truth (their own geotags)."""
         sigma = (np.full(len(queries.frames), np.nan) if queries.truth_sigma_m is None
                  else np.asarray(queries.truth_sigma_m, float))
         return cls(np.asarray(queries.frames), queries.lat_deg, queries.lon_deg, sigma,
-                   same_drive(db, queries.timestamps_s, queries.lat_deg, queries.lon_deg))
+                   same_drive(db, queries.timestamps_s, queries.lat_deg, queries.lon_deg), unstated_sigma_m)
 
     @classmethod
-    def of_drive(cls, seq: Drive, db: GeoDatabase) -> "QueryTruth":
+    def of_drive(cls, seq: Drive, db: GeoDatabase, unstated_sigma_m: float = REFINED.geotag_sigma_m) -> "QueryTruth":
         """A drive's frames' truth (their geotags), for queries described now."""
         sigma = np.array([np.nan if f.position_accuracy_m is None else f.position_accuracy_m for f in seq.frames])
         return cls(np.array([f.frame for f in seq.frames]), np.array([f.lat_deg for f in seq.frames]),
                    np.array([f.lon_deg for f in seq.frames]), sigma,
-                   same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg))
+                   same_drive(db, seq.timestamps_s, seq.lat_deg, seq.lon_deg), unstated_sigma_m)
 
     def sigma(self, index: int) -> float | None:
         """Query ``index``'s truth's accuracy, None where taken as exact (its drive states no accuracy at all). A
         truth that states none where its drive's other records do (a record with no position solution) is taken as
-        good to ``REFINED.geotag_sigma_m``, what visloc assumes for a geotag of unknown accuracy."""
+        good to ``unstated_sigma_m``, what the run assumes for a geotag of unknown accuracy (``geotag_sigma_m``)."""
         value = float(self.sigma_m[index])
         if np.isfinite(value):
             return value
-        return REFINED.geotag_sigma_m if self._unstated[index] else None
+        return self.unstated_sigma_m if self._unstated[index] else None
 
     def shares_map_at(self, index: int) -> bool:
         """Whether query ``index``'s truth shares the map's error: not where it is no fix of the receiver."""

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from visloc.store.database import GeoDatabase
-from visloc.protocols.records import QueryTruth
+from visloc.protocols.records import QueryTruth, nees_against_truth, truth_extra_m2
 from visloc.errors import InputError
 from visloc.geo import geodesic_distance_m
 from visloc.geometry.projective import CameraModel
@@ -29,7 +29,7 @@ from visloc.tracking.localizer import Localizer, StepResult
 from visloc.pose.measurement import GEOMETRY
 from visloc.params.methods import REFINED_FAST_METHOD, REFINED_METHOD, Method
 from visloc.tracking.methods import build_localizer
-from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, TRACK, FilterParams, RefinedParams,
+from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, REFINED, TRACK, FilterParams, RefinedParams,
                            RetrievalParams, SiftParams, TrackParams)
 from visloc.sources.queries import extract_queries
 from visloc.pose.structure import seeded_structure_cache
@@ -189,16 +189,7 @@ def _frame_record(seq: Drive, i: int, r: StepResult, latency: float, db: GeoData
     fr, m = seq.frames[i], r.measurement
     truth = (fr.lat_deg, fr.lon_deg)
     truth_m = np.asarray(db.frame.to_local(*truth), float)
-    a_map = m.absolute_sigma_m or 0.0
-    s_truth = truths.sigma(i) or 0.0
-    extra = 0.0 if truths.shares_map_at(i) else a_map**2 + s_truth**2
-
-    def nees(position: np.ndarray | None, cov: np.ndarray | None) -> float | None:
-        if position is None or cov is None or not np.all(np.isfinite(position)):
-            return None
-        e = np.asarray(position, float) - truth_m
-        return float(e @ np.linalg.solve(np.asarray(cov, float) + extra * np.eye(2), e))
-
+    extra_m2 = truth_extra_m2(m.absolute_sigma_m, truths.sigma(i), truths.shares_map_at(i))
 
     def error(en: np.ndarray) -> float:
         lat, lon = db.frame.to_geo(np.asarray(en, float))
@@ -223,8 +214,8 @@ def _frame_record(seq: Drive, i: int, r: StepResult, latency: float, db: GeoData
         geometry_ms=float(m.query_side_ms), filter_ms=float(r.timings.filter_ms), latency_ms=float(latency),
         estimate_cov_m2=P.tolist(),
         measurement_cov_m2=None if m_sigma is None else np.asarray(R, float).tolist(),
-        measurement_nees=nees(m.east_north_m, R if m_sigma is not None else None),
-        estimate_nees=nees(est, P), measurement_side=m.side, absolute_sigma_m=m.absolute_sigma_m,
+        measurement_nees=nees_against_truth(m.east_north_m, R if m_sigma is not None else None, truth_m, extra_m2),
+        estimate_nees=nees_against_truth(est, P, truth_m, extra_m2), measurement_side=m.side, absolute_sigma_m=m.absolute_sigma_m,
         maneuver=bool(r.filter.maneuver), retracted_previous=bool(r.filter.retracted_previous))
 
 
@@ -249,7 +240,7 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
                     **(path_params or {})},
                    frame_origin_deg=(db.frame.origin_lat_deg, db.frame.origin_lon_deg), pace_hz=params.pace_hz)
     localizer.reset()
-    truths = QueryTruth.of_drive(seq, db)
+    truths = QueryTruth.of_drive(seq, db, (pose or REFINED).geotag_sigma_m)
     start, cpu_start = time.perf_counter(), time.process_time()
     if params.follow_points and pose is not None:
         follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose,
