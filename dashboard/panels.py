@@ -141,7 +141,9 @@ def source_text(rec: visloc.StepRecord) -> str:
     if rec.measurement_source == visloc.GEOMETRY:
         return (f"geometry: PnP against frames {', '.join(map(str, rec.view_db_frames))} (database views whose "
                 f"3D points were triangulated with frames {', '.join(map(str, rec.neighbour_db_frames))}); "
-                f"{rec.n_pnp_inliers} inliers (correspondences that agree with the pose)")
+                f"{rec.n_pnp_inliers} inliers (correspondences that agree with the pose)"
+                + ("; thin support: too few inliers at the strict PnP threshold, posed again at the looser one"
+                   if rec.thin_support else ""))
     if rec.measurement_source == visloc.GEOTAG:
         return "geotag of the best match" + (f" (fallback: {rec.fallback_reason})" if rec.fallback_reason else "")
     return "nothing" + (f" ({rec.fallback_reason})" if rec.fallback_reason else "")

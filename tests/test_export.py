@@ -110,3 +110,13 @@ def test_the_step_panel_names_the_geotags_term_only_where_it_counts():
                                              "side, 4.0 m from the nearest)")
     unfixed = replace(posed, measurement_term_sigma_m={**posed.measurement_term_sigma_m, "geotags": 0.5})
     assert "lever 0.02, geotags 0.50;" in measurement_sigma_note(unfixed)
+
+
+def test_the_step_panel_says_when_a_pose_stands_on_thin_support():
+    from dataclasses import replace
+
+    from visloc.dashboard.panels import source_text
+
+    posed = replace(record(0, source="geometry"), view_db_frames=[3, 9], neighbour_db_frames=[1, 5], n_pnp_inliers=12)
+    assert "12 inliers" in source_text(posed) and "thin support" not in source_text(posed)
+    assert source_text(replace(posed, thin_support=True)).endswith("posed again at the looser one")
