@@ -45,6 +45,7 @@ PEER_RUNS = {"peer/results": REPO.parent / "shared" / "peer" / "results",
 PEER_SCRIPT = REPO.parent / "shared" / "peer" / "colmap_baseline.py"
 DEFAULT = "default"
 RESULTS_STORE = REPO / "out" / "results" / "visloc.sqlite"  # scripts/results.py's store, made with the defaults
+STRICT = ["--thin-support-pnp-px", "0"]  # visloc without its second, looser pose where support is thin
 
 
 def peer_runs() -> dict[str, Path]:
@@ -105,6 +106,11 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
                 "--json", out / f"{drive}_{protocol.key}_refined.json"]
         run([sys.executable, *ours], log, out / f"{drive}_{protocol.key}_refined.json")
         commands.append("python " + " ".join(map(str, ours)))
+        if cap != DEFAULT:  # the same without the thin-support pose (with every keypoint no query needs it)
+            strict = [*ours[:-1], *STRICT, out / "strict" / f"{drive}_{protocol.key}_refined.json"]
+            (out / "strict").mkdir(exist_ok=True)
+            run([sys.executable, *strict], log, strict[-1])
+            commands.append("python " + " ".join(map(str, strict)))
         if cap == DEFAULT:  # the peer's own run at its defaults
             shutil.copy(peer[drive], out / peer[drive].name)
             continue
@@ -126,6 +132,10 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
         report = json.loads((out / d["evaluation_file"]).read_text())
         d["visloc_nees"] = report["measurement_nees"]
         d["visloc_geotag_fallbacks"] = sum(r["visloc_geotag_fallbacks"] for r in d["frames"])
+    strict = digest_peer({f"out/thinning/cap_{cap}": out}, out / "strict") if cap != DEFAULT else {}
+    for drive, d in strict.items():
+        digest[drive]["visloc_strict"] = {"error_m": d["visloc_error_m"], "inliers": d["visloc_inliers"],
+                                          "geotag_fallbacks": sum(r["visloc_geotag_fallbacks"] for r in d["frames"])}
     return {"commands": commands, "drives": digest}
 
 
@@ -152,14 +162,16 @@ def render(r: dict) -> str:
         "one measurement each (visloc: a one-step series, full-scan retrieval, no filter), same setup, 1 s "
         "exclusion; a failed pose counts with its fallback geotag's error. \"default\": each at its own defaults "
         "(visloc every SIFT keypoint; the peer at most 8192). NEES: visloc's "
-        f"measurements posed from geometry (2 when honest). Measured by `python benchmarks/thinning_stress.py` at "
+        "measurements posed from geometry (2 when honest). The last column is visloc on the same store with "
+        "`--thin-support-pnp-px 0`: no second, looser pose where none holds 15 inliers at 2 px (not measured with "
+        f"every keypoint, where no query falls back). Measured by `python benchmarks/thinning_stress.py` at "
         f"{r['commit']} ({r['cores']} cores, load {r['load_before']:.1f} at the start, {r['load_after']:.1f} at the end)"
         + reused_note(r) + ".")
     add("")
     add("| drive | keypoints per image | frames | peer error median / p90 / max (m) | visloc error median / p90 / max "
         "(m) | peer inliers median | visloc inliers median | peer failures | visloc geotag fallbacks | visloc NEES "
-        "mean, inside 95 % |")
-    add("|---|---|---|---|---|---|---|---|---|---|")
+        "mean, inside 95 % | visloc without the thin-support pose: error median / p90 / max (m), fallbacks |")
+    add("|---|---|---|---|---|---|---|---|---|---|---|")
     drives = sorted({d for cap in r["caps"].values() for d in cap["drives"]})
     for drive in drives:
         for cap, c in r["caps"].items():
@@ -173,10 +185,18 @@ def render(r: dict) -> str:
             add(f"| {drive} | {shown} | {p['n']} | {p['median']:.2f} / {p['p90']:.2f} / {p['max']:.2f} | "
                 f"{v['median']:.2f} / {v['p90']:.2f} / {v['max']:.2f} | {d['peer_inliers']['median']:.0f} | "
                 f"{d['visloc_inliers']['median']:.0f} | {d['peer_failures']} | {d['visloc_geotag_fallbacks']} | "
-                f"{nees_text} |")
+                f"{nees_text} | {strict_text(d.get('visloc_strict'))} |")
     add("")
     add(SECTION.end)
     return "\n".join(lines)
+
+
+def strict_text(strict: dict | None) -> str:
+    """visloc's figures without the thin-support pose, or "-" where they were not measured (every keypoint)."""
+    if not strict:
+        return "-"
+    e = strict["error_m"]
+    return f"{e['median']:.2f} / {e['p90']:.2f} / {e['max']:.2f}, {strict['geotag_fallbacks']}"
 
 
 def reused_note(r: dict) -> str:
