@@ -107,7 +107,7 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
         run([sys.executable, *ours], log, out / f"{drive}_{protocol.key}_refined.json")
         commands.append("python " + " ".join(map(str, ours)))
         if cap != DEFAULT:  # the same without the thin-support pose (with every keypoint no query needs it)
-            strict = [*ours[:-1], *STRICT, out / "strict" / f"{drive}_{protocol.key}_refined.json"]
+            strict = [*ours[:-2], *STRICT, "--json", out / "strict" / f"{drive}_{protocol.key}_refined.json"]
             (out / "strict").mkdir(exist_ok=True)
             run([sys.executable, *strict], log, strict[-1])
             commands.append("python " + " ".join(map(str, strict)))
