@@ -229,10 +229,12 @@ def runs_html(main: SavedRun, other: SavedRun | None) -> str:
 
 
 def jump_choices(series: list[SavedStep], n_worst: int = 10) -> list[str]:
-    """The "Jump to" list: the worst steps by estimate error, then every step that fell back or was gated."""
+    """The "Jump to" list: the worst steps by estimate error, then every step that fell back, was gated or was
+    posed on thin support."""
     out = [f"step {i + 1}: error {series[i].estimate_error_m:.3g} m" for i in worst_steps(series, n_worst)]
     out += [f"step {i + 1}: fell back ({s.fallback_reason})" for i, s in enumerate(series) if s.fallback_reason]
     out += [f"step {i + 1}: gated" for i, s in enumerate(series) if s.gated]
+    out += [f"step {i + 1}: posed on thin support" for i, s in enumerate(series) if s.fields.get("thin_support")]
     return out
 
 

@@ -177,9 +177,11 @@ def test_the_timelines_mark_the_current_step_and_the_fallbacks(kitti_evaluation)
     assert data[-1][4] == series[4].estimate_error_m
     worst = visloc.worst_steps(series, 3)
     assert series[worst[0]].estimate_error_m == max(s.estimate_error_m for s in series)
+    series[1].fields["thin_support"] = True
     choices = rp.jump_choices(series, 3)
     assert [rp.step_of_choice(c) for c in choices[:3]] == [k + 1 for k in worst]
     assert "fell back (too few inliers)" in choices[3] and choices[4] == "step 4: gated"
+    assert choices[5:] == ["step 2: posed on thin support"]
 
 
 def test_the_scale_marks_read_well_at_every_zoom():
