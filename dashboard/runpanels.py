@@ -175,25 +175,30 @@ TIMELINE_TITLES = {"error": "Error per step (m) and the estimate's 2σ", "sigma"
 _CELL = "padding:2px 10px 2px 0;border-bottom:1px solid #e9ecef;vertical-align:top"
 
 
-def _cell(value) -> str:
+def _cell(value, digits: str = ".4g") -> str:
     if value is None:
         return "–"
     if isinstance(value, bool):
         return "yes" if value else "no"
     if isinstance(value, float):
-        return f"{value:.4g}"
+        return f"{value:{digits}}"
     if isinstance(value, (list, tuple)):
-        return ", ".join(_cell(v) for v in value) if len(value) <= 12 else f"{len(value)} values"
+        return ", ".join(_cell(v, digits) for v in value) if len(value) <= 12 else f"{len(value)} values"
     if isinstance(value, dict):
         return "; ".join(f"{k} {_cell(v)}" for k, v in value.items())
     return str(value)
 
 
-def table_html(rows: list[tuple], header: tuple | None = None) -> str:
+def table_html(rows: list[tuple], header: tuple | None = None, digits_of=None) -> str:
+    """Rows as an HTML table, every cell escaped; ``digits_of(first cell)``: the float format of a row's values."""
     head = "" if header is None else "<tr>" + "".join(f'<th style="{_CELL};text-align:left">{text(h)}</th>'
                                                       for h in header) + "</tr>"
-    body = "".join("<tr>" + "".join(f'<td style="{_CELL}">{text(_cell(v))}</td>' for v in row) + "</tr>"
-                   for row in rows)
+
+    def cells(row: tuple) -> str:
+        digits = digits_of(str(row[0])) if digits_of else ".4g"
+        return "".join(f'<td style="{_CELL}">{text(_cell(v, digits if k else ".4g"))}</td>' for k, v in enumerate(row))
+
+    body = "".join(f"<tr>{cells(row)}</tr>" for row in rows)
     return f'<table style="font-size:0.85em;border-collapse:collapse;width:100%">{head}{body}</table>'
 
 
@@ -203,7 +208,14 @@ def step_html(step: SavedStep, n_steps: int, other: SavedStep | None, magnificat
              + ("" if magnification == 1.0 else f"; ellipses drawn up to ×{magnification:g}"))
     names = list(step.fields) + [k for k in (other.fields if other else {}) if k not in step.fields]
     rows = [(k, step.fields.get(k), other.fields.get(k)) if other else (k, step.fields.get(k)) for k in names]
-    return f"<div>{title}</div>" + table_html(rows, ("field", "this run", "comparison") if other else ("field", "value"))
+    return f"<div>{title}</div>" + table_html(rows, ("field", "this run", "comparison") if other else ("field", "value"),
+                                              digits_of=_digits_of)
+
+
+def _digits_of(field_name: str) -> str:
+    """How a step field's numbers are written: latitudes and longitudes to 1e-7 degrees (about a centimetre),
+    everything else to four significant digits."""
+    return ".7f" if field_name.endswith("_deg") and "heading" not in field_name else ".4g"
 
 
 def runs_html(main: SavedRun, other: SavedRun | None) -> str:

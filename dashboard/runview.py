@@ -94,7 +94,7 @@ class RunViewer:
             self.move = gui.add_button_group("Move", ["◀ Previous", "Next ▶"])
             self.play = gui.add_checkbox("Play", False, hint="Step through the series at its own time step")
             self.jump = gui.add_dropdown("Jump to", ["–"], hint="The worst steps by estimate error, then every "
-                                         "step that fell back to a geotag or was gated. Clicking the trajectory "
+                                         "step that fell back to a geotag, was gated or was posed on thin support. Clicking the trajectory "
                                          "in 3D jumps to the nearest step too")
             self.follow = gui.add_checkbox("Camera follows", False,
                                            hint="Keep the view on the current estimate, framing its 2σ ellipse")

@@ -229,3 +229,14 @@ def test_the_map_close_up_is_closer_than_the_overview_and_says_its_size(kitti_ev
     # the map draws with a close-up on any step (saved steps carry the records' names)
     image = mapview.map_image(truth, truth, series, 3)
     assert image.ndim == 3 and image.shape[0] > mapview.VIEW_HEIGHT_PX
+
+
+def test_a_step_shows_its_geotags_to_a_centimetre_and_other_numbers_to_four_digits():
+    from visloc.results.saved import SavedStep
+
+    fields = {"truth_geotag_deg": [49.01103951, 8.42320412], "measurement_heading_deg": 126.6912,
+              "measurement_error_m": 0.123456}
+    step = SavedStep(0, 45, 0.0, (0.0, 0.0), None, None, None, None, None, None, None, None, "geometry", None, False,
+                     51, None, None, None, fields=fields)
+    page = html.unescape(rp.step_html(step, 1, None, 1.0))
+    assert "49.0110395, 8.4232041" in page and "126.7" in page and "0.1235" in page
