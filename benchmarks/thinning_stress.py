@@ -106,14 +106,13 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
                 "--json", out / f"{drive}_{protocol.key}_refined.json"]
         run([sys.executable, *ours], log, out / f"{drive}_{protocol.key}_refined.json")
         commands.append("python " + " ".join(map(str, ours)))
-        if cap != DEFAULT:  # the same without the thin-support pose (with every keypoint no query needs it)
-            strict = [*ours[:-2], *STRICT, "--json", out / "strict" / f"{drive}_{protocol.key}_refined.json"]
-            (out / "strict").mkdir(exist_ok=True)
-            run([sys.executable, *strict], log, strict[-1])
-            commands.append("python " + " ".join(map(str, strict)))
-        if cap == DEFAULT:  # the peer's own run at its defaults
+        if cap == DEFAULT:  # the peer's own run at its defaults; with every keypoint no query needs the thin pose
             shutil.copy(peer[drive], out / peer[drive].name)
             continue
+        without = [*ours[:-2], *STRICT, "--json", out / "strict" / f"{drive}_{protocol.key}_refined.json"]
+        (out / "strict").mkdir(exist_ok=True)  # the same without the thin-support pose
+        run([sys.executable, *without], log, without[-1])
+        commands.append("python " + " ".join(map(str, without)))
         if a.earlier is not None and not (out / f"peer_{drive}.json").is_file():
             if reuse_peer(a.earlier, cap, drive, protocol, out / f"peer_{drive}.json"):
                 print(f"thinning: the peer's {drive} at {cap} taken from {a.earlier['commit']}", flush=True)
@@ -132,8 +131,8 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
         report = json.loads((out / d["evaluation_file"]).read_text())
         d["visloc_nees"] = report["measurement_nees"]
         d["visloc_geotag_fallbacks"] = sum(r["visloc_geotag_fallbacks"] for r in d["frames"])
-    strict = digest_peer({f"out/thinning/cap_{cap}": out}, out / "strict") if cap != DEFAULT else {}
-    for drive, d in strict.items():
+    without = digest_peer({f"out/thinning/cap_{cap}": out}, out / "strict") if cap != DEFAULT else {}
+    for drive, d in without.items():
         digest[drive]["visloc_strict"] = {"error_m": d["visloc_error_m"], "inliers": d["visloc_inliers"],
                                           "geotag_fallbacks": sum(r["visloc_geotag_fallbacks"] for r in d["frames"])}
     return {"commands": commands, "drives": digest}

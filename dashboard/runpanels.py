@@ -196,7 +196,7 @@ def table_html(rows: list[tuple], header: tuple | None = None, digits_of=None) -
 
     def cells(row: tuple) -> str:
         digits = digits_of(str(row[0])) if digits_of else ".4g"
-        return "".join(f'<td style="{_CELL}">{text(_cell(v, digits if k else ".4g"))}</td>' for k, v in enumerate(row))
+        return "".join(f'<td style="{_CELL}">{text(_cell(v, digits))}</td>' for v in row)
 
     body = "".join(f"<tr>{cells(row)}</tr>" for row in rows)
     return f'<table style="font-size:0.85em;border-collapse:collapse;width:100%">{head}{body}</table>'
@@ -215,7 +215,7 @@ def step_html(step: SavedStep, n_steps: int, other: SavedStep | None, magnificat
 def _digits_of(field_name: str) -> str:
     """How a step field's numbers are written: latitudes and longitudes to 1e-7 degrees (about a centimetre),
     everything else to four significant digits."""
-    return ".7f" if field_name.endswith("_deg") and "heading" not in field_name else ".4g"
+    return ".7f" if field_name.endswith(("geotag_deg", "lat_deg", "lon_deg")) else ".4g"
 
 
 def runs_html(main: SavedRun, other: SavedRun | None) -> str:
