@@ -225,11 +225,14 @@ def bundle_adjust(K: np.ndarray, T_world_cameras: np.ndarray, points_world: np.n
 
 def refine_database_poses(K: np.ndarray, T_world_cameras: np.ndarray, xy_px: np.ndarray, used: np.ndarray,
                           priors: PosePriors, *, start_px: float = 4.0, min_parallax_deg: float = 0.3,
-                          max_depth_m: float = 100.0, min_points: int = 20) -> BundleResult | None:
+                          max_depth_m: float = 100.0, min_points: int = 20,
+                          max_points: int = 0) -> BundleResult | None:
     """The poses of cameras that see common points (``xy_px`` (M, C, 2) where ``used``), refined by
     ``bundle_adjust`` from points triangulated at their prior poses (observations within ``start_px``
     of them; a looser cut than the final one, so that a bent structure still has points to straighten).
-    None when fewer than ``min_points`` points can start it."""
+    ``max_points`` (0: all): adjust on at most this many of those points, the ones most cameras see (the
+    first rows among equals): a few hundred fix the poses, and the adjustment's cost grows with the points
+    and the cameras together. None when fewer than ``min_points`` points can start it."""
     from visloc.geometry.multiview import triangulate_tracks  # multiview imports geometry only: no cycle
 
     T = np.asarray(T_world_cameras, float)
@@ -237,8 +240,14 @@ def refine_database_poses(K: np.ndarray, T_world_cameras: np.ndarray, xy_px: np.
                                max_depth_m=max_depth_m)
     if int(start.keep.sum()) < min_points:
         return None
-    points = np.where(start.keep[:, None], start.points_world, np.nan)
-    return bundle_adjust(K, T, points, xy_px, used & start.keep[:, None], priors)
+    keep = start.keep
+    if 0 < max_points < int(keep.sum()):
+        seen_by = np.where(keep, used.sum(axis=1), -1)
+        most_seen = np.lexsort((np.arange(len(seen_by)), -seen_by))[:max_points]
+        keep = np.zeros_like(keep)
+        keep[most_seen] = True
+    points = np.where(keep[:, None], start.points_world, np.nan)
+    return bundle_adjust(K, T, points, xy_px, used & keep[:, None], priors)
 
 
 def heading_spread_rad(east_north_m: np.ndarray, yaw_rad: np.ndarray, *, min_step_m: float = 5.0) -> float | None:

@@ -150,13 +150,13 @@ def refined_poses(geometry: DatabaseGeometry, T: np.ndarray, xy: np.ndarray, par
     start an adjustment."""
     used = np.all(np.isfinite(xy), axis=2)
     priors = pose_priors(geometry, params, len(T))
-    refined = refine_database_poses(geometry.camera.K, T, xy, used, priors)
+    refined = refine_database_poses(geometry.camera.K, T, xy, used, priors, max_points=params.max_adjusted_points)
     if refined is None:
         return T
     moved_rms_m = float(np.sqrt(np.mean(refined.moved_m**2) / 3.0))
     if moved_rms_m > 3.0 * params.relative_geotag_sigma_m:
-        again = refine_database_poses(geometry.camera.K, T, xy, used, pose_priors(geometry, params, len(T),
-                                                                                  moved_rms_m))
+        again = refine_database_poses(geometry.camera.K, T, xy, used, pose_priors(geometry, params, len(T), moved_rms_m),
+                                      max_points=params.max_adjusted_points)
         refined = again if again is not None else refined
     return refined.T_world_camera
 

@@ -31,7 +31,7 @@ from visloc.pose.viewpose import DatabaseGeometry
 VARIANTS = {"both": (-1, 1), "before": (-1,), "after": (1,)}
 # the settings structure depends on: structure made with other values is rebuilt
 STRUCTURE_SETTINGS = ("ratio", "neighbour_baselines_m", "max_neighbour_gap", "min_baseline_m", "triangulation_px",
-                      "min_parallax_deg", "max_depth_m", "refine_poses", "relative_geotag_sigma_m",
+                      "min_parallax_deg", "max_depth_m", "refine_poses", "max_adjusted_points", "relative_geotag_sigma_m",
                       "attitude_prior_per_heading_spread", "min_attitude_prior_deg")
 
 
