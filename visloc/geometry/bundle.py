@@ -230,24 +230,38 @@ def refine_database_poses(K: np.ndarray, T_world_cameras: np.ndarray, xy_px: np.
     """The poses of cameras that see common points (``xy_px`` (M, C, 2) where ``used``), refined by
     ``bundle_adjust`` from points triangulated at their prior poses (observations within ``start_px``
     of them; a looser cut than the final one, so that a bent structure still has points to straighten).
-    ``max_points`` (0: all): adjust on at most this many of those points, the ones most cameras see (the
-    first rows among equals): a few hundred fix the poses, and the adjustment's cost grows with the points
-    and the cameras together. None when fewer than ``min_points`` points can start it."""
+    ``max_points`` (0: all): adjust on at most this many points, those most cameras see (the first rows
+    among equals), triangulated from the twice as many most seen (from all, when those start too few): a
+    few hundred fix the poses, and the adjustment's cost grows with the points and the cameras together.
+    None when fewer than ``min_points`` points can start it."""
     from visloc.geometry.multiview import triangulate_tracks  # multiview imports geometry only: no cycle
 
     T = np.asarray(T_world_cameras, float)
-    start = triangulate_tracks(K, T, xy_px, max_reprojection_px=start_px, min_parallax_deg=min_parallax_deg,
-                               max_depth_m=max_depth_m)
+
+    def start_from(rows: np.ndarray):
+        return rows, triangulate_tracks(K, T, xy_px[rows], max_reprojection_px=start_px,
+                                        min_parallax_deg=min_parallax_deg, max_depth_m=max_depth_m)
+
+    every_row = np.arange(len(xy_px))
+    most_seen = np.sort(_most_seen(used.sum(axis=1), 2 * max_points))  # twice as many as it takes
+    rows, start = start_from(most_seen if max_points > 0 else every_row)
+    if len(rows) < len(every_row) and int(start.keep.sum()) < max_points:  # those most seen start too few
+        rows, start = start_from(every_row)
     if int(start.keep.sum()) < min_points:
         return None
-    keep = start.keep
-    if 0 < max_points < int(keep.sum()):
-        seen_by = np.where(keep, used.sum(axis=1), -1)
-        most_seen = np.lexsort((np.arange(len(seen_by)), -seen_by))[:max_points]
-        keep = np.zeros_like(keep)
-        keep[most_seen] = True
-    points = np.where(keep[:, None], start.points_world, np.nan)
+    chosen = rows[start.keep]
+    if 0 < max_points < len(chosen):
+        chosen = np.sort(chosen[_most_seen(used[chosen].sum(axis=1), max_points)])
+    points = np.full((len(xy_px), 3), np.nan)
+    points[chosen] = start.points_world[np.searchsorted(rows, chosen)]
+    keep = np.zeros(len(xy_px), bool)
+    keep[chosen] = True
     return bundle_adjust(K, T, points, xy_px, used & keep[:, None], priors)
+
+
+def _most_seen(seen_by: np.ndarray, n: int) -> np.ndarray:
+    """Indices of the ``n`` largest of ``seen_by``, the first among equals."""
+    return np.lexsort((np.arange(len(seen_by)), -seen_by))[:n]
 
 
 def heading_spread_rad(east_north_m: np.ndarray, yaw_rad: np.ndarray, *, min_step_m: float = 5.0) -> float | None:
