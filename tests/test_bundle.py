@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from visloc.geometry.bundle import PosePriors, bundle_adjust, refine_database_poses, rotation_exp, rotation_log
+from visloc.geometry.multiview import triangulate_tracks
 from visloc.geometry.projective import project, rotation_from_rpy
 
 K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
@@ -98,3 +99,32 @@ def test_too_few_points_to_start_an_adjustment():
     X = np.full((len(xy), 3), np.nan)
     result = bundle_adjust(K, recorded, X, xy, used, priors)
     assert np.isnan(result.points_world).all() and result.moved_m.max() == pytest.approx(0.0)
+
+
+def test_a_few_hundred_of_the_most_seen_points_find_the_headings_as_every_point_does():
+    true, recorded, xy = _scene([0.3, 0.4, 0.5, 0.6, 0.5, 0.4, 0.3])
+    used = np.all(np.isfinite(xy), axis=2)
+    priors = PosePriors(sigma_pos_m=np.full(len(true), 0.02), sigma_up_m=0.05, sigma_rot_rad=np.radians(2.0))
+    every = refine_database_poses(K, recorded, xy, used, priors)
+    capped = refine_database_poses(K, recorded, xy, used, priors, max_points=100)
+    adjusted = np.all(np.isfinite(capped.points_world), axis=1)
+    assert adjusted.sum() == 100 and np.all(np.isfinite(every.points_world), axis=1).sum() > 300
+    # the adjusted points are those most cameras see
+    assert used[adjusted].sum(axis=1).min() >= used[~adjusted].sum(axis=1).max() - 1
+    assert _yaw_error_deg(capped.T_world_camera, true).max() < 0.05
+    np.testing.assert_allclose(capped.T_world_camera[:, :3, 3], every.T_world_camera[:, :3, 3], atol=0.01)
+
+
+def test_where_the_most_seen_points_start_too_few_every_point_is_tried():
+    true, recorded, xy = _scene([0.3, 0.4, 0.5, 0.6, 0.5, 0.4, 0.3])
+    used = np.all(np.isfinite(xy), axis=2)
+    # the 40 points seen most often are mismatched (each observation 60-120 px off): none starts it
+    most = np.lexsort((np.arange(len(used)), -used.sum(axis=1)))[:40]
+    rng = np.random.default_rng(3)
+    xy = xy.copy()
+    xy[most] += rng.choice([-1.0, 1.0], xy[most].shape) * rng.uniform(60.0, 120.0, xy[most].shape)
+    assert triangulate_tracks(K, recorded, xy[most], max_reprojection_px=4.0, min_parallax_deg=0.3).keep.sum() < 20
+    priors = PosePriors(sigma_pos_m=np.full(len(true), 0.02), sigma_up_m=0.05, sigma_rot_rad=np.radians(2.0))
+    capped = refine_database_poses(K, recorded, xy, used, priors, max_points=20)
+    assert capped is not None and np.all(np.isfinite(capped.points_world), axis=1).sum() == 20
+    assert _yaw_error_deg(capped.T_world_camera, true).max() < 0.1

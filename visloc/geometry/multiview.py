@@ -69,7 +69,7 @@ def _refine_points(K: np.ndarray, T_camera_world: np.ndarray, X: np.ndarray, xy:
             J[..., 1, 1] = f[1] / z[..., 0]
             J[..., 0, 2] = -f[0] * Xc[..., 0] / z[..., 0] ** 2
             J[..., 1, 2] = -f[1] * Xc[..., 1] / z[..., 0] ** 2
-        J = J @ R[None]  # d pixel / d X (M, C, 2, 3)
+            J = J @ R[None]  # d pixel / d X (M, C, 2, 3); a point on a camera's plane: not finite, made so next
         J = np.nan_to_num(J) * w[..., None, None]
         r = np.nan_to_num(r) * w[..., None]
         Jm = J.reshape(len(X), -1, 3)  # (M, 2C, 3)
