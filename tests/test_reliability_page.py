@@ -182,13 +182,17 @@ def test_the_structure_density_is_what_its_json_renders():
 
     import structure_density
 
+    from visloc.params import REFINED
+
     result = json.loads(structure_density.SECTION.out.read_text())
     assert structure_density.SECTION.updated_page(structure_density.render(result)) == \
         (REPO / "docs" / "performance.md").read_text()
     assert len(result["drives"]) == 3
     for d in result["drives"]:
         assert list(d["configs"]) == list(structure_density.CONFIGS)
-        assert list(d["configs"].values())[0]["neighbour_baselines_m"] == [2.0, 5.0, 10.0]
+        defaults = list(d["configs"].values())[0]
+        assert defaults["neighbour_baselines_m"] == list(REFINED.neighbour_baselines_m)
+        assert defaults["stored"]["images"] > 0  # what ingest stored with the defaults, read back
         for c in d["configs"].values():
             assert c["error_m"]["n"] == len(d["frames"]) > 0 and c["structures_built"] > 0
 
