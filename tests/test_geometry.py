@@ -451,3 +451,16 @@ def test_neighbours_are_chosen_by_distance_so_a_stopped_car_finds_its_baseline_w
     assert neighbours_of(view, np.arange(len(east)), T, params.replace(max_neighbour_gap=5)) == []
     # images the retrieval does not allow are never neighbours
     assert not set(neighbours_of(view, np.arange(20), T, params)) & set(range(20, len(east)))
+
+
+def test_structure_settings_name_the_cap_on_adjusted_points_only_where_it_is_set():
+    """A store built before the cap existed holds structure made on every point: the default (0) writes the
+    settings as they were written then, so that structure stays valid; a cap is named, and made anew."""
+    import json
+
+    from visloc.pose.structure import STRUCTURE_SETTINGS, structure_settings_json
+
+    default = json.loads(structure_settings_json(RefinedParams()))
+    assert set(default) == set(STRUCTURE_SETTINGS) - {"max_adjusted_points"}
+    capped = json.loads(structure_settings_json(RefinedParams(max_adjusted_points=400)))
+    assert capped == {**default, "max_adjusted_points": 400}

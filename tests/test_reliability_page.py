@@ -192,7 +192,7 @@ def test_the_structure_density_is_what_its_json_renders():
         assert list(d["configs"]) == list(structure_density.CONFIGS)
         defaults = list(d["configs"].values())[0]
         assert defaults["neighbour_baselines_m"] == list(REFINED.neighbour_baselines_m)
-        assert defaults["stored"]["images"] > 0  # what ingest stored with the defaults, read back
+        assert all(c["stored"] is None or c["stored"]["images"] > 0 for c in d["configs"].values())
         for c in d["configs"].values():
             assert c["error_m"]["n"] == len(d["frames"]) > 0 and c["structures_built"] > 0
 

@@ -44,11 +44,12 @@ class RefinedParams(Params):
               "often those on one side (refined-fast: off, for the points it follows between frames)",
         kind="bool")
     neighbour_baselines_m: tuple[float, ...] = _refined(
-        (0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 5.0, 7.0, 10.0),
+        (2.0, 5.0, 10.0),
         "a view's structure comes from triangulating it with database images before and after it at about these "
-        "distances (comma-separated); more neighbours, and nearer ones, give more of its keypoints a point", unit="m", kind="distances")
+        "distances (comma-separated); more neighbours, and nearer ones, give more of its keypoints a point",
+        unit="m", kind="distances")
     max_neighbour_gap: int = _refined(50, "... and at most this many frames from it", kind="integer", low=1)
-    min_baseline_m: float = _refined(0.5, "a neighbour must be at least this far from the view (else: a stopped car)",
+    min_baseline_m: float = _refined(1.0, "a neighbour must be at least this far from the view (else: a stopped car)",
                                      unit="m", low=0)
     triangulation_px: float = _refined(1.0, "largest reprojection error of a triangulated point", unit="px", low=0,
                                        open_low=True)
@@ -58,8 +59,9 @@ class RefinedParams(Params):
     refine_poses: bool = _refined(True, "before triangulating, refine the poses of the view and its neighbours by "
                                         "bundle adjustment, with priors that keep each near its geotag and attitude",
                                   kind="bool")
-    max_adjusted_points: int = _refined(400, "... on at most this many of the view's points, those most neighbours see "
-                                             "(0: all)", kind="integer", low=0)
+    max_adjusted_points: int = _refined(0, "... on at most this many of the view's points, those most neighbours see "
+                                           "(0: all; a few hundred cut the cost of many neighbours)", kind="integer",
+                                        low=0)
     relative_geotag_sigma_m: float = _refined(
         0.05, "position prior of a pose in that adjustment: how well neighbouring geotags agree with each other over "
               "a few metres, per axis (loosened where the images move the poses farther)",

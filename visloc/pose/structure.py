@@ -35,11 +35,16 @@ STRUCTURE_SETTINGS = ("ratio", "neighbour_baselines_m", "max_neighbour_gap", "mi
                       "attitude_prior_per_heading_spread", "min_attitude_prior_deg")
 
 
+# settings that came later, at the value that makes the structure made before them: left out of the JSON there,
+# so that a store built before keeps its structure
+_SINCE = {"max_adjusted_points": 0}
+
+
 def structure_settings_json(params: RefinedParams) -> str:
     """The settings of ``params`` that structure depends on, as canonical JSON."""
     d = params.as_dict()
-    return json.dumps({k: list(d[k]) if isinstance(d[k], tuple) else d[k] for k in STRUCTURE_SETTINGS},
-                      sort_keys=True)
+    return json.dumps({k: list(d[k]) if isinstance(d[k], tuple) else d[k] for k in STRUCTURE_SETTINGS
+                       if not (k in _SINCE and d[k] == _SINCE[k])}, sort_keys=True)
 
 
 @dataclass(frozen=True)
