@@ -5,10 +5,10 @@
 
 A view's 3D points come from triangulating it with database images before and after it at about the distances
 ``neighbour_baselines_m`` (the defaults: 2, 5 and 10 m), the poses of the view and its neighbours first adjusted
-on ``max_adjusted_points`` of its points (the default 0: every one). Triangulating each view
-with more neighbours, and with nearer ones, gives more of its keypoints a point (the peer triangulates each
-database image with every image within 10 frames); adjusting the poses on a few hundred points rather than every
-one keeps the cost of more neighbours down. This measures, on every drive of the data root (its first protocol, 1 s exclusion), the frames
+on ``max_adjusted_points`` of its points (the default 0: every one). Triangulating each view with more neighbours,
+and with nearer ones, gives more of its keypoints a point (the peer triangulates each database image with every
+image within 10 frames); adjusting the poses on a few hundred points rather than every one keeps the cost of more
+neighbours down. This measures, on every drive of the data root (its first protocol, 1 s exclusion), the frames
 the COLMAP-style peer measured, each posed once per configuration from a full-scan retrieval, no filter:
 
 * support: the pose's PnP inliers and the distinct query keypoints among them, beside the peer's inliers on the
@@ -99,19 +99,13 @@ def measure_drive(ws: Workspace, folder: Path, peer: dict[int, dict]) -> dict:
 def stored_cost(ws: Workspace, db, params) -> dict | None:
     """What the store holds of this configuration's structure, if it holds it (an ingest with these settings):
     images, kB per image (every variant's rows, points and covariances) and the ingest's build time per image."""
-    settings = json.loads(structure_settings_json(params))
-    candidates = [settings]
-    if params.max_adjusted_points == 0:  # written before the setting existed, every point adjusted
-        candidates.append({k: v for k, v in settings.items() if k != "max_adjusted_points"})
-    ids = [im.image_id for im in db.images]
-    for candidate in candidates:
-        records = ws.stored_structure(ids, json.dumps(candidate, sort_keys=True))
-        images = {image_id for image_id, _ in records}
-        if images:
-            n_bytes = sum(r.rows_i32.nbytes + r.points_f64.nbytes + r.cov_f64.nbytes for r in records.values())
-            return {"images": len(images), "kb_per_image": n_bytes / 1000 / len(images),
-                    "ingest_ms_per_image": sum(r.build_ms for r in records.values()) / len(images)}
-    return None
+    records = ws.stored_structure([im.image_id for im in db.images], structure_settings_json(params))
+    images = {image_id for image_id, _ in records}
+    if not images:
+        return None
+    n_bytes = sum(r.rows_i32.nbytes + r.points_f64.nbytes + r.cov_f64.nbytes for r in records.values())
+    return {"images": len(images), "kb_per_image": n_bytes / 1000 / len(images),
+            "ingest_ms_per_image": sum(r.build_ms for r in records.values()) / len(images)}
 
 
 def measure(a) -> dict:

@@ -243,10 +243,12 @@ def refine_database_poses(K: np.ndarray, T_world_cameras: np.ndarray, xy_px: np.
                                         min_parallax_deg=min_parallax_deg, max_depth_m=max_depth_m)
 
     every_row = np.arange(len(xy_px))
-    most_seen = np.sort(_most_seen(used.sum(axis=1), 2 * max_points))  # twice as many as it takes
-    rows, start = start_from(most_seen if max_points > 0 else every_row)
-    if len(rows) < len(every_row) and int(start.keep.sum()) < max_points:  # those most seen start too few
+    if max_points <= 0:
         rows, start = start_from(every_row)
+    else:  # twice as many as it takes, the most seen; every row when those start too few
+        rows, start = start_from(np.sort(_most_seen(used.sum(axis=1), 2 * max_points)))
+        if len(rows) < len(every_row) and int(start.keep.sum()) < max_points:
+            rows, start = start_from(every_row)
     if int(start.keep.sum()) < min_points:
         return None
     chosen = rows[start.keep]
