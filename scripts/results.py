@@ -383,7 +383,8 @@ def render_uncertainty(s: dict, add) -> None:
         "which is stated apart (the geotags' own accuracy) and is not in R: see the [method notes](method.md). "
         "\"both\" counts measurements whose views lie before and after them, \"one\" those whose views all lie on "
         "one side. The lever gain (m of error per m from the nearest view) is what each store's self-check "
-        "measured on its own images; the estimate's NEES uses the filter's covariance P.")
+        "measured on its own images; the camera-rate path, posed on the stored structure, has a self-check and a "
+        "gain of its own. The estimate's NEES uses the filter's covariance P.")
     add("")
     rows = [(drive, r) for drive, rs in s["drives"].items() for r in rs if r["mode"] != "paper" and "calibration" in r]
     if not rows:
@@ -391,19 +392,20 @@ def render_uncertainty(s: dict, add) -> None:
         add("")
         return
     add("| drive | protocol | GPS stated (median) | heading spread | lever gain both / one (self-check poses) | "
-        "NEES, inside 95 %: all | both sides | one side | estimate (P) |")
-    add("|---|---|---|---|---|---|---|---|---|")
+        "camera rate's | NEES, inside 95 %: all | both sides | one side | estimate (P) |")
+    add("|---|---|---|---|---|---|---|---|---|---|")
+
+    def _gain(g: dict | None) -> str:
+        return "-" if not g else f"{c(g['both_sides'], '.4f')} / {c(g['one_side'], '.4f')} ({g['n_both']} / {g['n_one']})"
 
     def cal(k: dict) -> str:
         return "-" if not k or not k["n"] else f"{c(k['nees_mean'])}, {c(100 * k['inside_95'], '.0f')} % ({k['n']})"
 
     for drive, r in rows:
         db = r.get("database") or {}
-        g = db.get("lever_gain") or {}
-        gain = "-" if not g else (f"{c(g['both_sides'], '.4f')} / {c(g['one_side'], '.4f')} "
-                                  f"({g['n_both']} / {g['n_one']})")
+        gain, fast_gain = (_gain(db.get(k)) for k in ("lever_gain", "camera_rate_lever_gain"))
         add(f"| {drive} | {r['protocol_label']} | {c(db.get('stated_accuracy_median_m'), '.3f')} m | "
-            f"{c(db.get('heading_spread_deg'), '.2f')} deg | {gain} | {cal(r['calibration']['all'])} | "
+            f"{c(db.get('heading_spread_deg'), '.2f')} deg | {gain} | {fast_gain} | {cal(r['calibration']['all'])} | "
             f"{cal(r['calibration']['both'])} | {cal(r['calibration']['one'])} | {cal(r['estimate_calibration'])} |")
     add("")
     add("Calibration curve: the share of geometry measurements inside each nominal ellipse (the nominal share "

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import sqlite3
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -15,6 +16,7 @@ from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, mcap_topics
 from helpers import error_lines
 from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED
+from visloc.params.methods import REFINED_FAST_METHOD
 from visloc.pose.refined import pose_measurement
 from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import Retrieval
@@ -144,6 +146,26 @@ def test_the_self_check_poses_every_other_image(store):
     assert ws.self_checked_ids(ids, self_check_settings_json(REFINED)) == set(ids[::2])
     gain = ws.lever_gain(ws.load_database(SOURCE, "image_00"))
     assert gain is not None and 0 < gain.n_both + gain.n_one <= len(ids[::2])
+
+
+def test_the_camera_rate_path_has_a_self_check_and_a_gain_of_its_own(store):
+    """Ingest poses the same images again as the camera-rate path poses a frame (the frame's SIFT at the track's
+    scale, stored structure), and the camera-rate measurer's covariance takes the gain those poses call for,
+    while the refined path keeps its own."""
+    ws = Workspace(store)
+    ids = ws.image_ids(SOURCE, "image_00").tolist()
+    settings = self_check_settings_json(REFINED_FAST_METHOD.pose, camera_rate=True)
+    assert settings != self_check_settings_json(REFINED)
+    assert ws.self_checked_ids(ids, settings) == set(ids[::2])
+    db = ws.load_database(SOURCE, "image_00")
+    fast, exact = db.camera_rate_lever_gain, db.lever_gain
+    assert fast.source.startswith("camera-rate self-check") and exact.source.startswith("self-check")
+    assert 0 < fast.n_both + fast.n_one <= len(ids[::2])
+    assert db.geometry(camera_rate=True).lever_gain == fast and db.geometry().lever_gain == exact
+    # the refined path's settings are as stores made before the camera-rate self-check keep them
+    assert "path" not in json.loads(self_check_settings_json(REFINED))
+    # a database without the camera-rate self-check poses the camera rate with the refined path's gain
+    assert replace(db, camera_rate_lever_gain=None).geometry(camera_rate=True).lever_gain == exact
 
 
 def test_variants_keep_the_excluded_images_out_of_the_structure():

@@ -100,6 +100,8 @@ def _ingest(ws: Workspace, seq: Drive, sift: SiftParams, a: argparse.Namespace, 
                              vectors_progress=progress_reporter(f"global vectors {seq.name}", "images"),
                              structure_progress=progress_reporter(f"structure {seq.name}", "images"),
                              self_check_progress=progress_reporter(f"self-check {seq.name}", "images"),
+                             camera_rate_check_progress=progress_reporter(f"camera-rate self-check {seq.name}",
+                                                                          "images"),
                              skip_bad_frames=a.skip_bad_frames, max_image_mp=a.max_image_mp, repair=repair)
     if not repair and report.n_source_changed:  # ingest itself prints its whole report
         n = report.n_source_changed

@@ -10,20 +10,30 @@ far this database's poses are off per metre of lever (``visloc.pose.uncertainty.
 Only the database's own data is used: its images, geotags, attitudes and calibration. The
 retrieval is shortcut (global vectors instead of the paper's counts) because it is not what is
 checked: the verification re-ranks the candidates as it does for any query.
+
+The camera-rate path poses a query differently: against the stored structure's variants, matched to their
+3D-carrying keypoints only (``visloc.pose.fastpose``), where the exact path triangulates each view with the
+neighbours the query's window leaves it. The two paths' poses need not carry the same error per metre of
+lever: denser structure makes the exact path's self-poses better while the stored variants, triangulated
+with neighbours on one side only wherever the window holds the others, gain less. So the camera-rate path has
+a self-check of its own (``camera_rate=True``: the same images, the same candidates, posed as
+``FastPoseMeasurer`` poses), and its own gain.
 """
 
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
 
 from visloc.db import SelfCheckRecord
+from visloc.features.sift import Query
 from visloc.geometry.projective import CameraModel
-from visloc.pose.measurement import GEOMETRY
-from visloc.params import RefinedParams
+from visloc.pose.fastpose import FastPoseMeasurer, StoredStructures, StructureMatcher
+from visloc.pose.measurement import GEOMETRY, Measurement
+from visloc.params import TRACK, RefinedParams
 from visloc.pose.refined import StructureCache, pose_measurement
 from visloc.retrieval.retrievers import Retrieval
 from visloc.pose.structure import structure_settings_json
@@ -68,16 +78,31 @@ def self_check_params(params: RefinedParams) -> RefinedParams:
     return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False, thin_support_pnp_px=0.0)
 
 
-def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S) -> str:
-    """What a stored self-check was made with: the structure's settings, the exclusion, the version."""
-    return json.dumps({"structure": json.loads(structure_settings_json(params)), "exclusion_s": exclusion_s,
-                       "top_k": params.top_k, "pnp_px": params.pnp_px, "version": SELF_CHECK_VERSION},
-                      sort_keys=True)
+def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S, *,
+                             camera_rate: bool = False) -> str:
+    """What a stored self-check was made with: the structure's settings, the exclusion, the version, and for
+    the camera-rate path's, ``"path": "camera-rate"`` and the frames' SIFT scale and keypoints (the exact path's
+    leaves those out, as stores made before the camera-rate path had its own self-check keep theirs)."""
+    settings = {"structure": json.loads(structure_settings_json(params)), "exclusion_s": exclusion_s,
+                "top_k": params.top_k, "pnp_px": params.pnp_px, "version": SELF_CHECK_VERSION}
+    if camera_rate:
+        settings.update(path="camera-rate", query_image_scale=TRACK.query_image_scale,
+                        query_max_keypoints=TRACK.query_max_keypoints)
+    return json.dumps(settings, sort_keys=True)
 
 
 def self_checked_indices(n_images: int) -> range:
     """The database indices (time order) a store's self-check poses: every ``SELF_CHECK_STRIDE``-th."""
     return range(0, n_images, SELF_CHECK_STRIDE)
+
+
+def _candidates(k: int, db_timestamps_s: np.ndarray, global_vectors_f32: np.ndarray, top_k: int,
+                exclusion_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """(the ``top_k`` images allowed to image ``k`` most like it by global vector, every allowed image)."""
+    t = np.asarray(db_timestamps_s, float)
+    allowed = np.flatnonzero(np.abs(t - t[k]) >= exclusion_s)
+    similarity = global_vectors_f32[allowed] @ global_vectors_f32[k]
+    return allowed[np.argsort(-similarity, kind="stable")[:top_k]], allowed
 
 
 def self_check_pose(k: int, geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray,
@@ -86,17 +111,36 @@ def self_check_pose(k: int, geometry: DatabaseGeometry, db_east_north_m: np.ndar
                     cache: StructureCache | None = None) -> SelfCheckPose:
     """Database image ``k`` posed as a query of its own drive (module docstring); ``geometry`` without
     a lever gain (the base covariance is what is kept)."""
-    t = np.asarray(db_timestamps_s, float)
-    allowed = np.flatnonzero(np.abs(t - t[k]) >= exclusion_s)
+    chosen, allowed = _candidates(k, db_timestamps_s, global_vectors_f32, params.top_k, exclusion_s)
     if allowed.size == 0:
         return SelfCheckPose(k, None, None, None, None, f"no image at least {exclusion_s:g} s away")
-    similarity = global_vectors_f32[allowed] @ global_vectors_f32[k]
-    chosen = allowed[np.argsort(-similarity, kind="stable")[: params.top_k]]
     retrieval = Retrieval(candidates=chosen, counts=np.arange(len(chosen), 0, -1, dtype=np.int64),
                           best_index=int(chosen[0]), allowed=allowed)
     camera: CameraModel = geometry.camera
     m = pose_measurement(keypoints_f32, descriptors_u8, retrieval, db_east_north_m, geometry, camera,
                          self_check_params(params), cache)
+    return _pose_of(k, m, db_east_north_m)
+
+
+def camera_rate_self_check_pose(k: int, query: Query, measurer: FastPoseMeasurer, matcher: StructureMatcher,
+                                global_vectors_f32: np.ndarray, top_k: int) -> SelfCheckPose:
+    """Database image ``k`` posed as the camera-rate path poses a query of its own drive: ``query`` (its
+    features as the camera-rate path describes a frame), the same ``top_k`` candidates as ``self_check_pose``
+    ranked by their matches to stored structure (``matcher``), posed by ``measurer`` (a ``FastPoseMeasurer`` on a
+    geometry without a lever gain, with the self-check's exclusion)."""
+    chosen, allowed = _candidates(k, measurer.db_timestamps_s, global_vectors_f32, top_k, measurer.exclusion_s)
+    if allowed.size == 0:
+        return SelfCheckPose(k, None, None, None, None, f"no image at least {measurer.exclusion_s:g} s away")
+    counts_of = matcher(query.descriptors_u8)
+    counts = counts_of(chosen)
+    retrieval = Retrieval(candidates=chosen, counts=counts,
+                          best_index=int(chosen[int(np.argmax(counts))]) if counts.max() > 0 else None,
+                          allowed=allowed, pairs=counts_of.pairs)
+    return _pose_of(k, measurer.measure(query, retrieval), measurer.db_east_north_m)
+
+
+def _pose_of(k: int, m: Measurement, db_east_north_m: np.ndarray) -> SelfCheckPose:
+    """A measurement of database image ``k`` as a self-check pose."""
     if m.source != GEOMETRY:
         return SelfCheckPose(k, None, None, None, None, m.fallback_reason)
     error = np.asarray(m.east_north_m, float) - np.asarray(db_east_north_m[k], float)
@@ -107,17 +151,31 @@ def self_check(geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_times
                keypoints_f32: Sequence[np.ndarray], descriptors_u8: Sequence[np.ndarray],
                global_vectors_f32: np.ndarray, params: RefinedParams, *, indices: Sequence[int] | None = None,
                exclusion_s: float = SELF_CHECK_EXCLUSION_S, cache: StructureCache | None = None,
+               stored: StoredStructures | None = None, queries: Mapping[int, Query] | None = None,
                progress: Callable[[int, int], None] | None = None) -> list[SelfCheckPose]:
     """Every database image (or ``indices``) posed as a query of its own drive. Structure is shared
-    between them through ``cache`` (one view serves many neighbours)."""
+    between them through ``cache`` (one view serves many neighbours). With ``stored`` (the store's structure,
+    database index -> variant -> structure), posed as the camera-rate path poses (module docstring): database
+    index ``k`` as ``queries[k]`` (its image described as the camera-rate path describes a frame), else with the
+    database's own features."""
     bare = replace(geometry, lever_gain=None)
     cache = cache if cache is not None else StructureCache()
     wanted = range(len(db_timestamps_s)) if indices is None else indices
+    if stored is not None:
+        matcher = StructureMatcher(descriptors_u8, stored, params.ratio)
+        measurer = FastPoseMeasurer(db_east_north_m, db_timestamps_s, bare, stored, geometry.camera,
+                                    self_check_params(params), exclusion_s=exclusion_s)
     out = []
     for n, k in enumerate(wanted, 1):
-        out.append(self_check_pose(int(k), bare, db_east_north_m, db_timestamps_s, keypoints_f32[k],
-                                   descriptors_u8[k], global_vectors_f32, params, exclusion_s=exclusion_s,
-                                   cache=cache))
+        if stored is not None:
+            query = (queries or {}).get(int(k)) or Query(descriptors_u8[k], float(db_timestamps_s[k]),
+                                                         keypoints_f32=keypoints_f32[k])
+            out.append(camera_rate_self_check_pose(int(k), query, measurer, matcher, global_vectors_f32,
+                                                   params.top_k))
+        else:
+            out.append(self_check_pose(int(k), bare, db_east_north_m, db_timestamps_s, keypoints_f32[k],
+                                       descriptors_u8[k], global_vectors_f32, params, exclusion_s=exclusion_s,
+                                       cache=cache))
         if progress:
             progress(n, len(wanted))
     return out

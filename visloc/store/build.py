@@ -15,12 +15,15 @@ import numpy as np
 
 from visloc.db import StructureRecord
 from visloc.features.vlad import train_encoder
-from visloc.params import FAST, REFINED, FastParams, RefinedParams, SiftParams
+from visloc.features.sift import Query
+from visloc.params import FAST, REFINED, TRACK, FastParams, RefinedParams, SiftParams
+from visloc.params.methods import REFINED_FAST_METHOD
 from visloc.pose.refined import StructureCache, one_blas_thread
 from visloc.pose.selfcheck import pose_record, self_check, self_check_settings_json, self_checked_indices
 from visloc.pose.structure import VARIANTS, seeded_structure_cache, structure_settings_json, view_structures
 from visloc.sources.drives import Drive
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
+from visloc.sources.queries import extract_queries
 from visloc.store.ingest import IngestReport
 from visloc.store.processes import local_processes
 from visloc.store.workspace import Workspace, global_vectors_name
@@ -32,10 +35,11 @@ def ingest_sequence(ws: Workspace, sequence: Drive, sift: SiftParams, *, workers
                     limit: int | None = None, progress: Progress = None, structure_progress: Progress = None,
                     structure: bool = True, skip_bad_frames: bool = False, max_image_mp: float = DEFAULT_MAX_IMAGE_MP,
                     vectors_progress: Progress = None, self_check_progress: Progress = None,
+                    camera_rate_check_progress: Progress = None,
                     repair: bool = False, cluster=None) -> IngestReport:
     """SIFT every frame of ``sequence`` the store lacks (``Workspace.add_features``; ``repair``: and those
-    whose features are damaged), then its global vectors, its structure and its self-check
-    (``structure=False``: SIFT only); resumable. ``workers``: processes of this machine for SIFT, structure
+    whose features are damaged), then its global vectors, its structure and its self-checks (the refined
+    path's, then the camera-rate path's; ``structure=False``: SIFT only); resumable. ``workers``: processes of this machine for SIFT, structure
     and the self-check (default: one per core; 1: all in this process). ``cluster``: run those steps on a
     distributed engine's workers instead (``visloc.store.cluster``)."""
     report = ws.add_features(sequence, sift, workers=workers, limit=limit, progress=progress,
@@ -46,6 +50,8 @@ def ingest_sequence(ws: Workspace, sequence: Drive, sift: SiftParams, *, workers
         with _build_processes(ws, workers, cluster) as engine:
             build_structure(ws, sequence.source, sequence.camera, progress=structure_progress, cluster=engine)
             build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress, cluster=engine)
+        build_self_check(ws, sequence.source, sequence.camera, REFINED_FAST_METHOD.pose,
+                         progress=camera_rate_check_progress, camera_rate=sequence)
     return report
 
 
@@ -187,12 +193,15 @@ def structure_records(path: str, source: str, camera: str, params: RefinedParams
 
 
 def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedParams = REFINED,
-                     progress: Progress = None, cluster=None) -> int:
+                     progress: Progress = None, cluster=None, camera_rate: Drive | None = None) -> int:
     """Pose the images of (source, camera) the self-check poses (``self_checked_indices``: every other one) that
     have no self-check with ``params``' settings as queries of their own drive (``visloc.pose.selfcheck``),
     committing every few images: an interrupted check resumes. Nothing to do without calibration, attitudes or
-    global vectors. Returns the images checked."""
-    settings = self_check_settings_json(params)
+    global vectors. Returns the images checked. ``camera_rate``: the drive itself, for the camera-rate path's
+    self-check (``params``: that path's, ``REFINED_FAST_METHOD.pose``): its images described as that path
+    describes a frame (``TRACK``'s scale and keypoints), posed on the stored structure (nothing to do without
+    it); it triangulates nothing, so it runs in this process."""
+    settings = self_check_settings_json(params, camera_rate=camera_rate is not None)
     ids = ws.image_ids(source, camera).tolist()
     wanted = {ids[k] for k in self_checked_indices(len(ids))}
     checked = ws.self_checked_ids(ids, settings)
@@ -204,20 +213,34 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     index = ws.global_vectors.load_database_index(db)
     if geometry.camera is None or index is None:
         return 0
+    stored = ws.load_structure(db, params)  # the views' stored structure, read
+    if camera_rate is not None and not stored:
+        return 0
     ids_of, todo = _pending(db, done, progress)
-    if cluster is not None and cluster.worth_spreading(len(todo)):
+    if camera_rate is None and cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, self_check_records, ws.add_self_checks, ws, source, camera, params, todo, 16,
                            progress)
-    cache = seeded_structure_cache(ws.load_structure(db, params))  # the views' stored structure, read
+    cache = None if camera_rate is not None else seeded_structure_cache(stored)
     for start in range(0, len(todo), 16):
         chunk = todo[start : start + 16]
+        queries = None if camera_rate is None else _frames_as_queries(camera_rate, db, chunk, ws.sift_params)
         with one_blas_thread():
             poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
-                               index.vectors_f32, params, indices=chunk, cache=cache)
+                               index.vectors_f32, params, indices=chunk, cache=cache,
+                               stored=None if camera_rate is None else stored, queries=queries)
         ws.add_self_checks([pose_record(p, ids_of[p.index], settings) for p in poses])
         if progress:
             progress(start + len(chunk), len(todo))
     return len(todo)
+
+
+def _frames_as_queries(drive: Drive, db, indices: list[int], store_sift: SiftParams) -> dict[int, Query]:
+    """Database index -> its frame of ``drive`` described as the camera-rate path describes a frame (the store's
+    SIFT settings at ``TRACK``'s scale and keypoints), for the database indices ``indices`` the drive holds."""
+    position_of = {f.frame: i for i, f in enumerate(drive.frames)}
+    wanted = [(k, position_of[db.images[k].frame]) for k in indices if db.images[k].frame in position_of]
+    sift = store_sift.replace(image_scale=TRACK.query_image_scale, n_features=TRACK.query_max_keypoints)
+    return {k: q for (k, _), q in zip(wanted, extract_queries(drive, [i for _, i in wanted], sift))}
 
 
 def self_check_records(path: str, source: str, camera: str, params: RefinedParams, run: str, indices: list[int]

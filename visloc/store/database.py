@@ -42,6 +42,8 @@ class GeoDatabase:
     rpy_rad: np.ndarray | None = None  # (N, 3)
     geotag_sigma_m: np.ndarray | None = None  # (N,) stated geotag accuracy, sigma per axis, m; NaN if unknown
     lever_gain: LeverGain | None = None  # measured by the store's self-check (visloc.pose.uncertainty); None: default
+    # the camera-rate path's, measured by its own self-check on the stored structure; None: ``lever_gain``
+    camera_rate_lever_gain: LeverGain | None = None
 
     def __len__(self) -> int:
         return len(self.images)
@@ -57,8 +59,9 @@ class GeoDatabase:
         rpy = self.rpy_rad if self.rpy_rad is not None else np.full((n, 3), np.nan)
         return imu_poses(np.c_[self.east_north_m, up], rpy)
 
-    def geometry(self) -> DatabaseGeometry:
-        """What the refined method needs; ``camera`` is None (with the reason) when calibration is missing."""
+    def geometry(self, camera_rate: bool = False) -> DatabaseGeometry:
+        """What the refined method needs; ``camera`` is None (with the reason) when calibration is missing.
+        ``camera_rate``: with the camera-rate path's lever gain (the refined path's where the store has none)."""
         camera, reason = camera_model(self.calibration, f"database {self.source}/{self.camera}")
         T_world_imu = self.T_world_imu()
         if camera is not None and not np.isfinite(T_world_imu).all(axis=(1, 2)).any():
@@ -74,7 +77,8 @@ class GeoDatabase:
                                 geotag_sigma_m=self.geotag_sigma_m,
                                 heading_spread_rad=(heading_spread_rad(self.east_north_m, self.rpy_rad[:, 2])
                                                     if self.rpy_rad is not None else None),
-                                lever_gain=self.lever_gain)
+                                lever_gain=(self.camera_rate_lever_gain or self.lever_gain) if camera_rate
+                                else self.lever_gain)
 
 
 def _xy_f64(keypoints_f32: np.ndarray) -> np.ndarray:

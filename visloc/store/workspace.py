@@ -32,6 +32,7 @@ from visloc.store.tilecache import TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
+from visloc.params.methods import REFINED_FAST_METHOD
 from visloc.pose.selfcheck import lever_gain_from, record_pose, self_check_settings_json
 from visloc.sources.drives import Drive
 from visloc.pose.structure import (ViewStructure, structure_settings_json)
@@ -225,16 +226,20 @@ class Workspace:
         with self._store() as store:
             SelfCheckTable(store).add(records)
 
-    def lever_gain(self, db: GeoDatabase, params: RefinedParams = REFINED) -> LeverGain | None:
+    def lever_gain(self, db: GeoDatabase, params: RefinedParams = REFINED, *,
+                   camera_rate: bool = False) -> LeverGain | None:
         """The lever gain ``db``'s stored self-check calls for (``visloc.pose.selfcheck.lever_gain_from``);
-        None when the store holds no self-check of it with ``params``' settings."""
+        None when the store holds no self-check of it with ``params``' settings. ``camera_rate``: the
+        camera-rate path's self-check's (``params``: that path's, ``REFINED_FAST_METHOD.pose``)."""
+        settings = self_check_settings_json(params, camera_rate=camera_rate)
         with self._store() as store:
-            records = SelfCheckTable(store).get([im.image_id for im in db.images], self_check_settings_json(params))
+            records = SelfCheckTable(store).get([im.image_id for im in db.images], settings)
         if not records:
             return None
         index_of = {im.image_id: k for k, im in enumerate(db.images)}
         poses = [record_pose(r, index_of[r.image_id]) for r in records.values()]
-        return lever_gain_from(poses, source=f"self-check of {db.source}/{db.camera} ({len(poses)} images)")
+        what = "camera-rate self-check" if camera_rate else "self-check"
+        return lever_gain_from(poses, source=f"{what} of {db.source}/{db.camera} ({len(poses)} images)")
 
     def load_structure(self, db: GeoDatabase, params: RefinedParams = REFINED,
                        views: list[int] | None = None) -> Mapping[int, dict[str, ViewStructure]]:
@@ -318,8 +323,8 @@ class Workspace:
             keypoints_f32=keypoints, descriptors_u8=descriptors,
             calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy, geotag_sigma_m=_sigmas(images),
         )
-        gain = self.lever_gain(db)
-        return db if gain is None else replace(db, lever_gain=gain)
+        return replace(db, lever_gain=self.lever_gain(db),
+                       camera_rate_lever_gain=self.lever_gain(db, REFINED_FAST_METHOD.pose, camera_rate=True))
 
     def load_queries(self, source: str, camera: str, sift: SiftParams | None = None) -> QuerySet:
         """(source, camera) as queries, with their geotags as ground truth."""

@@ -82,7 +82,7 @@ def _camera_rate_localizer(method: Method, db: GeoDatabase, retrieval: Retrieval
                            stored: dict | None) -> Localizer:
     stored = stored or {}
     matcher = StructureMatcher(db.descriptors_u8, stored, method.pose.ratio)
-    measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, db.geometry(), stored, query_camera,
+    measurer = FastPoseMeasurer(db.east_north_m, db.timestamps_s, db.geometry(camera_rate=True), stored, query_camera,
                                 method.pose, exclusion_s=retrieval.exclusion_s, min_matches=method.min_matches,
                                 query_what=query_what, db_name=f"{db.source}/{db.camera}")  # refuses first
     index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
