@@ -110,12 +110,12 @@ class RefinedParams(Params):
     reinit_after_gated: int = _refined(2, "this many gated measurements in a row restart the track at the last of "
                                           "them; 0 never restarts", kind="integer", low=0)
     error_correlation: float = _refined(
-        0.54, "share of a pose measurement's covariance that its error shares with the measurements just before "
+        0.57, "share of a pose measurement's covariance that its error shares with the measurements just before "
               "and after it (the same views, the same structure): the filter then does not take ten measurements "
               "a second for ten independent ones; 0 takes every measurement as independent (measured by "
               "benchmarks/measurement_correlation.py)", low=0, high=0.99)
     error_correlation_time_s: float = _refined(
-        0.74, "how fast that shared error fades: measurements dt apart share error_correlation * exp(-dt / this) "
+        0.72, "how fast that shared error fades: measurements dt apart share error_correlation * exp(-dt / this) "
               "of their errors (measured by benchmarks/measurement_correlation.py)", unit="s", low=0, open_low=True,
         high=MAX_SECONDS)
     seed: int = _refined(0, "seed of every RANSAC", kind="integer", low=0, high=MAX_C_INT)
