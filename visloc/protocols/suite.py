@@ -127,7 +127,8 @@ def table_text(title: str, rows: list[tuple[str, dict]]) -> str:
 
 def database_row(db) -> dict:
     """What a database's own data says of its geotags: their stated accuracy, its heading spread, and the
-    lever gains its self-checks measured (``visloc.pose.uncertainty``), the refined path's and the camera-rate path's."""
+    lever gains its self-checks measured (``visloc.pose.uncertainty``): the refined path's and the camera-rate
+    path's."""
     geometry = db.geometry()
     sigma = db.geotag_sigma_m[np.isfinite(db.geotag_sigma_m)] if db.geotag_sigma_m is not None else np.zeros(0)
     spread = geometry.heading_spread_rad
@@ -135,4 +136,5 @@ def database_row(db) -> dict:
             "stated_accuracy_median_m": float(np.median(sigma)) if sigma.size else None,
             "heading_spread_deg": None if spread is None else float(np.degrees(spread)),
             "lever_gain": None if db.lever_gain is None else db.lever_gain.as_dict(),
-            "camera_rate_lever_gain": None if db.camera_rate_lever_gain is None else db.camera_rate_lever_gain.as_dict()}
+            "camera_rate_lever_gain": (None if db.camera_rate_lever_gain is None
+                                       else db.camera_rate_lever_gain.as_dict())}

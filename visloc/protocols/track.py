@@ -243,8 +243,9 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
     truths = QueryTruth.of_drive(seq, db, (pose or REFINED).geotag_sigma_m)
     start, cpu_start = time.perf_counter(), time.process_time()
     if params.follow_points and pose is not None:
-        follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(camera_rate=params.fast), seq.camera_model, pose,
-                                 sift, params, seq.distortion, stored=_stored_structure(localizer))
+        follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(camera_rate=params.fast),
+                                 seq.camera_model, pose, sift, params, seq.distortion,
+                                 stored=_stored_structure(localizer))
         steps = follower.steps(seq, indices, cancelled=cancelled)
     else:
         steps = (FollowedStep(s.result, s.latency_ms, "full") for s in

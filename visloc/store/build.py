@@ -39,9 +39,9 @@ def ingest_sequence(ws: Workspace, sequence: Drive, sift: SiftParams, *, workers
                     repair: bool = False, cluster=None) -> IngestReport:
     """SIFT every frame of ``sequence`` the store lacks (``Workspace.add_features``; ``repair``: and those
     whose features are damaged), then its global vectors, its structure and its self-checks (the refined
-    path's, then the camera-rate path's; ``structure=False``: SIFT only); resumable. ``workers``: processes of this machine for SIFT, structure
-    and the self-check (default: one per core; 1: all in this process). ``cluster``: run those steps on a
-    distributed engine's workers instead (``visloc.store.cluster``)."""
+    path's, then the camera-rate path's; ``structure=False``: SIFT only); resumable. ``workers``: processes of
+    this machine for SIFT, structure and the refined path's self-check (default: one per core; 1: all in this
+    process). ``cluster``: run those steps on a distributed engine's workers instead (``visloc.store.cluster``)."""
     report = ws.add_features(sequence, sift, workers=workers, limit=limit, progress=progress,
                              skip_bad_frames=skip_bad_frames, max_image_mp=max_image_mp, repair=repair,
                              cluster=cluster)
@@ -213,21 +213,22 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     index = ws.global_vectors.load_database_index(db)
     if geometry.camera is None or index is None:
         return 0
-    stored = ws.load_structure(db, params)  # the views' stored structure, read
-    if camera_rate is not None and not stored:
+    stored = ws.load_structure(db, params) if camera_rate is not None else None  # what that path poses on
+    if stored is not None and not stored:
         return 0
     ids_of, todo = _pending(db, done, progress)
     if camera_rate is None and cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, self_check_records, ws.add_self_checks, ws, source, camera, params, todo, 16,
                            progress)
-    cache = None if camera_rate is not None else seeded_structure_cache(stored)
+    # the refined path reads the views' stored structure where it would triangulate the same
+    cache = seeded_structure_cache(ws.load_structure(db, params)) if camera_rate is None else None
     for start in range(0, len(todo), 16):
         chunk = todo[start : start + 16]
         queries = None if camera_rate is None else _frames_as_queries(camera_rate, db, chunk, ws.sift_params)
         with one_blas_thread():
             poses = self_check(geometry, db.east_north_m, db.timestamps_s, db.keypoints_f32, db.descriptors_u8,
                                index.vectors_f32, params, indices=chunk, cache=cache,
-                               stored=None if camera_rate is None else stored, queries=queries)
+                               stored=stored, queries=queries)
         ws.add_self_checks([pose_record(p, ids_of[p.index], settings) for p in poses])
         if progress:
             progress(start + len(chunk), len(todo))
