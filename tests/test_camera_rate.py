@@ -16,13 +16,12 @@ from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, mcap_topics
 from helpers import error_lines
 from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED
-from visloc.params.methods import REFINED_FAST_METHOD
 from visloc.pose.refined import pose_measurement
 from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.opening import open_source
 from visloc.stats import CHI2_2DOF_999
-from visloc.pose.selfcheck import self_check_settings_json
+from visloc.pose.selfcheck import CAMERA_RATE_PARAMS, self_check_settings_json
 from visloc.pose.structure import VARIANTS, ViewStructure, choose_variant, view_structures
 from visloc.store.build import build_global_vectors, build_structure
 from visloc.retrieval.matching import count_correspondences
@@ -154,7 +153,7 @@ def test_the_camera_rate_path_has_a_self_check_and_a_gain_of_its_own(store):
     while the refined path keeps its own."""
     ws = Workspace(store)
     ids = ws.image_ids(SOURCE, "image_00").tolist()
-    settings = self_check_settings_json(REFINED_FAST_METHOD.pose, camera_rate=True)
+    settings = self_check_settings_json(CAMERA_RATE_PARAMS, camera_rate=True)
     assert settings != self_check_settings_json(REFINED)
     assert ws.self_checked_ids(ids, settings) == set(ids[::2])
     db = ws.load_database(SOURCE, "image_00")

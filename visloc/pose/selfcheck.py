@@ -34,6 +34,7 @@ from visloc.geometry.projective import CameraModel
 from visloc.pose.fastpose import FastPoseMeasurer, StoredStructures, StructureMatcher
 from visloc.pose.measurement import GEOMETRY, Measurement
 from visloc.params import TRACK, RefinedParams
+from visloc.params.methods import REFINED_FAST_METHOD
 from visloc.pose.refined import StructureCache, pose_measurement
 from visloc.retrieval.retrievers import Retrieval
 from visloc.pose.structure import structure_settings_json
@@ -48,6 +49,7 @@ SELF_CHECK_VERSION = 1  # bump when what a self-check measures changes: older ro
 # the same structure), so half of them give the same gain at half the cost (on every shared drive the even and
 # the odd images' gains lie within 13 % of their mean)
 SELF_CHECK_STRIDE = 2
+CAMERA_RATE_PARAMS = REFINED_FAST_METHOD.pose  # the camera-rate path's pose settings: its self-check's too
 
 
 @dataclass(frozen=True)
@@ -156,26 +158,29 @@ def self_check(geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_times
     """Every database image (or ``indices``) posed as a query of its own drive. Structure is shared
     between them through ``cache`` (one view serves many neighbours). With ``stored`` (the store's structure,
     database index -> variant -> structure), posed as the camera-rate path poses (module docstring): database
-    index ``k`` as ``queries[k]`` (its image described as the camera-rate path describes a frame), else with the
-    database's own features."""
+    index ``k`` as ``queries[k]``, its image described as the camera-rate path describes a frame (an image
+    without one is not posed, and says so)."""
     bare = replace(geometry, lever_gain=None)
-    cache = cache if cache is not None else StructureCache()
     wanted = range(len(db_timestamps_s)) if indices is None else indices
-    if stored is not None:
+    if stored is None:
+        cache = cache if cache is not None else StructureCache()
+
+        def pose(k: int) -> SelfCheckPose:
+            return self_check_pose(k, bare, db_east_north_m, db_timestamps_s, keypoints_f32[k], descriptors_u8[k],
+                                   global_vectors_f32, params, exclusion_s=exclusion_s, cache=cache)
+    else:
         matcher = StructureMatcher(descriptors_u8, stored, params.ratio)
         measurer = FastPoseMeasurer(db_east_north_m, db_timestamps_s, bare, stored, geometry.camera,
                                     self_check_params(params), exclusion_s=exclusion_s)
+
+        def pose(k: int) -> SelfCheckPose:
+            query = (queries or {}).get(k)
+            if query is None:
+                return SelfCheckPose(k, None, None, None, None, "no frame of the drive to describe as a camera frame")
+            return camera_rate_self_check_pose(k, query, measurer, matcher, global_vectors_f32, params.top_k)
     out = []
     for n, k in enumerate(wanted, 1):
-        if stored is not None:
-            query = (queries or {}).get(int(k)) or Query(descriptors_u8[k], float(db_timestamps_s[k]),
-                                                         keypoints_f32=keypoints_f32[k])
-            out.append(camera_rate_self_check_pose(int(k), query, measurer, matcher, global_vectors_f32,
-                                                   params.top_k))
-        else:
-            out.append(self_check_pose(int(k), bare, db_east_north_m, db_timestamps_s, keypoints_f32[k],
-                                       descriptors_u8[k], global_vectors_f32, params, exclusion_s=exclusion_s,
-                                       cache=cache))
+        out.append(pose(int(k)))
         if progress:
             progress(n, len(wanted))
     return out

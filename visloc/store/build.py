@@ -17,9 +17,9 @@ from visloc.db import StructureRecord
 from visloc.features.vlad import train_encoder
 from visloc.features.sift import Query
 from visloc.params import FAST, REFINED, TRACK, FastParams, RefinedParams, SiftParams
-from visloc.params.methods import REFINED_FAST_METHOD
 from visloc.pose.refined import StructureCache, one_blas_thread
-from visloc.pose.selfcheck import pose_record, self_check, self_check_settings_json, self_checked_indices
+from visloc.pose.selfcheck import (CAMERA_RATE_PARAMS, pose_record, self_check, self_check_settings_json,
+                                   self_checked_indices)
 from visloc.pose.structure import VARIANTS, seeded_structure_cache, structure_settings_json, view_structures
 from visloc.sources.drives import Drive
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
@@ -50,7 +50,7 @@ def ingest_sequence(ws: Workspace, sequence: Drive, sift: SiftParams, *, workers
         with _build_processes(ws, workers, cluster) as engine:
             build_structure(ws, sequence.source, sequence.camera, progress=structure_progress, cluster=engine)
             build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress, cluster=engine)
-        build_self_check(ws, sequence.source, sequence.camera, REFINED_FAST_METHOD.pose,
+        build_self_check(ws, sequence.source, sequence.camera, CAMERA_RATE_PARAMS,
                          progress=camera_rate_check_progress, camera_rate=sequence)
     return report
 
@@ -198,7 +198,7 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     have no self-check with ``params``' settings as queries of their own drive (``visloc.pose.selfcheck``),
     committing every few images: an interrupted check resumes. Nothing to do without calibration, attitudes or
     global vectors. Returns the images checked. ``camera_rate``: the drive itself, for the camera-rate path's
-    self-check (``params``: that path's, ``REFINED_FAST_METHOD.pose``): its images described as that path
+    self-check (``params``: that path's, ``CAMERA_RATE_PARAMS``): its images described as that path
     describes a frame (``TRACK``'s scale and keypoints), posed on the stored structure (nothing to do without
     it); it triangulates nothing, so it runs in this process."""
     settings = self_check_settings_json(params, camera_rate=camera_rate is not None)
@@ -213,9 +213,11 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     index = ws.global_vectors.load_database_index(db)
     if geometry.camera is None or index is None:
         return 0
-    stored = ws.load_structure(db, params) if camera_rate is not None else None  # what that path poses on
-    if stored is not None and not stored:
-        return 0
+    stored = None
+    if camera_rate is not None:
+        stored = ws.load_structure(db, params)  # what that path poses on
+        if not stored:
+            return 0
     ids_of, todo = _pending(db, done, progress)
     if camera_rate is None and cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, self_check_records, ws.add_self_checks, ws, source, camera, params, todo, 16,

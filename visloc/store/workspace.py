@@ -32,8 +32,7 @@ from visloc.store.tilecache import TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
-from visloc.params.methods import REFINED_FAST_METHOD
-from visloc.pose.selfcheck import lever_gain_from, record_pose, self_check_settings_json
+from visloc.pose.selfcheck import CAMERA_RATE_PARAMS, lever_gain_from, record_pose, self_check_settings_json
 from visloc.sources.drives import Drive
 from visloc.pose.structure import (ViewStructure, structure_settings_json)
 from visloc.pose.uncertainty import LeverGain
@@ -230,7 +229,7 @@ class Workspace:
                    camera_rate: bool = False) -> LeverGain | None:
         """The lever gain ``db``'s stored self-check calls for (``visloc.pose.selfcheck.lever_gain_from``);
         None when the store holds no self-check of it with ``params``' settings. ``camera_rate``: the
-        camera-rate path's self-check's (``params``: that path's, ``REFINED_FAST_METHOD.pose``)."""
+        camera-rate path's self-check's (``params``: that path's, ``CAMERA_RATE_PARAMS``)."""
         settings = self_check_settings_json(params, camera_rate=camera_rate)
         with self._store() as store:
             records = SelfCheckTable(store).get([im.image_id for im in db.images], settings)
@@ -324,7 +323,7 @@ class Workspace:
             calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy, geotag_sigma_m=_sigmas(images),
         )
         return replace(db, lever_gain=self.lever_gain(db),
-                       camera_rate_lever_gain=self.lever_gain(db, REFINED_FAST_METHOD.pose, camera_rate=True))
+                       camera_rate_lever_gain=self.lever_gain(db, CAMERA_RATE_PARAMS, camera_rate=True))
 
     def load_queries(self, source: str, camera: str, sift: SiftParams | None = None) -> QuerySet:
         """(source, camera) as queries, with their geotags as ground truth."""
