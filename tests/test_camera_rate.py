@@ -419,3 +419,28 @@ def test_a_first_fix_refuses_a_lone_far_candidate():
     assert first_fix(near, Retrieval(np.arange(5), np.array([40, 28, 27, 25, 3]), 0), db_en) is near
     posed = Measurement(db_en[4], np.eye(2), "geometry")
     assert first_fix(posed, retrieval, db_en) is posed
+
+
+def test_a_camera_rate_track_runs_one_blas_thread_and_gives_the_process_its_threads_back(store, kitti_root):
+    """BLAS's own threads made the camera-rate path no faster and, waiting between frames, took a large part of a
+    core; the run holds BLAS to one thread while it steps and hands back what the process had."""
+    from threadpoolctl import threadpool_info
+
+    from visloc.params import TRACK
+    from visloc.protocols.track import run_track, track_filter, track_localizer
+
+    def blas_threads() -> list[int]:
+        return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+    before = blas_threads()
+    seq = open_source(kitti_root, drive=DRIVE, camera="image_00")
+    ws = Workspace(store, read_only=True)
+    db = ws.load_database(SOURCE, "image_00")
+    params = TRACK.replace(fast=True, exclusion_s=1.0)
+    localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params), params)
+    during: list[list[int]] = []
+    run = run_track(localizer, seq, sift, db, params, indices=[0, 1, 2],
+                    progress=lambda done, total: during.append(blas_threads()))
+    assert len(run.frames) == 3 and len(during) == 3
+    assert all(set(threads) == {1} for threads in during), during
+    assert blas_threads() == before

@@ -14,6 +14,7 @@ retrieval, the query side of the measurement and the filter step (``visloc.track
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -32,6 +33,7 @@ from visloc.tracking.methods import build_localizer
 from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, REFINED, TRACK, FilterParams, RefinedParams,
                            RetrievalParams, SiftParams, TrackParams)
 from visloc.sources.queries import extract_queries
+from visloc.pose.refined import one_blas_thread
 from visloc.pose.structure import seeded_structure_cache
 from visloc.tracking.follower import FollowedStep, PointFollower, first_fix
 from visloc.tracking.runs import steps_of
@@ -251,6 +253,17 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
         steps = (FollowedStep(s.result, s.latency_ms, "full") for s in
                  steps_of(localizer, extract_queries(seq, indices, sift, paced_hz=params.pace_hz), cancelled=cancelled,
                           first=lambda m, retrieval: first_fix(m, retrieval, db.east_north_m)))
+    # The camera-rate path's products are small (a frame's keypoints against a few views' structure, 3x3 and 6x6
+    # covariances): with BLAS's own threads it was no faster, and their waiting between frames took 0.4-0.7 of a
+    # core beside a 10 Hz run (benchmarks/track_following.py). The exact path shares its matching among threads of
+    # its own, as many as BLAS has, so it keeps them.
+    with one_blas_thread() if params.fast else contextlib.nullcontext():
+        _record_steps(run, seq, indices, steps, db, truths, start, cpu_start, progress)
+    return run
+
+
+def _record_steps(run: TrackRun, seq: Drive, indices: list[int], steps, db: GeoDatabase, truths, start: float,
+                  cpu_start: float, progress: Callable[[int, int], None] | None) -> None:
     for n, (i, step) in enumerate(zip(indices, steps), 1):
         record = _frame_record(seq, i, step.result, step.latency_ms, db, truths)
         run.frames.append(replace(record, kind=step.kind, flow_ms=step.flow_ms, followed_points=step.followed_points,
@@ -260,4 +273,3 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
         run.cpu_s = time.process_time() - cpu_start
         if progress:
             progress(n, len(indices))
-    return run
