@@ -1,19 +1,17 @@
 """The dashboard's controller: the controls write a state, one apply path brings the page up to date.
 
 Every callback records what the user asked for in ``Controls`` and asks for an apply; a
-button may move other controls as a person would (Next moves the step slider, "Paper's
-parameters" moves every parameter control). One thread runs ``apply``: it compares what is
-asked with what is shown (``Shown``) and does the difference, in order: open a store, load
-a database and its queries (background), match every query (background, cancelled by a
-newer request), run the filter (instant), draw the step. Background jobs hand their
-results back and ask for an apply in turn. A control moved by the program calls its
-callback like a user's move does; that only records the same value again: no guard needed.
+button may move other controls as a person would (Next moves the step slider, "Paper's parameters" moves every
+parameter control, a mode its rate). One thread runs ``apply``: it compares what is asked with what is shown
+(``Shown``) and does the difference, in order: open a store, load a database and its queries (background), match
+every query (background, cancelled by a newer request), run the filter (instant), draw the step. Background jobs
+hand their results back and ask for an apply in turn. A control moved by the program calls its callback like a
+user's move does; that only records the same value again: no guard needed.
 
-Everything shown comes from the engine's public API (``import visloc``); ``page`` draws it.
-All browser tabs share one state, and a line says how many tabs are open and which one made
-the last change (``session``). A run is shown as it is matched; a later run over the same
-queries and method fills in over the one shown, its steps as they are matched and the
-previous run's beyond them, marked as such (``Run.shown``).
+Everything shown comes from the engine's public API (``import visloc``); ``page`` draws it. All browser tabs share
+one state, and a line says how many tabs are open and which one made the last change (``session``). A run is shown
+as it is matched; a later run over the same queries and method fills in over the one shown, its steps as they are
+matched and the previous run's beyond them, marked as such (``Run.shown``).
 """
 
 from __future__ import annotations
@@ -29,6 +27,7 @@ import viser
 import visloc
 from visloc.dashboard import panels, runpanels
 from visloc.dashboard.gui import Handles, build_gui, enable_for_mode, paper_values, saved_values, tuned_from_html
+from visloc.dashboard.gui import rate_follows_mode
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionView
@@ -95,6 +94,7 @@ class DashboardApp:
             records(handle, field, convert)
         for layer, box in g.layers.items():
             box.on_update(lambda e, layer=layer, box=box: self._layer(e, layer, box.value))
+        rate_follows_mode(g)
 
         def records_param(handle, name: str, control) -> None:
             def on_update(event) -> None:
@@ -432,8 +432,8 @@ class DashboardApp:
         self.page.status(text)
 
     def _store_error(self, text: str) -> None:
-        """A store that cannot be opened: said in the status line and, when the page asked for it (not the
-        store it started on), under Open too until the next open, where the user is looking."""
+        """A store that cannot be opened: said in the status line and, when the page asked for it (not the store it
+        started on), under Open too until the next open, where the user is looking."""
         if self.shown.store_request is not None and self.shown.store_request[0] > 1:
             self.gui.store_message.content = panels.status_html(text, error=True)
         self._show_error(text)

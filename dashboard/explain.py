@@ -16,8 +16,9 @@ HINTS = {
     "latlon": "Also show latitude and longitude (WGS84, degrees) beside the local east/north metres",
     "mode": "paper: the measurement is the best-matching database image's geotag. refined: a metric pose "
             "solved from the database's own geometry (PnP), the geotag only as fallback. refined-fast: the same "
-            "pose at camera rate, on the 3D points stored at ingest (choose 10 Hz and Play)",
-    "rate": "One query every 1/rate s; also the filter's time step Δt",
+            "pose at camera rate, on the 3D points stored at ingest (it starts at 10 Hz: press Play)",
+    "rate": "One query every 1/rate s; also the filter's time step Δt. Choosing a mode moves it to the mode's "
+            "own (10 Hz for refined-fast, 1 Hz for the others) unless another rate was chosen",
     "start": "Time after the first frame (s) where the run starts",
     "reset": "τ1 0.8, τ2 0.97, R 0.0001° (11.12 m), P0 1000·I, 1 Hz, paper mode",
     "store": "The store file (built by 'visloc ingest') the page reads; it is never changed",

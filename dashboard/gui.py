@@ -44,6 +44,30 @@ def paper_values() -> dict[str, object]:
             "params": {name: shown_initial(spec, default) for _, name, spec, default in CONTROLLED}}
 
 
+def mode_rate(method_name: str) -> str:
+    """The query rate a mode plays at unless another is chosen: the camera-rate mode at the camera's 10 Hz,
+    where its ellipses are honest (docs/results.md, "Camera rate"), the others at the paper's 1 Hz."""
+    return "10" if visloc.method_named(method_name).camera_rate else "1"
+
+
+def rate_after_mode_change(previous_mode: str, mode: str, rate: str) -> str:
+    """The rate a change of mode leaves: the new mode's own where the rate was the previous mode's own, else the
+    one chosen."""
+    return mode_rate(mode) if rate == mode_rate(previous_mode) else rate
+
+
+def rate_follows_mode(gui: "Handles") -> None:
+    """A change of mode moves the query rate as ``rate_after_mode_change`` says (the mode's own callbacks,
+    registered before, have recorded it; the rate's record the rate)."""
+    shown = [gui.mode.value]
+
+    def on_mode(_event) -> None:
+        previous, shown[0] = shown[0], gui.mode.value
+        gui.rate.value = rate_after_mode_change(previous, gui.mode.value, gui.rate.value)
+
+    gui.mode.on_update(on_mode)
+
+
 def saved_values(settings: visloc.LiveSettings) -> tuple[dict[str, object], list[str]]:
     """The controls' values for a saved run's settings (as ``paper_values``; the paper's where the run
     records none), and what had to move to fit a control, in words."""

@@ -181,6 +181,20 @@ def test_pure_parts_say_what_they_show():
     assert img.shape == (mapview.VIEW_HEIGHT_PX + mapview.HEADER_PX + mapview.FOOTER_PX, mapview.MAP_WIDTH_PX, 3)
 
 
+def test_a_mode_plays_at_its_own_rate_unless_another_was_chosen():
+    import visloc
+    from visloc.dashboard.gui import RATES_HZ, mode_rate, rate_after_mode_change
+
+    camera_rate = [m for m in visloc.METHODS if visloc.method_named(m).camera_rate]
+    assert camera_rate == ["refined-fast"] and mode_rate("paper") == mode_rate("refined") == "1"
+    assert mode_rate("refined-fast") == "10" and {mode_rate(m) for m in visloc.METHODS} <= set(RATES_HZ)
+    assert rate_after_mode_change("paper", "refined-fast", "1") == "10"  # the camera's rate, where it is honest
+    assert rate_after_mode_change("refined-fast", "refined", "10") == "1"  # back to the paper's
+    assert rate_after_mode_change("paper", "refined", "1") == "1"
+    assert rate_after_mode_change("paper", "refined-fast", "2") == "2"  # a rate the user chose stays
+    assert rate_after_mode_change("refined-fast", "paper", "5") == "5"
+
+
 @pytest.mark.slow
 def test_title_numbering_units_and_help(dashboard, browser):
     page = open_on_current_step(browser, dashboard.url)

@@ -215,3 +215,19 @@ def test_the_shared_error_figures_are_what_their_json_renders_and_the_parameters
     fit = result["pooled"]["fit"]
     assert REFINED.error_correlation == pytest.approx(fit["fraction"], abs=0.01)
     assert REFINED.error_correlation_time_s == pytest.approx(fit["time_s"], abs=0.01)
+
+
+def test_the_dashboard_rate_figures_are_what_their_json_renders():
+    """docs/dashboard.md's table of the camera-rate mode at 1 Hz and 10 Hz is rendered from
+    docs/results/dashboard_rates.json (written by benchmarks/dashboard_rates.py): every shared drive, and at 10 Hz,
+    the rate the page gives the mode, every frame."""
+    import json
+
+    import dashboard_rates
+
+    result = json.loads(dashboard_rates.SECTION.out.read_text())
+    assert dashboard_rates.render(result) in (REPO / "docs" / "dashboard.md").read_text()
+    shared = {p.name.removesuffix("_sync") for p in (REPO.parent / "shared" / "data" / "kitti").glob("*/*_sync")}
+    assert {s["drive"].removesuffix("_sync") for s in result["setups"]} == shared
+    for s in result["setups"]:
+        assert set(s["rates"]) == {"1", "10"} and s["rates"]["10"]["queries"] > 9 * s["rates"]["1"]["queries"]

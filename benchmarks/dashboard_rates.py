@@ -1,0 +1,83 @@
+"""How honest the dashboard's camera-rate mode is at each query rate: the rate the page gives the mode.
+
+    python benchmarks/dashboard_rates.py [--db out/results/visloc.sqlite]
+    python benchmarks/dashboard_rates.py --page   # its section of docs/dashboard.md from the JSON
+
+For every drive of the store whose image_00 serves as queries, against each of its cameras as the database, the
+refined-fast mode run as the live page runs it (``visloc.match_drive`` over the stored queries from the drive's
+start, then ``visloc.track_drive``, the paper's filter with the query interval as its time step), with the
+evaluation protocol's 1 s exclusion window, at 1 Hz and at 10 Hz: the estimate's mean error against the frames'
+geotags and how honest its ellipses are (NEES, 2 when honest, and the share of errors inside the 95 % ellipse).
+Writes docs/results/dashboard_rates.json.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from measuring import REPO, Section, drives_and_store_arguments, load_1min, load_line
+
+SECTION = Section("dashboard-rates", "dashboard_rates", REPO / "docs" / "dashboard.md")
+RATES_HZ = (1.0, 10.0)
+EXCLUSION_S = 1.0
+
+
+def measure_rate(ws, db, queries, rate_hz: float) -> dict:
+    import visloc
+    from visloc.pose.uncertainty import calibration
+
+    method = visloc.REFINED_FAST_METHOD
+    stored = ws.load_structure(db, method.pose)
+    index = ws.global_vectors.load_database_index(db, method.shortlist)
+    retrieval = visloc.PAPER_RETRIEVAL.replace(exclusion_s=EXCLUSION_S)
+    filter_params = visloc.PAPER_FILTER.replace(dt_s=1.0 / rate_hz)
+    indices = visloc.drive_query_indices(queries.timestamps_s, 0.0, 1.0 / rate_hz)
+    matches = visloc.match_drive(queries, db, visloc.PAPER_MATCH, retrieval, indices, method=method, stored=stored,
+                                 shortlist_index=index, filter_params=filter_params,
+                                 structures=visloc.StructureCache())
+    records = visloc.track_drive(matches, queries, db, filter_params)
+    errors = [r.estimate_error_m for r in records if r.estimate_error_m is not None]
+    cal = calibration([r.estimate_nees for r in records])
+    return {"queries": len(records), "estimate_error_mean_m": float(np.mean(errors)),
+            "estimate_nees": cal.nees_mean, "estimate_inside_95": cal.inside_95}
+
+
+def measure(a) -> dict:
+    import visloc
+
+    ws = visloc.Workspace(a.db, read_only=True)
+    drives = sorted({d.source for d in ws.drives() if d.camera == "image_00"})
+    out = {"store": str(a.db), "exclusion_s": EXCLUSION_S, "load_1min_before": load_1min(), "setups": []}
+    for source in drives:
+        queries = ws.load_queries(source, "image_00")
+        for camera in sorted(d.camera for d in ws.drives() if d.source == source):
+            db = ws.load_database(source, camera)
+            rates = {f"{r:g}": measure_rate(ws, db, queries, r) for r in RATES_HZ}
+            print(f"{source} image_00 against {camera}: " + "; ".join(
+                f"{k} Hz NEES {v['estimate_nees']:.2f}, {v['estimate_inside_95']:.0%}" for k, v in rates.items()),
+                flush=True)
+            out["setups"].append({"drive": source, "queries": "image_00", "database": camera, "rates": rates})
+    out["load_1min_after"] = load_1min()
+    return out
+
+
+def render(result: dict) -> str:
+    head = " | ".join(f"{r} Hz: queries, estimate error mean (m), NEES, inside 95 %" for r in result["setups"][0]["rates"])
+    lines = [SECTION.begin, "The refined-fast mode as the page runs it, from each drive's start, measured by "
+             "`python benchmarks/dashboard_rates.py` (the stored queries of image_00, "
+             f"{result['exclusion_s']:g} s exclusion window; honest is NEES near 2 with 95 % inside):", "",
+             f"| drive | queries against | {head} |", "|---|---|" + "---|" * len(result["setups"][0]["rates"])]
+    for s in result["setups"]:
+        cells = " | ".join(f"{v['queries']}, {v['estimate_error_mean_m']:.3f}, {v['estimate_nees']:.2f}, "
+                           f"{v['estimate_inside_95']:.0%}" for v in s["rates"].values())
+        lines.append(f"| {s['drive']} | {s['queries']} against {s['database']} | {cells} |")
+    lines += ["", load_line(result), SECTION.end]
+    return "\n".join(lines)
+
+
+def main() -> int:
+    return SECTION.main(__doc__, measure, render, drives_and_store_arguments)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
