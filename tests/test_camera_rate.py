@@ -444,3 +444,21 @@ def test_a_camera_rate_track_runs_one_blas_thread_and_gives_the_process_its_thre
     assert len(run.frames) == 3 and len(during) == 3
     assert all(set(threads) == {1} for threads in during), during
     assert blas_threads() == before
+
+
+def test_a_tracked_frame_asks_for_new_points_when_nearer_views_serve():
+    """Every reason the followed points stop serving, and the nearer views: a frame whose points stand farther
+    from their views than a full localization's would asks for new ones."""
+    from visloc.pose.flowtrack import needs_relocalization
+
+    limits = dict(min_points=40, min_cells=4, max_lever_m=15.0, max_sigma_m=1.0, every_frames=10,
+                  max_lever_excess_m=1.0)
+    serving = dict(n_points=200, cells_occupied=9, lever_m=6.0, estimate_sigma_m=0.2, frames_since_full=3)
+    assert needs_relocalization(**serving, **limits, nearest_view_m=5.5) is None
+    assert needs_relocalization(**serving, **limits) is None  # no view nearer known
+    far = needs_relocalization(**serving, **limits, nearest_view_m=4.5)
+    assert far is not None and "6.0 m from the nearest view of its points" in far and "4.5 m away" in far
+    for change, words in (({"n_points": 39}, "39 points followed"), ({"cells_occupied": 3}, "3 of 16 image cells"),
+                          ({"lever_m": 15.5}, "more than 15 m"), ({"estimate_sigma_m": 1.5}, "estimate sigma"),
+                          ({"frames_since_full": 10}, "10 frames since")):
+        assert words in needs_relocalization(**{**serving, **change}, **limits, nearest_view_m=5.5)

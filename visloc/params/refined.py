@@ -193,6 +193,10 @@ class TrackParams(Params):
     max_followed_lever_m: float = param(15.0, "following points: a frame farther than this from the nearest view "
                                               "its points come from: localize in full", unit="m", low=0.1,
                                         high=1000, methods=TRACK_ONLY)
+    max_followed_lever_excess_m: float = param(1.0, "following points: the nearest view of a frame's points farther "
+                                                    "than the nearest view it may use by more than this: localize "
+                                                    "in full, to pose on the nearer views", unit="m", low=0,
+                                               high=1000, methods=TRACK_ONLY)
     max_followed_sigma_m: float = param(1.0, "following points: the estimate's 1-sigma larger than this: "
                                              "localize in full", unit="m", low=0.01, high=1000, methods=TRACK_ONLY)
     background_relocalization: bool = param(True, "following points: full localizations asked for by a tracked "

@@ -163,14 +163,21 @@ def pose_tracked(points: TrackedPoints, undistorted_px: np.ndarray, db_east_nort
 
 def needs_relocalization(n_points: int, cells_occupied: int, lever_m: float | None, estimate_sigma_m: float,
                          frames_since_full: int, *, min_points: int, min_cells: int, max_lever_m: float,
-                         max_sigma_m: float, every_frames: int) -> str | None:
-    """Why the full path should find new points now (None: the tracked points still serve)."""
+                         max_sigma_m: float, every_frames: int, nearest_view_m: float = np.inf,
+                         max_lever_excess_m: float = np.inf) -> str | None:
+    """Why the full path should find new points now (None: the tracked points still serve). ``nearest_view_m``:
+    how far the nearest database view the frame may use is; a frame whose points' nearest view (``lever_m``) lies
+    more than ``max_lever_excess_m`` farther asks for the nearer views' points (the error grows with the
+    distance to the views)."""
     if n_points < min_points:
         return f"{n_points} points followed (fewer than {min_points})"
     if cells_occupied < min_cells:
         return f"points in {cells_occupied} of {GRID_CELLS * GRID_CELLS} image cells (fewer than {min_cells})"
     if lever_m is not None and lever_m > max_lever_m:
         return f"{lever_m:.1f} m from the nearest view (more than {max_lever_m:g} m)"
+    if lever_m is not None and lever_m > nearest_view_m + max_lever_excess_m:
+        return (f"{lever_m:.1f} m from the nearest view of its points, a view it may use {nearest_view_m:.1f} m away "
+                f"(more than {max_lever_excess_m:g} m nearer)")
     if estimate_sigma_m > max_sigma_m:
         return f"estimate sigma {estimate_sigma_m:.2f} m (more than {max_sigma_m:g} m)"
     if every_frames > 0 and frames_since_full >= every_frames:

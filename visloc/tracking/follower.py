@@ -250,6 +250,13 @@ class PointFollower:
                 per_side[before] += 1
         return out
 
+    def _nearest_view_m(self, east_north_m: np.ndarray, timestamp_s: float) -> float:
+        """How far from ``east_north_m`` the nearest database view a frame at ``timestamp_s`` may use is, m."""
+        d = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)
+        if self.params.exclusion_s > 0:
+            d = d[np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s]
+        return float(d.min()) if d.size else np.inf
+
     def _allowed(self, points: TrackedPoints, timestamp_s: float) -> TrackedPoints:
         """The points the exclusion window lets a frame at ``timestamp_s`` use."""
         if self.params.exclusion_s <= 0 or not len(points):
@@ -372,7 +379,9 @@ class PointFollower:
                         len(lasting), grid_cells_occupied(points.pixels_px, gray.shape), tracked.lever_m, sigma_m,
                         since_full, min_points=p.min_followed_points, min_cells=p.min_followed_cells,
                         max_lever_m=p.max_followed_lever_m, max_sigma_m=p.max_followed_sigma_m,
-                        every_frames=p.relocalize_every)
+                        every_frames=p.relocalize_every,
+                        nearest_view_m=self._nearest_view_m(tracked.east_north_m, t_s),
+                        max_lever_excess_m=p.max_followed_lever_excess_m)
                     if reason is not None and pending is None:
                         since_full = 0
                         if pool is not None:
