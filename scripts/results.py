@@ -418,6 +418,17 @@ def render_uncertainty(s: dict, add) -> None:
         cov = r["calibration"]["all"]["coverage"]
         add(f"| {drive} | {r['protocol_label']} | " + " | ".join(c(100 * cov[p], '.0f') for p in levels) + " |")
     add("")
+    estimated = [(drive, r) for drive, r in rows if (r.get("estimate_calibration") or {}).get("coverage")]
+    if estimated:
+        add("The same for the estimates against the filter's P, at one query a second (at the camera's rate: "
+            "[Camera rate](#camera-rate)):")
+        add("")
+        add("| drive | protocol | " + " | ".join(f"{float(p) * 100:g} %" for p in levels) + " |")
+        add("|---|---|" + "---|" * len(levels))
+        for drive, r in estimated:
+            cov = r["estimate_calibration"]["coverage"]
+            add(f"| {drive} | {r['protocol_label']} | " + " | ".join(c(100 * cov[p], '.0f') for p in levels) + " |")
+        add("")
     add("![calibration curves, one panel per drive and protocol](results/calibration.png)")
     add("")
     add(TARGETS)

@@ -72,6 +72,20 @@ def render_camera_rate(d: dict, add) -> None:
                 add(f"| {name} | {_cal(k['all'])} | {_cal(k['both'])} | {_cal(k['one'])} | "
                     f"{_cal(t['estimate_calibration'])} |")
             add("")
+            curves = {name: t for name, t in tracks.items() if (t.get("estimate_calibration") or {}).get("coverage")}
+            if curves:
+                levels = list(next(iter(curves.values()))["estimate_calibration"]["coverage"])
+                add("Calibration curves at the camera's rate: the share of the geometry measurements (against R) and "
+                    "of the estimates (against P) inside each nominal ellipse (the nominal share itself if honest):")
+                add("")
+                add("| drive / setup | of | " + " | ".join(f"{float(p) * 100:g} %" for p in levels) + " |")
+                add("|---|---|" + "---|" * len(levels))
+                for name, t in curves.items():
+                    for label, k in (("measurements", t["calibration"]["all"]), ("estimates", t["estimate_calibration"])):
+                        cov = k.get("coverage") or {}
+                        add(f"| {name} | {label} | " + " | ".join(_c(100 * cov[p], ".0f") if p in cov else "-"
+                                                                 for p in levels) + " |")
+                add("")
     if bench:
         add("`visloc bench` runs the exact refined path (the paper's retrieval, every candidate verified, "
             "full-resolution SIFT) and the camera-rate path on the same frames of each drive, one after the other in "
