@@ -46,7 +46,8 @@ def paper_values() -> dict[str, object]:
 
 def mode_rate(method_name: str) -> str:
     """The query rate a mode plays at unless another is chosen: the camera-rate mode at the camera's 10 Hz,
-    where its ellipses are honest (docs/results.md, "Camera rate"), the others at the paper's 1 Hz."""
+    where its ellipses are honest (docs/dashboard.md, measured by benchmarks/dashboard_rates.py), the others at
+    the paper's 1 Hz."""
     return "10" if visloc.method_named(method_name).camera_rate else "1"
 
 

@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from visloc.errors import InputError  # noqa: E402
 from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
 from visloc.stats import summary_of  # noqa: E402
-from results_camera_rate import digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
+from results_camera_rate import coverage_cells, digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
 from filter_replay import render_filter_replay, replay  # noqa: E402
 from results_peer import digest_peer, render_peer  # noqa: E402
 
@@ -415,8 +415,7 @@ def render_uncertainty(s: dict, add) -> None:
     add("| drive | protocol | " + " | ".join(f"{float(p) * 100:g} %" for p in levels) + " |")
     add("|---|---|" + "---|" * len(levels))
     for drive, r in rows:
-        cov = r["calibration"]["all"]["coverage"]
-        add(f"| {drive} | {r['protocol_label']} | " + " | ".join(c(100 * cov[p], '.0f') for p in levels) + " |")
+        add(f"| {drive} | {r['protocol_label']} | {coverage_cells(r['calibration']['all']['coverage'], levels)} |")
     add("")
     estimated = [(drive, r) for drive, r in rows if (r.get("estimate_calibration") or {}).get("coverage")]
     if estimated:
@@ -426,8 +425,7 @@ def render_uncertainty(s: dict, add) -> None:
         add("| drive | protocol | " + " | ".join(f"{float(p) * 100:g} %" for p in levels) + " |")
         add("|---|---|" + "---|" * len(levels))
         for drive, r in estimated:
-            cov = r["estimate_calibration"]["coverage"]
-            add(f"| {drive} | {r['protocol_label']} | " + " | ".join(c(100 * cov[p], '.0f') for p in levels) + " |")
+            add(f"| {drive} | {r['protocol_label']} | {coverage_cells(r['estimate_calibration']['coverage'], levels)} |")
         add("")
     add("![calibration curves, one panel per drive and protocol](results/calibration.png)")
     add("")

@@ -25,6 +25,11 @@ def _cal(k: dict) -> str:
     return "-" if not k or not k["n"] else f"{_c(k['nees_mean'])}, {_c(100 * k['inside_95'], '.0f')} % ({k['n']})"
 
 
+def coverage_cells(coverage: dict, levels: list) -> str:
+    """A calibration curve's cells: the share (%) inside each nominal level's ellipse, "-" where not measured."""
+    return " | ".join(_c(100 * coverage[p], ".0f") if p in coverage else "-" for p in levels)
+
+
 def render_camera_rate(d: dict, add) -> None:
     """The "Camera rate" section: every track run, then the bench's exact-against-fast comparison."""
     # sorted: the digest is stored with sorted keys, and the page must render the same from it
@@ -82,9 +87,7 @@ def render_camera_rate(d: dict, add) -> None:
                 add("|---|---|" + "---|" * len(levels))
                 for name, t in curves.items():
                     for label, k in (("measurements", t["calibration"]["all"]), ("estimates", t["estimate_calibration"])):
-                        cov = k.get("coverage") or {}
-                        add(f"| {name} | {label} | " + " | ".join(_c(100 * cov[p], ".0f") if p in cov else "-"
-                                                                 for p in levels) + " |")
+                        add(f"| {name} | {label} | {coverage_cells(k.get('coverage') or {}, levels)} |")
                 add("")
     if bench:
         add("`visloc bench` runs the exact refined path (the paper's retrieval, every candidate verified, "

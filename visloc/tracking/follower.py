@@ -232,9 +232,7 @@ class PointFollower:
             return {}
         allowed = None
         if self.params.exclusion_s > 0:
-            later = timestamp_s + LOOKAHEAD_S * self._sign
-            allowed = ((np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s)
-                       & (np.abs(self.db_timestamps_s - later) >= self.params.exclusion_s))
+            allowed = self._usable(timestamp_s) & self._usable(timestamp_s + LOOKAHEAD_S * self._sign)
         distance = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)
         out: dict[int, ViewStructure] = {}
         per_side = {True: 0, False: 0}  # as many views before the frame as after it, nearest first
@@ -250,18 +248,20 @@ class PointFollower:
                 per_side[before] += 1
         return out
 
+    def _usable(self, timestamp_s: float) -> np.ndarray:
+        """(N,) bool: the database views the exclusion window lets a frame at ``timestamp_s`` use."""
+        return np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s
+
     def _nearest_view_m(self, east_north_m: np.ndarray, timestamp_s: float) -> float:
         """How far from ``east_north_m`` the nearest database view a frame at ``timestamp_s`` may use is, m."""
-        d = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)
-        if self.params.exclusion_s > 0:
-            d = d[np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s]
+        d = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)[self._usable(timestamp_s)]
         return float(d.min()) if d.size else np.inf
 
     def _allowed(self, points: TrackedPoints, timestamp_s: float) -> TrackedPoints:
         """The points the exclusion window lets a frame at ``timestamp_s`` use."""
         if self.params.exclusion_s <= 0 or not len(points):
             return points
-        far = np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s
+        far = self._usable(timestamp_s)
         ok_view = {v: bool(far[v]) and all(far[j] for j in points.neighbours.get(v, ()))
                    for v in np.unique(points.view_of).tolist()}
         return points.subset(np.array([ok_view[v] for v in points.view_of.tolist()], bool))
