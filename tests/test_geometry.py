@@ -231,6 +231,28 @@ def test_views_are_taken_on_both_sides_of_the_query_when_the_database_has_both()
     assert (geotags[list(one_side.view_indices), 0] < truth[0]).all()
 
 
+def test_images_behind_the_pose_are_verified_when_the_best_candidates_all_lie_ahead():
+    # a fast car: the retrieval's best candidates by count all lie ahead of the query, and verifying only the top
+    # three of them leaves the images behind it, which see the same scene, unverified
+    geometry, geotags, xq, dq, truth = synthetic_database([-12.0, -9.0, -6.0, 6.0, 9.0, 12.0], query_east_m=0.0)
+    retrieval = Retrieval(candidates=np.arange(6), counts=np.array([10, 20, 30, 80, 70, 60]), best_index=3)
+    params = RefinedParams(neighbour_baselines_m=(3.0,), max_neighbour_gap=2, n_views=2, top_k=3)
+    m = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)
+    assert m.source == GEOMETRY and m.side == "both", m.fallback_reason
+    east_of_views = geotags[list(m.view_indices), 0]
+    assert east_of_views.min() < truth[0] < east_of_views.max()
+    assert np.linalg.norm(m.east_north_m - truth) < 0.05
+    # the nearest behind the pose were verified, the farthest not
+    assert {1, 2} <= set(m.candidate_inliers) and 0 not in m.candidate_inliers
+    # without the search, the same retrieval is posed from ahead only
+    ahead = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(other_side_candidates=0))
+    assert ahead.source == GEOMETRY and ahead.side == "one" and (geotags[list(ahead.view_indices), 0] > truth[0]).all()
+    # a retrieval whose search area holds nothing behind the pose: one side, as before
+    only_ahead = Retrieval(candidates=np.arange(3, 6), counts=np.array([80, 70, 60]), best_index=3)
+    m = pose_measurement(xq, dq, only_ahead, geotags, geometry, CAMERA, params)
+    assert m.source == GEOMETRY and m.side == "one" and set(m.candidate_inliers) == {3, 4, 5}
+
+
 def test_views_posed_apart_and_averaged_keep_both_sides_where_their_geotags_disagree():
     # the images behind the query were geotagged 0.6 m north of where they were taken, those ahead exactly: each
     # side's structure is consistent in itself (the views' neighbours lie on their own side), the sides disagree

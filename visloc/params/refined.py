@@ -37,6 +37,11 @@ class RefinedParams(Params):
                                "latency)", kind="integer", low=1)
     both_sides: bool = _refined(True, "choose the views on both sides of the query where the database has both "
                                       "(best first otherwise)", kind="bool")
+    other_side_candidates: int = _refined(
+        2, "where every view lies on one side of the query's pose and no verified candidate on the other, this many "
+           "allowed database images nearest the pose on the other side (facing its way) are verified too, and the query "
+           "posed again with them: the retrieval's best candidates often all lie ahead of a fast car, while the "
+           "images behind it see the same scene (0: never)", kind="integer", low=0)
     fuse_views: bool = _refined(
         True, "pose the query against each view alone (its own RANSAC and guided matching) and average the views' "
               "positions; off: one PnP over every view's points. Each view's structure is adjusted on its own, and where "

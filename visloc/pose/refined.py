@@ -14,9 +14,13 @@ For a query whose retrieval has ranked the database candidates by correspondence
 3. **Views on both sides.** The query is posed against the ``n_views`` best views; if
    they all lie on one side of that first pose (all behind it, or all ahead) and a
    verified candidate lies on the other side, the weakest view is swapped for it and the
-   query posed again. Posing from one side extrapolates the geotags' local errors (their
-   scale and drift between the views and their neighbours) over the distance to the
-   query; views on both sides interpolate them.
+   query posed again. Where none of the verified candidates lies there (a fast car's
+   best candidates by count often all lie ahead of it), the ``other_side_candidates``
+   allowed images nearest the pose on the other side, facing its way, are verified and
+   the query posed again with them, kept when it then has views on both sides. Posing
+   from one side extrapolates the geotags' local errors (their scale and drift between
+   the views and their neighbours) over the distance to the query; views on both sides
+   interpolate them.
 4. **Pose.** PnP RANSAC and Levenberg-Marquardt over every view's 2D-3D correspondences
    give the query camera's pose, and the query camera's extrinsics give the pose of the
    query vehicle's geotag reference point (its IMU): the measurement is its east/north.
@@ -50,13 +54,13 @@ from threadpoolctl import threadpool_limits
 
 from visloc.geometry.bundle import PosePriors, refine_database_poses
 from visloc.features.sift import Query
-from visloc.geometry.projective import CameraModel, essential_inliers
+from visloc.geometry.projective import CameraModel, essential_inliers, heading_deg_of
 from visloc.geometry.multiview import triangulate_tracks
 from visloc.retrieval.matching import correspondences
 from visloc.pose.measurement import Measurement, MeasurementEnd, query_pixels
 from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval.retrievers import Retrieval
-from visloc.pose.viewpose import DatabaseGeometry, pose_from_views, require_calibrated
+from visloc.pose.viewpose import DatabaseGeometry, PosedViews, pose_from_views, require_calibrated, side_of
 
 
 class StructureCache:
@@ -231,35 +235,35 @@ def pose_measurement(
     # 1. verification: re-rank the top-k candidates by essential-matrix inliers
     order = np.argsort(-retrieval.counts, kind="stable")[: params.top_k]
     order = [k for k in order if retrieval.counts[k] > 0]
-    match = MatchParams(tau1=params.ratio, tau2=-1.0)
-    verified: list[tuple[int, int, np.ndarray]] = []  # (inliers, db index, pairs)
-    for k in order:
-        i = int(retrieval.candidates[k])
-        pairs = correspondences(query_descriptors_u8, geometry.descriptors_u8[i], match)
-        mask = essential_inliers(query_xy[pairs[:, 0]], geometry.keypoints_xy_px[i][pairs[:, 1]],
-                                 query_camera.K, geometry.camera.K, threshold_px=params.essential_px,
-                                 seed=params.seed)
-        verified.append((int(mask.sum()), i, pairs))
-    verified.sort(key=lambda v: -v[0])  # stable: ties keep the count order
+    verified = _verified([int(retrieval.candidates[k]) for k in order], query_xy, query_descriptors_u8, geometry,
+                         query_camera, params)
     inliers_of = {i: n for n, i, _ in verified}
     best_inliers = verified[0][0] if verified else 0
     if best_inliers < params.min_verified_inliers:
         return fallback(f"verification: best candidate has {best_inliers} essential-matrix inliers "
                         f"(need {params.min_verified_inliers})", n_verified_inliers=best_inliers,
                         candidate_inliers=inliers_of)
-    candidates = [(i, pairs) for n, i, pairs in verified if n >= params.min_verified_inliers
-                  and np.all(np.isfinite(geometry.T_world_camera[i]))]
-    if not candidates:
+    if not any(np.all(np.isfinite(geometry.T_world_camera[i])) for n, i, _ in verified
+               if n >= params.min_verified_inliers):
         return fallback(f"database image {verified[0][1]} has no attitude (re-run 'visloc ingest' to fill it)",
                         n_verified_inliers=best_inliers, candidate_inliers=inliers_of)
 
     # 2. the verified candidates that have allowed neighbours; a view's structure is built when it is chosen
     pairs_of, neighbours_used = {}, {}
-    for i, pairs in candidates:
-        neighbours = neighbours_of(i, retrieval.search_area, geometry.T_world_camera, params)
-        if neighbours:
-            pairs_of[i], neighbours_used[i] = pairs, neighbours
-    usable = list(pairs_of)  # in inlier order
+
+    def use(more_verified: list[tuple[int, int, np.ndarray]]) -> list[int]:
+        """The views among ``more_verified`` that pass and have allowed neighbours (in inlier order)."""
+        added = []
+        for n, i, pairs in more_verified:
+            if n < params.min_verified_inliers or not np.all(np.isfinite(geometry.T_world_camera[i])):
+                continue
+            neighbours = neighbours_of(i, retrieval.search_area, geometry.T_world_camera, params)
+            if neighbours:
+                pairs_of[i], neighbours_used[i] = pairs, neighbours
+                added.append(i)
+        return added
+
+    usable = use(verified)
     base = dict(n_verified_inliers=best_inliers, candidate_inliers=inliers_of)
     if not usable:
         return fallback(f"no database neighbour within {params.max_neighbour_gap} frames of the verified views is "
@@ -268,9 +272,61 @@ def pose_measurement(
     def structure_of(i: int) -> tuple[dict[int, np.ndarray], float]:
         return view_structure(geometry, i, neighbours_used[i], params, cache)
 
-    posed = pose_from_views(query_xy, usable, pairs_of, structure_of, neighbours_used, db_east_north_m, geometry,
-                            query_camera, params, query_descriptors=query_descriptors_u8)
+    def pose(views: list[int]) -> PosedViews:
+        return pose_from_views(query_xy, views, pairs_of, structure_of, neighbours_used, db_east_north_m, geometry,
+                               query_camera, params, query_descriptors=query_descriptors_u8)
+
+    posed = pose(usable)
+    # 3. every view on one side: the images nearest the pose on the other side, verified, and the query posed again
+    if params.both_sides and params.other_side_candidates > 0 and posed.reason is None and posed.side == "one":
+        other = other_side_images(posed, retrieval.search_area, set(inliers_of), db_east_north_m, geometry, params)
+        more = _verified(other, query_xy, query_descriptors_u8, geometry, query_camera, params)
+        inliers_of.update({i: n for n, i, _ in more})
+        added = use(more)
+        if added:
+            again = pose(usable + added)
+            if again.reason is None and again.side == "both":
+                again.structure_ms += posed.structure_ms
+                posed = again
+            else:
+                posed.structure_ms += again.structure_ms
     return end.posed(posed, **base)
+
+
+def _verified(indices: Sequence[int], query_xy: np.ndarray, query_descriptors_u8: np.ndarray,
+              geometry: DatabaseGeometry, query_camera: CameraModel,
+              params: RefinedParams) -> list[tuple[int, int, np.ndarray]]:
+    """(essential-matrix inliers, database index, pairs (query row, keypoint row)) of each of ``indices``, matched
+    with Lowe's ratio alone, most inliers first (ties keep the order of ``indices``)."""
+    match = MatchParams(tau1=params.ratio, tau2=-1.0)
+    verified = []
+    for i in indices:
+        pairs = correspondences(query_descriptors_u8, geometry.descriptors_u8[i], match)
+        mask = essential_inliers(query_xy[pairs[:, 0]], geometry.keypoints_xy_px[i][pairs[:, 1]],
+                                 query_camera.K, geometry.camera.K, threshold_px=params.essential_px,
+                                 seed=params.seed)
+        verified.append((int(mask.sum()), int(i), pairs))
+    verified.sort(key=lambda v: -v[0])
+    return verified
+
+
+def other_side_images(posed: PosedViews, allowed: np.ndarray, exclude: set[int], db_east_north_m: np.ndarray,
+                      geometry: DatabaseGeometry, params: RefinedParams) -> list[int]:
+    """The ``other_side_candidates`` images of ``allowed`` (not in ``exclude``) nearest the pose of ``posed`` on the
+    other side of it from its views, facing within ``max_heading_diff_deg`` of its heading and at most
+    ``max_offset_m`` from it, nearest first."""
+    T_query = posed.inliers.T_world_camera
+    views_side = side_of(geometry.T_world_camera[posed.anchor][:3, 3], T_query)
+    found = []
+    for j in np.asarray(allowed, int).tolist():
+        T = geometry.T_world_camera[j]
+        if j in exclude or not np.all(np.isfinite(T)) or side_of(T[:3, 3], T_query) == views_side:
+            continue
+        distance_m = float(np.linalg.norm(np.asarray(db_east_north_m[j], float) - posed.east_north_m))
+        turn_deg = abs((heading_deg_of(T @ geometry.camera.T_camera_imu) - posed.heading_deg + 180.0) % 360.0 - 180.0)
+        if distance_m <= params.max_offset_m and turn_deg <= params.max_heading_diff_deg:
+            found.append((distance_m, j))
+    return [j for _, j in sorted(found)[: params.other_side_candidates]]
 
 
 class PoseMeasurer:

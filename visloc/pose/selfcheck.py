@@ -76,8 +76,10 @@ def self_check_params(params: RefinedParams) -> RefinedParams:
     their disagreement to its covariance themselves (a gain fitted on two views posed apart made the refined
     mode's ellipses too small on drives 0005 and 0027). No second, looser pose where support is thin: the gain is
     fitted on the poses the strict threshold makes, and a store's self-check stays valid whatever
-    ``thin_support_pnp_px`` is."""
-    return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False, thin_support_pnp_px=0.0)
+    ``thin_support_pnp_px`` is. No search for views on the other side either: the gain's one-sided poses are
+    the database's own extrapolation over the lever, whatever ``other_side_candidates`` is."""
+    return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False, thin_support_pnp_px=0.0,
+                          other_side_candidates=0)
 
 
 def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S, *,

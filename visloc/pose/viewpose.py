@@ -88,7 +88,7 @@ def _correspondences(chosen: list[int], pairs_of: dict[int, np.ndarray], structu
                   np.array(view_of, np.int64), np.array(rows, np.int64).reshape(-1, 2))
 
 
-def _side(view_centre: np.ndarray, T_world_camera_query: np.ndarray) -> int:
+def side_of(view_centre: np.ndarray, T_world_camera_query: np.ndarray) -> int:
     """+1 if a view's camera lies ahead of the query camera (along its optical axis), -1 behind."""
     forward = T_world_camera_query[:3, 2]
     return 1 if float(np.dot(view_centre - T_world_camera_query[:3, 3], forward)) >= 0 else -1
@@ -113,7 +113,7 @@ def _both_sides(usable: list[int], T_world_camera_query: np.ndarray, geometry: "
                 params: RefinedParams) -> tuple[dict[int, int], list[int]]:
     """Each usable view's side of the query camera at ``T_world_camera_query`` (+1 ahead, -1 behind), and as many
     views on each side as the database has, best first and alternating (empty when all lie on one side)."""
-    side = {i: _side(geometry.T_world_camera[i][:3, 3], T_world_camera_query) for i in usable}
+    side = {i: side_of(geometry.T_world_camera[i][:3, 3], T_world_camera_query) for i in usable}
     behind, ahead = [i for i in usable if side[i] < 0], [i for i in usable if side[i] > 0]
     if not (behind and ahead):
         return side, []
@@ -314,7 +314,7 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
     # 5. covariance (visloc.pose.uncertainty): relative to the map, PnP's + the views' spread + what the
     #    database's poses get wrong over the lever to the nearest view + the views' geotags that are no fix;
     #    the geotags' stated accuracy apart
-    sides = {_side(geometry.T_world_camera[i][:3, 3], inliers.T_world_camera) for i in chosen}
+    sides = {side_of(geometry.T_world_camera[i][:3, 3], inliers.T_world_camera) for i in chosen}
     side = "both" if len(sides) == 2 else "one"
     lever_m = float(min(np.linalg.norm(east_north - np.asarray(db_east_north_m[i], float)) for i in chosen))
     gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
