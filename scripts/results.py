@@ -558,10 +558,11 @@ def render_page(d: dict) -> str:
         "Haversine distances appear only in the check of its Table 3. What the numbers mean: "
         "[method notes](method.md).")
     carried = d.get("carried_over")
+    speed = d.get("speed") or (carried or {}).get("speed")  # the speed sections' own run, where there was one
     if carried:
-        measured = sorted({drive for key in (("diagnostics",) if d.get("speed") else ("bench", "diagnostics"))
+        measured = sorted({drive for key in (("diagnostics",) if speed else ("bench", "diagnostics"))
                            for drive in d.get(key) or {}})
-        sections = "the Table 3 check" + ("" if d.get("speed") else ", \"Camera rate\" and \"Speed\"")
+        sections = "the Table 3 check" + ("" if speed else ", \"Camera rate\" and \"Speed\"")
         add("")
         add(f"Only the evaluations of every drive (`python scripts/results.py run --suite-only`: the sections from "
             f"\"Every drive at once\" to \"Every drive, both modes, per step\" and the comparison with the peer) were "
@@ -570,7 +571,6 @@ def render_page(d: dict) -> str:
             f"`{carried['commit']}` from {carried['started']} to {carried['finished']}, on "
             f"{', '.join(measured) or 'no drive'}: a drive of the data root missing from them has not been "
             "measured there yet.")
-    speed = d.get("speed") or (carried or {}).get("speed")
     if speed:
         add("")
         add(f"The sections \"Camera rate\" and \"Speed\" were measured again with commit `{speed['commit']}` "
