@@ -42,6 +42,10 @@ class RefinedParams(Params):
            "allowed database images nearest the pose on the other side (facing its way) are verified too, and the query "
            "posed again with them: the retrieval's best candidates often all lie ahead of a fast car, while the "
            "images behind it see the same scene (0: never)", kind="integer", low=0)
+    other_side_max_turn_deg: float = _refined(
+        15.0, "... facing at most this far from the query's heading: in a turn, an image behind the car looks across "
+              "the scene the views ahead see, and posed from both the query is no better placed", unit="deg", low=0,
+        open_low=True)
     fuse_views: bool = _refined(
         True, "pose the query against each view alone (its own RANSAC and guided matching) and average the views' "
               "positions; off: one PnP over every view's points. Each view's structure is adjusted on its own, and where "

@@ -313,7 +313,7 @@ def _verified(indices: Sequence[int], query_xy: np.ndarray, query_descriptors_u8
 def other_side_images(posed: PosedViews, allowed: np.ndarray, exclude: set[int], db_east_north_m: np.ndarray,
                       geometry: DatabaseGeometry, params: RefinedParams) -> list[int]:
     """The ``other_side_candidates`` images of ``allowed`` (not in ``exclude``) nearest the pose of ``posed`` on the
-    other side of it from its views, facing within ``max_heading_diff_deg`` of its heading and at most
+    other side of it from its views, facing within ``other_side_max_turn_deg`` of its heading and at most
     ``max_offset_m`` from it, nearest first."""
     T_query = posed.inliers.T_world_camera
     views_side = side_of(geometry.T_world_camera[posed.anchor][:3, 3], T_query)
@@ -324,7 +324,7 @@ def other_side_images(posed: PosedViews, allowed: np.ndarray, exclude: set[int],
             continue
         distance_m = float(np.linalg.norm(np.asarray(db_east_north_m[j], float) - posed.east_north_m))
         turn_deg = abs((heading_deg_of(T @ geometry.camera.T_camera_imu) - posed.heading_deg + 180.0) % 360.0 - 180.0)
-        if distance_m <= params.max_offset_m and turn_deg <= params.max_heading_diff_deg:
+        if distance_m <= params.max_offset_m and turn_deg <= params.other_side_max_turn_deg:
             found.append((distance_m, j))
     return [j for _, j in sorted(found)[: params.other_side_candidates]]
 
