@@ -247,6 +247,14 @@ def test_images_behind_the_pose_are_verified_when_the_best_candidates_all_lie_ah
     # without the search, the same retrieval is posed from ahead only
     ahead = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params.replace(other_side_candidates=0))
     assert ahead.source == GEOMETRY and ahead.side == "one" and (geotags[list(ahead.view_indices), 0] > truth[0]).all()
+    # images behind that face far from the query's heading (a turn) are not searched
+    turned = synthetic_database([-12.0, -9.0, -6.0, 6.0, 9.0, 12.0], query_east_m=0.0,
+                                yaw_error_rad=[0.4, 0.4, 0.4, 0.0, 0.0, 0.0])
+    m = pose_measurement(turned[2], turned[3], retrieval, turned[1], turned[0], CAMERA, params)
+    assert m.source == GEOMETRY and m.side == "one" and set(m.candidate_inliers) == {3, 4, 5}
+    loose = pose_measurement(turned[2], turned[3], retrieval, turned[1], turned[0], CAMERA,
+                             params.replace(other_side_max_turn_deg=30.0))
+    assert {1, 2} <= set(loose.candidate_inliers)  # 23 degrees away: searched under a looser limit
     # a retrieval whose search area holds nothing behind the pose: one side, as before
     only_ahead = Retrieval(candidates=np.arange(3, 6), counts=np.array([80, 70, 60]), best_index=3)
     m = pose_measurement(xq, dq, only_ahead, geotags, geometry, CAMERA, params)
