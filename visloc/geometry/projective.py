@@ -106,6 +106,11 @@ def heading_deg_of(T_world_imu: np.ndarray) -> float:
     return float((90.0 - math.degrees(math.atan2(forward[1], forward[0]))) % 360.0)
 
 
+def heading_difference_deg(a_deg: float, b_deg: float) -> float:
+    """How far apart two compass headings are, degrees in [0, 180]."""
+    return abs((float(a_deg) - float(b_deg) + 180.0) % 360.0 - 180.0)
+
+
 @dataclass(frozen=True)
 class CameraModel:
     """A rectified camera: intrinsics ``K`` (3x3, pixels) and extrinsics ``T_camera_imu`` (4x4, metres)."""

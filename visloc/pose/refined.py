@@ -16,8 +16,9 @@ For a query whose retrieval has ranked the database candidates by correspondence
    verified candidate lies on the other side, the weakest view is swapped for it and the
    query posed again. Where none of the verified candidates lies there (a fast car's
    best candidates by count often all lie ahead of it), the ``other_side_candidates``
-   allowed images nearest the pose on the other side, facing its way, are verified and
-   the query posed again with them, kept when it then has views on both sides. Posing
+   allowed images nearest the pose on the other side, facing within
+   ``other_side_max_turn_deg`` of its heading, are verified and the query posed again
+   with them, kept when it then has views on both sides. Posing
    from one side extrapolates the geotags' local errors (their scale and drift between
    the views and their neighbours) over the distance to the query; views on both sides
    interpolate them.
@@ -54,7 +55,7 @@ from threadpoolctl import threadpool_limits
 
 from visloc.geometry.bundle import PosePriors, refine_database_poses
 from visloc.features.sift import Query
-from visloc.geometry.projective import CameraModel, essential_inliers, heading_deg_of
+from visloc.geometry.projective import CameraModel, essential_inliers, heading_deg_of, heading_difference_deg
 from visloc.geometry.multiview import triangulate_tracks
 from visloc.retrieval.matching import correspondences
 from visloc.pose.measurement import Measurement, MeasurementEnd, query_pixels
@@ -323,7 +324,7 @@ def other_side_images(posed: PosedViews, allowed: np.ndarray, exclude: set[int],
         if j in exclude or not np.all(np.isfinite(T)) or side_of(T[:3, 3], T_query) == views_side:
             continue
         distance_m = float(np.linalg.norm(np.asarray(db_east_north_m[j], float) - posed.east_north_m))
-        turn_deg = abs((heading_deg_of(T @ geometry.camera.T_camera_imu) - posed.heading_deg + 180.0) % 360.0 - 180.0)
+        turn_deg = heading_difference_deg(heading_deg_of(T @ geometry.camera.T_camera_imu), posed.heading_deg)
         if distance_m <= params.max_offset_m and turn_deg <= params.other_side_max_turn_deg:
             found.append((distance_m, j))
     return [j for _, j in sorted(found)[: params.other_side_candidates]]

@@ -14,8 +14,8 @@ from functools import cached_property
 import numpy as np
 
 from visloc.errors import InputError
-from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, imu_east_north_covariance, imu_pose_from_camera,
-                             refine_pose, solve_pnp)
+from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, heading_difference_deg,
+                                        imu_east_north_covariance, imu_pose_from_camera, refine_pose, solve_pnp)
 from visloc.params import RefinedParams
 from visloc.pose.guided import guided_pairs
 from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2, lever_covariance_m2,
@@ -306,7 +306,7 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
                           f"{params.max_offset_m:g} m)", support, structure_ms)
     heading = heading_deg_of(T_world_imu)
     view_heading = heading_deg_of(geometry.T_world_camera[anchor] @ geometry.camera.T_camera_imu)
-    turn_deg = abs((heading - view_heading + 180.0) % 360.0 - 180.0)
+    turn_deg = heading_difference_deg(heading, view_heading)
     if turn_deg > params.max_heading_diff_deg:
         return PosedViews(f"PnP pose faces {turn_deg:.0f} deg away from view {anchor} (limit "
                           f"{params.max_heading_diff_deg:g} deg)", support, structure_ms)
