@@ -39,9 +39,9 @@ class RefinedParams(Params):
                                       "(best first otherwise)", kind="bool")
     other_side_candidates: int = _refined(
         2, "where every view lies on one side of the query's pose and no verified candidate on the other, this many "
-           "allowed database images nearest the pose on the other side (facing its way) are verified too, and the query "
+           "allowed database images nearest the pose on the other side are verified too, and the query "
            "posed again with them: the retrieval's best candidates often all lie ahead of a fast car, while the "
-           "images behind it see the same scene (0: never)", kind="integer", low=0)
+           "images behind it see the same scene (0: never; refined-fast does not search)", kind="integer", low=0)
     other_side_max_turn_deg: float = _refined(
         15.0, "... facing at most this far from the query's heading: in a turn, an image behind the car looks across "
               "the scene the views ahead see, and posed from both the query is no better placed", unit="deg", low=0,
