@@ -6,7 +6,8 @@ beside them; a count that is not a count; a row that names an image the store la
 is SQLite's own integrity check, ``missing_schema`` the tables and columns the schema needs but the
 store lacks. ``forget_derived`` deletes what was made from images that ingest replaced (their
 structure and that of images triangulated with them, the global vectors and encoders of their
-drive, self-checks, cached counts), so the build steps make it again from the new features.
+drive, self-checks, cached counts), so the build steps make it again from the new features;
+``move_geotags`` what was made from the geotags of a drive whose geotags its source now states otherwise.
 """
 
 from __future__ import annotations
@@ -231,6 +232,24 @@ def forget_derived(store: FeatureStore, source: str, camera: str, image_ids: Ite
         for chunk, marks in chunks(sorted(ids), 400):
             store.db.execute(f"DELETE FROM pair_counts WHERE query_image_id IN ({marks}) OR db_image_id IN ({marks})",
                              [*chunk, *chunk])
+
+
+def move_geotags(store: FeatureStore, source: str, camera: str, geotags_deg: dict[int, tuple[float, float]]) -> int:
+    """Set the geotag (lat, lon) of stored frames of ``source``/``camera`` and delete what was made from the
+    drive's geotags (the structure of each of its images, triangulated at the geotags' poses, and its
+    self-checks), in one transaction: the build steps make them again. Features, global vectors and cached
+    counts are the images' own and stay. Returns rows changed."""
+    if not geotags_deg:
+        return 0
+    changed = 0
+    in_drive = "IN (SELECT id FROM images WHERE source = ? AND camera = ?)"
+    with store.db.atomic():
+        for frame, (lat, lon) in geotags_deg.items():
+            changed += store.db.execute("UPDATE images SET lat_deg = ?, lon_deg = ? WHERE source = ? AND camera = ? "
+                                        "AND frame = ?", [float(lat), float(lon), source, camera, int(frame)]).rowcount
+        store.db.execute(f"DELETE FROM structures WHERE image_id {in_drive}", [source, camera])
+        store.db.execute(f"DELETE FROM self_checks WHERE image_id {in_drive}", [source, camera])
+    return changed
 
 
 def clear_pair_counts(store: FeatureStore) -> int:

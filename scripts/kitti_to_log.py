@@ -9,9 +9,9 @@ The log is written with the ``rosbags`` writer, as a robot's recorder would writ
   ``/kitti/<camera>/camera_info`` (``CameraInfo``: ``P`` = KITTI's ``P_rect_0X``, ``K`` its 3x3 part,
   no distortion, the images' size), each stamped with the camera's own time from its timestamps.txt,
   to the nanosecond;
-* ``/gps/fix`` (``NavSatFix``): KITTI's synced OXTS record of each frame, its stated accuracy
-  (``pos_accuracy``) as the east, north and up variances. KITTI's synced record i is the geotag of
-  frame i of every camera, so the log states it at each camera's time of frame i;
+* ``/gps/fix`` (``NavSatFix``): the geotag visloc's KITTI reader gives frame i of each camera (KITTI's synced
+  OXTS record i, moved on to that camera's time of frame i), stated at that time, with the record's stated
+  accuracy (``pos_accuracy``) as the east, north and up variances;
 * ``/imu/data`` (``Imu``): the record's roll, pitch and yaw as the orientation of ``base_link`` (the
   OXTS frame: x forward, y left, z up, relative to east-north-up), stamped as the fixes;
 * ``/tf_static``: ``base_link`` to each camera's optical frame, from KITTI's calibration.
@@ -189,9 +189,10 @@ def write_log(root: Path, drive: str, cameras: list[str], out: Path, fmt: str, f
                 records.append((t, image_topic, "sensor_msgs/msg/Image", messages.image(t, optical, pixels)))
                 records.append((t, info_topic, "sensor_msgs/msg/CameraInfo",
                                 messages.camera_info(t, optical, d.P_rect, d.image_size_px)))
-            for t in sorted({times[c][i] for c in cameras}):
-                records.append((t, FIX_TOPIC, "sensor_msgs/msg/NavSatFix", messages.fix(t, drives[0].frames[i])))
-                records.append((t, IMU_TOPIC, "sensor_msgs/msg/Imu", messages.imu(t, drives[0].frames[i])))
+            fixes = {times[d.camera][i]: d.frames[i] for d in drives}  # each camera's geotag at its own time
+            for t, frame in sorted(fixes.items()):
+                records.append((t, FIX_TOPIC, "sensor_msgs/msg/NavSatFix", messages.fix(t, frame)))
+                records.append((t, IMU_TOPIC, "sensor_msgs/msg/Imu", messages.imu(t, frame)))
             for t, topic, msgtype, message in sorted(records, key=lambda r: r[0]):
                 log.write(topic, msgtype, t, message)
             records.clear()

@@ -2,7 +2,7 @@
 ``VislocError`` (the CLI's one-line error, exit 2), never another exception.
 
 Fuzzed: the CSV drive (``open_csv``: raw bytes, and well-formed CSV with mutated cells beside two
-small valid images), KITTI's OXTS record (``_read_oxts``) and ``timestamps.txt`` (``_read_timestamps``),
+small valid images), KITTI's OXTS record (``read_oxts``) and ``timestamps.txt`` (``_read_timestamps``),
 its calibration files (``read_kitti_calibration``, ``read_kitti_extrinsics``) and a CSV drive's
 ``calibration.json`` (``read_calibration``: any JSON value, near-valid objects, raw bytes).
 Derandomized, so every run tries the same inputs.
@@ -22,7 +22,8 @@ from hypothesis import strategies as st
 
 from visloc.errors import VislocError
 from visloc.sources.calibration import read_calibration, read_kitti_calibration, read_kitti_extrinsics
-from visloc.sources.drives import _read_oxts, _read_timestamps, open_csv
+from visloc.sources.drives import _read_timestamps, open_csv
+from visloc.sources.oxts import read_oxts
 
 FUZZ = settings(max_examples=300, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
@@ -133,7 +134,7 @@ def test_open_csv_survives_mutated_csv(folder, text):
 @given(content=st.one_of(st.binary(max_size=200), st.text(max_size=200),
                          st.lists(NUMBER_TEXT, max_size=32).map(" ".join)))
 def test_oxts_record_survives_anything(folder, content):
-    survives(_read_oxts, written(folder / "0000000000.txt", content))
+    survives(read_oxts, written(folder / "0000000000.txt", content))
 
 
 KITTI_TIME = st.datetimes().map(lambda d: d.strftime("%Y-%m-%d %H:%M:%S.%f") + "000")

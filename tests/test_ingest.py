@@ -14,7 +14,7 @@ from visloc.store.ingest import ingest
 from visloc.params import SiftParams
 from visloc.sources.drives import open_csv
 
-from helpers import REPO, write_csv_drive
+from helpers import REPO, make_fake_kitti, write_csv_drive
 from helpers import assert_no_half_images, snapshot, wait_for_rows
 
 
@@ -165,3 +165,31 @@ def test_reingest_fills_the_geotag_accuracy_a_version_2_store_lacks(tmp_path):
                       workers=1).n_accuracies_filled == 1
         assert [im.position_accuracy_m for im in store.images()] == [0.3, None, 0.5]
         assert [im.image_id for im in store.images()] == ids_before
+
+
+def test_geotags_the_source_now_states_otherwise_are_taken_again_and_their_structure_rebuilt(tmp_path):
+    """A store made before its drive's geotags were taken at the images' times: ingest takes the new geotags and
+    drops the structure and self-checks made at the old ones (the build steps make them again), keeping the
+    features."""
+    from visloc.sources.drives import open_kitti
+    from visloc.store.build import build_structure
+    from visloc.store.workspace import Workspace
+
+    make_fake_kitti(tmp_path / "kitti", n_frames=4)
+    seq = open_kitti(tmp_path / "kitti", None, "image_00")
+    with FeatureStore(tmp_path / "s.sqlite", create=True) as store:
+        ingest(store, seq, SiftParams(), workers=1)
+    ws = Workspace(tmp_path / "s.sqlite")
+    assert build_structure(ws, seq.source, seq.camera) == 4
+    with FeatureStore(tmp_path / "s.sqlite") as store:
+        features = store.features(im.image_id for im in store.images())
+        store.db.execute("UPDATE images SET lat_deg = lat_deg + 3e-7 WHERE frame < 2")  # 3 cm north, as once read
+        store.db.conn.commit()
+        assert ingest(store, seq, SiftParams(), workers=1).n_geotags_moved == 2
+        assert [(im.lat_deg, im.lon_deg) for im in store.images()] == [(f.lat_deg, f.lon_deg) for f in seq.frames]
+        assert store.db.execute("SELECT COUNT(*) FROM structures").fetchone()[0] == 0
+        kept = store.features(im.image_id for im in store.images())
+        assert all(np.array_equal(features[i][0], kept[i][0]) and np.array_equal(features[i][1], kept[i][1])
+                   for i in features)
+        assert ingest(store, seq, SiftParams(), workers=1).n_geotags_moved == 0  # nothing more to take
+    assert build_structure(ws, seq.source, seq.camera) == 4  # made again, at the geotags the source states

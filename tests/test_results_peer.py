@@ -59,6 +59,14 @@ def test_each_peer_frame_meets_visloc_s_median_measurement_there(tmp_path):
     assert [r["peer_inliers"] for r in d["frames"]] == [100, 100, 3]
     assert d["peer_inliers"]["median"] == 100 and d["visloc_query_keypoints"]["median"] == 70
 
+    # a pose whose position the peer's JSON states is measured against visloc's truth of the frame, not the peer's
+    query = peer_query(5, 0.10)
+    query.update(truth_lat_deg=49.0, truth_lon_deg=8.4, truth_east_north_m=[10.0, 20.0])
+    query["variants"]["counts"]["pnp"]["12.0"]["east_north_m"] = [10.0, 20.1]  # 0.1 m north of the peer's truth
+    assert results_peer.peer_pose(query)["error_m"] == 0.10  # no truth of visloc's: the peer's own figure
+    north_of_it = results_peer.peer_pose(query, (49.0 + 0.04 / 111_200, 8.4))  # visloc's truth 4 cm north of it
+    assert north_of_it["error_m"] == pytest.approx(0.06, abs=1e-3)
+
     lines: list[str] = []
     results_peer.render_peer(digest, lines.append)
     row = next(line for line in lines if line.startswith(f"| {drive} "))

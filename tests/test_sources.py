@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from visloc.errors import InputError
+from visloc.geo import LocalFrame
 from visloc.sources.drives import load_gray, open_csv, open_kitti
 from visloc.sources.opening import open_source
 
@@ -34,6 +35,39 @@ def test_timestamps_fall_back_to_oxts(tmp_path):
     (drive / "image_00" / "timestamps.txt").unlink()
     seq = open_kitti(tmp_path, None, "image_00")
     assert seq.frames[1].timestamp_s - seq.frames[0].timestamp_s == pytest.approx(0.1, abs=1e-6)
+
+
+def _records_behind_the_images(drive, lag_s: float, east_mps: float, north_mps: float) -> None:
+    """Every OXTS record taken ``lag_s`` before its image, the car moving at (east, north) m/s."""
+    stamps = drive / "oxts" / "timestamps.txt"
+    stamps.write_text("".join(f"2011-09-26 13:02:{25 + i * 0.1 - lag_s:012.9f}\n"
+                              for i in range(len(stamps.read_text().split("\n")) - 1)))
+    for record in sorted((drive / "oxts" / "data").glob("*.txt")):
+        values = record.read_text().split()
+        values[6], values[7] = f"{north_mps}", f"{east_mps}"  # fields 7 (vn) and 8 (ve)
+        record.write_text(" ".join(values) + "\n")
+
+
+def test_a_geotag_is_its_records_position_at_the_images_time(tmp_path):
+    """KITTI's synced record of a frame is the 100 Hz record nearest the image, up to 5 ms from it: the image's
+    geotag is the record's position moved on by its velocity for the time between them."""
+    drive = make_fake_kitti(tmp_path, n_frames=3)
+    taken_together = open_kitti(tmp_path, None, "image_00")
+    _records_behind_the_images(drive, lag_s=0.004, east_mps=10.0, north_mps=-5.0)
+    seq = open_kitti(tmp_path, None, "image_00")
+    for before, after in zip(taken_together.frames, seq.frames):
+        moved = LocalFrame(before.lat_deg, before.lon_deg).to_local(after.lat_deg, after.lon_deg)
+        np.testing.assert_allclose(moved, [0.04, -0.02], atol=1e-6)  # 4 ms at 10 m/s east, 5 m/s south
+        assert after.timestamp_s == before.timestamp_s  # the image's time, as before
+    # a camera without timestamps of its own takes the records' times, and their positions as they are
+    (drive / "image_01" / "timestamps.txt").unlink()
+    records = open_kitti(tmp_path, None, "image_01")
+    assert [(f.lat_deg, f.lon_deg) for f in records.frames] == [(f.lat_deg, f.lon_deg) for f in taken_together.frames]
+    # a record farther from its image than a car goes in a few milliseconds is no record of it: refused, named
+    _records_behind_the_images(drive, lag_s=0.2, east_mps=10.0, north_mps=0.0)
+    with pytest.raises(InputError, match=r"0000000000.txt: 2.0 m from where image 0000000000.png was taken .*"
+                                         r"do not pair"):
+        open_kitti(tmp_path, None, "image_00")
 
 
 def test_missing_calibration_is_allowed(tmp_path):

@@ -57,6 +57,15 @@ def geodesic_distance_m(lat1_deg, lon1_deg, lat2_deg, lon2_deg) -> np.ndarray:
     return np.asarray(dist, float).reshape(shape)
 
 
+def moved_deg(lat_deg: float, lon_deg: float, east_m: float, north_m: float) -> tuple[float, float]:
+    """(lat, lon) of the point ``east_m``, ``north_m`` from (``lat_deg``, ``lon_deg``), along the WGS84 geodesic."""
+    distance_m = math.hypot(east_m, north_m)
+    if distance_m == 0.0:
+        return float(lat_deg), float(lon_deg)
+    lon, lat, _ = _GEOD.fwd(lon_deg, lat_deg, math.degrees(math.atan2(east_m, north_m)), distance_m)
+    return float(lat), float(lon)
+
+
 def haversine_distance_m(lat1_deg, lon1_deg, lat2_deg, lon2_deg) -> np.ndarray:
     """Great-circle distance on a sphere of the mean Earth radius (the paper's formula), metres."""
     lat1, lon1, lat2, lon2 = (np.radians(np.asarray(a, float)) for a in (lat1_deg, lon1_deg, lat2_deg, lon2_deg))

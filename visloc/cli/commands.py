@@ -162,7 +162,9 @@ def _print_ingest(a: argparse.Namespace, seq: Drive, report) -> None:
         (report.n_source_changed, f", {report.n_source_changed} described again (their image file changed)"),
         (report.n_derived_repaired, f", {report.n_derived_repaired} damaged rows of structure or global vectors "
                                     "rebuilt"),
-        (report.n_sources_recorded, f", {report.n_sources_recorded} checked against their image files")) if n)
+        (report.n_sources_recorded, f", {report.n_sources_recorded} checked against their image files"),
+        (report.n_geotags_moved, f", {report.n_geotags_moved} geotags taken again from the source (structure "
+                                 "rebuilt)")) if n)
     print(f"{a.db}: {seq.name}: {report.n_added} added, {report.n_skipped - redone} already stored{again}, "
           f"{len(seq)} frames{bad} ({report.images_per_s:.1f} images/s){filled}")
 

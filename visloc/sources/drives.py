@@ -11,6 +11,11 @@ KITTI raw layout: ``ROOT/<date>/<date>_drive_<NNNN>_sync/`` with ``image_0X/data
 (rigid transforms, read by ``visloc.sources.calibration``). Timestamps are read as UTC and kept as Unix
 seconds; each line must be later than the one before. Every text file is read as UTF-8.
 
+An image's geotag is its OXTS record's position at the image's time. KITTI's synced record of a frame is the
+100 Hz record nearest the image, up to 5 ms from it (0.05 m at 10 m/s, along the road): where the camera has
+timestamps of its own, the record's position is moved on by its velocity (``ve``, ``vn``) for the time between
+them. A camera without its own takes the records' times, and their positions as they are.
+
 KITTI's OXTS record also states its position accuracy (field 24, ``pos_accuracy``, metres,
 north/east): read as ``Frame.position_accuracy_m``, the standard deviation per horizontal axis. A record
 whose position mode (field 28, ``posmode``) is negative had no position solution: KITTI filled it in (its
@@ -57,14 +62,12 @@ from visloc.sources.calibration import (
     read_text,
 )
 from visloc.errors import InputError
+from visloc.sources.oxts import MAX_GEOTAG_MOVE_M, geotag_at_image_time, read_oxts
 from visloc.features.sift import to_gray_u8
-from visloc.geo import yaw_enu_to_heading_deg
 from visloc.geometry.projective import CameraModel
 
 KITTI_CAMERAS = ("image_00", "image_01", "image_02", "image_03")
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-OXTS_FIELDS = ("lat", "lon", "alt", "roll", "pitch", "yaw")  # the first 6 of an OXTS record's 30
-OXTS_POS_ACCURACY, OXTS_POSMODE = 24, 28  # 1-based field numbers of pos_accuracy and posmode
 
 
 @dataclass(frozen=True)
@@ -222,40 +225,17 @@ def oxts_records(folder: Path) -> tuple[np.ndarray, np.ndarray]:
     return records, np.array(_read_timestamps(Path(folder) / "oxts" / "timestamps.txt"))
 
 
-def _read_oxts(path: Path) -> tuple[float, float, float, float, float, float, float, float | None]:
-    """(lat_deg, lon_deg, alt_m, heading_deg, roll_rad, pitch_rad, yaw_rad, position_accuracy_m) of one
-    OXTS record; the accuracy is None when the record states none of its own (``_stated_accuracy_m``)."""
-    tokens = read_text(path).split()
-    values = []
-    for i, token in enumerate(tokens, 1):
-        name = f" ({OXTS_FIELDS[i - 1]})" if i <= len(OXTS_FIELDS) else ""
-        try:
-            values.append(float(token))
-        except ValueError:
-            raise InputError(f"{path}: unreadable OXTS record: field {i}{name} is not a number: {token[:40]!r}") \
-                from None
-        if i <= len(OXTS_FIELDS) and not math.isfinite(values[-1]):
-            raise InputError(f"{path}: OXTS record field {i}{name} is not a finite number: {token[:40]!r}")
-    if len(values) < 6:
-        raise InputError(f"{path}: OXTS record needs at least 6 numbers (lat lon alt roll pitch yaw), "
-                         f"found {len(values)}")
-    lat, lon, alt, roll, pitch, yaw = values[:6]
-    if not (-90 <= lat <= 90 and -180 <= lon <= 180):
-        raise InputError(f"{path}: lat/lon out of range ({lat}, {lon})")
-    return lat, lon, alt, yaw_enu_to_heading_deg(yaw), roll, pitch, yaw, _stated_accuracy_m(values)
-
-
-def _stated_accuracy_m(values: list[float]) -> float | None:
-    """An OXTS record's stated position accuracy (field 24), None when absent, not finite, not > 0, or not the
-    record's own: a record with a negative position mode (field 28) had no position solution."""
-    if len(values) < OXTS_POS_ACCURACY:
+def _record_stamps(folder: Path, image_stamps_path: Path, n_images: int) -> list[float] | None:
+    """The OXTS records' timestamps where the camera has timestamps of its own (KITTI's synced record of a frame
+    is the one nearest the image, up to half the OXTS period, 5 ms, away from it); None where the images take
+    the records' times (no ``timestamps.txt`` of their own) or the records have none."""
+    path = folder / "oxts" / "timestamps.txt"
+    if image_stamps_path == path or not path.is_file():
         return None
-    accuracy = values[OXTS_POS_ACCURACY - 1]
-    if not (math.isfinite(accuracy) and accuracy > 0):
-        return None
-    if len(values) >= OXTS_POSMODE and values[OXTS_POSMODE - 1] < 0:
-        return None
-    return accuracy
+    stamps = _read_timestamps(path)
+    if len(stamps) != n_images:
+        raise InputError(f"{path}: {len(stamps)} timestamps for {n_images} OXTS records; counts must match")
+    return stamps
 
 
 def open_kitti(root: Path, drive: str | None, camera: str) -> Drive:
@@ -283,11 +263,19 @@ def open_kitti(root: Path, drive: str | None, camera: str) -> Drive:
     stamps = _read_timestamps(stamps_path)
     if len(stamps) != len(images):
         raise InputError(f"{stamps_path}: {len(stamps)} timestamps for {len(images)} images; counts must match")
+    record_stamps = _record_stamps(folder, stamps_path, len(images))
     frames = []
     for i, (img, rec, t) in enumerate(zip(images, oxts, stamps, strict=True)):
         if img.stem != rec.stem:
             raise InputError(f"{rec}: OXTS record does not pair with image {img.name}")
-        lat, lon, alt, heading, roll, pitch, yaw, accuracy = _read_oxts(rec)
+        lat, lon, alt, heading, roll, pitch, yaw, accuracy, velocity_en = read_oxts(rec)
+        if record_stamps is not None and velocity_en is not None:
+            move_m = math.hypot(*velocity_en) * abs(t - record_stamps[i])
+            if move_m > MAX_GEOTAG_MOVE_M:
+                raise InputError(f"{rec}: {move_m:.1f} m from where image {img.name} was taken ({t - record_stamps[i]:+.3f}"
+                                 f" s at {math.hypot(*velocity_en):.1f} m/s; at most {MAX_GEOTAG_MOVE_M:g} m): "
+                                 f"{stamps_path} and {folder / 'oxts' / 'timestamps.txt'} do not pair")
+            lat, lon = geotag_at_image_time(lat, lon, velocity_en, t - record_stamps[i])
         frames.append(Frame(frame=i, image_path=img, timestamp_s=t, lat_deg=lat, lon_deg=lon, alt_m=alt,
                             heading_deg=heading, roll_rad=roll, pitch_rad=pitch, yaw_rad=yaw,
                             position_accuracy_m=accuracy))

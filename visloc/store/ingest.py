@@ -24,7 +24,7 @@ import numpy as np
 from visloc.db import (CameraRecord, DamagedStoreError, EmptyStoreError, FeatureStore, ImageRecord,
                        SettingsMismatchError, SkippedFrame)
 from visloc.db.blobs import repair_hint
-from visloc.db.integrity import forget_damage, forget_derived, scan
+from visloc.db.integrity import forget_damage, forget_derived, move_geotags, scan
 from visloc.db.provenance import StoredSource, record_sources, replace_images, same_checksums, stored_sources
 from visloc.errors import InputError
 from visloc.features.sift import extract_sift, make_sift, undistort_keypoints
@@ -34,6 +34,7 @@ from visloc.sources.drives import Frame, Drive, file_digest, read_image
 from visloc.store.processes import stop_now, wait_or_broken
 
 SIFT_SETTINGS_KEY = "sift"
+GEOTAG_TOLERANCE_DEG = 1e-9  # about 0.1 mm: a stored geotag farther from its source's is taken again
 
 
 @dataclass(frozen=True)
@@ -46,6 +47,7 @@ class IngestReport:
     seconds: float
     n_attitudes_filled: int = 0  # stored images whose missing attitude this run filled in (schema-1 stores)
     n_accuracies_filled: int = 0  # stored images whose missing geotag accuracy this run filled in (schema < 3)
+    n_geotags_moved: int = 0  # stored images whose geotag the source now states otherwise (structure rebuilt)
     n_bad_skipped: int = 0  # frames the store records as skipped because they could not be described
     n_repaired: int = 0  # stored images whose BLOBs failed their checksum, described again from their files
     n_source_changed: int = 0  # stored images whose file changed since, described again
@@ -309,12 +311,14 @@ def ingest(
             store.set_camera(CameraRecord(sequence.source, sequence.camera, sequence.P_rect, *size_px,
                                           T_camera_imu=sequence.T_camera_imu))
     filled = backfill_poses(store, sequence)
+    geotags_moved = backfill_geotags(store, sequence)
     n_skipped_bad = len(store.skipped_frames(sequence.source, sequence.camera))
     return IngestReport(sequence.source, sequence.camera, len(sequence), len(sequence) - len(missing), added,
                         time.perf_counter() - start, n_attitudes_filled=filled,
                         n_accuracies_filled=backfill_accuracies(store, sequence), n_bad_skipped=n_skipped_bad,
                         n_repaired=len(redo.damaged), n_source_changed=len(redo.changed) + differed,
-                        n_sources_recorded=len(recorded), n_derived_repaired=redo.n_derived)
+                        n_sources_recorded=len(recorded), n_derived_repaired=redo.n_derived,
+                        n_geotags_moved=geotags_moved)
 
 
 @dataclass(frozen=True)
@@ -391,6 +395,17 @@ def backfill_accuracies(store: FeatureStore, sequence: Drive) -> int:
     accuracies.update({f.frame: None for f in sequence.frames
                        if f.position_accuracy_m is None and f.frame not in lacking})
     return store.set_position_accuracies(sequence.source, sequence.camera, accuracies) if accuracies else 0
+
+
+def backfill_geotags(store: FeatureStore, sequence: Drive) -> int:
+    """Take the geotags ``sequence`` states for stored frames where they differ from the stored ones by more than
+    ``GEOTAG_TOLERANCE_DEG`` (a KITTI drive stored before its geotags were taken at the image's time); the
+    camera's structure and self-checks, made at the old geotags, are dropped for the build steps to make again.
+    Features are untouched. Returns the number of images whose geotag changed."""
+    stored = {im.frame: (im.lat_deg, im.lon_deg) for im in store.images(sequence.source, sequence.camera)}
+    moved = {f.frame: (f.lat_deg, f.lon_deg) for f in sequence.frames if f.frame in stored
+             and max(abs(f.lat_deg - stored[f.frame][0]), abs(f.lon_deg - stored[f.frame][1])) > GEOTAG_TOLERANCE_DEG}
+    return move_geotags(store, sequence.source, sequence.camera, moved)
 
 
 def backfill_poses(store: FeatureStore, sequence: Drive) -> int:
