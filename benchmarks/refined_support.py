@@ -1,12 +1,12 @@
-"""What the refined measurement's support costs: four views, each posed alone with guided matching and averaged
-(the defaults), against six views, against the defaults without the search for views on the other side of the
-query, against one PnP over the four views' points and against two views in one PnP without guided matching.
+"""What the refined measurement's support costs: six views, each posed alone with guided matching and averaged
+(the defaults), against four views, against the defaults without the search for views on the other side of the
+query, against one PnP over the six views' points and against two views in one PnP without guided matching.
 
     python benchmarks/refined_support.py [--data ROOT] [--db out/results/visloc.sqlite] [--every 5]
 
 On every drive of the data root, with its first protocol (left queries against the right camera where a drive
 has both, else one camera) and the 1 s exclusion, every ``--every``-th query is measured once with the refined
-defaults (each view posed alone, the positions averaged), once with six views, once without the search for
+defaults (each view posed alone, the positions averaged), once with four views, once without the search for
 views on the other side (``--other-side-candidates 0``), once with one PnP over every view's points
 (``--no-fuse-views``) and once with the earliest support (``n_views=2``, ``guided_radius_px=0``, one PnP), in
 rotating order, from a full-scan retrieval. Per query: the pose's PnP inliers (summed over the views posed
@@ -34,7 +34,7 @@ from visloc.retrieval.retrievers import WindowRetriever  # noqa: E402
 from visloc.stats import summary_of  # noqa: E402
 
 SECTION = Section("refined-support", "refined_support", REPO / "docs" / "performance.md")
-CONFIGS = {"defaults": REFINED, "six views": REFINED.replace(n_views=6),
+CONFIGS = {"defaults": REFINED, "four views": REFINED.replace(n_views=4),
            "no search on the other side": REFINED.replace(other_side_candidates=0),
            "one PnP over every view": REFINED.replace(fuse_views=False),
            "two views, no guided matching": REFINED.replace(n_views=2, guided_radius_px=0.0, fuse_views=False)}
@@ -105,7 +105,7 @@ def render(r: dict) -> str:
              f"{r['every']}th query of each drive (1 s exclusion, full-scan retrieval), measured with the defaults "
              f"({REFINED.n_views} views, each posed alone with guided matching, their positions averaged, and where "
              "every view lies on one side of the query the images nearest it on the other side verified too), with "
-             "six views, without that search (`--other-side-candidates 0`), with one PnP over the views' points "
+             "four views, without that search (`--other-side-candidates 0`), with one PnP over the views' points "
              "(`--no-fuse-views`), and with two views in one PnP and no guided matching, in rotating order (medians; "
              f"load {r['load_before']:.1f} at the start, {r['load_after']:.1f} at the end). Query side: matching, "
              "RANSAC, guided matching and PnP; each view's structure is built once and left out, as a store holds it. "

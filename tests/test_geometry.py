@@ -19,7 +19,7 @@ from visloc.pose.measurement import GEOMETRY, GEOTAG, geotag_measurement
 from visloc.params import FilterParams, RefinedParams
 from visloc.pose.refined import PoseMeasurer, StructureCache, pose_measurement
 from visloc.pose.selfcheck import self_check_params
-from visloc.pose.viewpose import DatabaseGeometry
+from visloc.pose.viewpose import DatabaseGeometry, agreeing_majority
 from visloc.retrieval.retrievers import Retrieval
 from visloc.tracking.kalman import run_filter
 from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2
@@ -287,6 +287,17 @@ def test_views_posed_apart_and_averaged_keep_both_sides_where_their_geotags_disa
     geometry, geotags, xq, dq, truth = synthetic_database(east_m, query_east_m=0.0)
     agreed = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)
     assert agreed.source == GEOMETRY and np.linalg.norm(agreed.east_north_m - truth) < 0.05
+
+
+def test_where_views_disagree_most_of_them_that_agree_make_the_measurement():
+    # two views behind, their geotags extrapolated 1.6 m off, against three ahead that agree (drive 0027's start)
+    positions = {23: np.array([0.0, 0.0]), 0: np.array([-1.6, 0.1]), 24: np.array([0.2, 0.1]),
+                 2: np.array([-1.5, 0.0]), 25: np.array([0.1, -0.2])}
+    assert agreeing_majority(positions, 1.5) == [23, 24, 25]
+    # no majority (two against two), or two sets of the same size: no measurement
+    assert agreeing_majority({k: positions[k] for k in (23, 0, 24, 2)}, 1.5) == []
+    assert agreeing_majority({1: np.array([0.0, 0.0]), 2: np.array([1.0, 0.0]), 3: np.array([2.0, 0.0])}, 1.5) == []
+    assert agreeing_majority({1: np.array([0.0, 0.0]), 2: np.array([3.0, 0.0])}, 1.5) == []
 
 
 def shared_lever(m, gain):

@@ -33,8 +33,8 @@ class RefinedParams(Params):
     essential_px: float = _refined(1.0, "RANSAC threshold of the essential matrix", unit="px", low=0, open_low=True)
     min_verified_inliers: int = _refined(20, "essential-matrix inliers a candidate needs to count as verified",
                                          kind="integer", low=5)
-    n_views: int = _refined(4, "verified candidates the query is posed against (refined-fast: 2, for its "
-                               "latency)", kind="integer", low=1)
+    n_views: int = _refined(6, "verified candidates the query is posed against, each alone (refined-fast: 2, in "
+                               "one PnP, for its latency)", kind="integer", low=1)
     both_sides: bool = _refined(True, "choose the views on both sides of the query where the database has both "
                                       "(best first otherwise)", kind="bool")
     other_side_candidates: int = _refined(
@@ -99,7 +99,8 @@ class RefinedParams(Params):
                                          "is rejected", unit="m", low=0, open_low=True)
     max_view_spread_m: float = _refined(
         1.5, "the query is also posed against each view alone; a view whose pose lies farther than this from the "
-             "others' is dropped, and a measurement whose views still disagree by more is rejected",
+             "others' is dropped; where the views still disagree by more, those within half of it of their median "
+             "are kept if they are most of them (views posed apart), and the measurement is rejected otherwise",
         unit="m", low=0, open_low=True)
     max_heading_diff_deg: float = _refined(45.0, "a pose facing more than this away from its views is rejected",
                                            unit="deg", low=0, open_low=True)

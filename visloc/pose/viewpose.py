@@ -130,6 +130,14 @@ def _far_views(positions: dict[int, np.ndarray], limit_m: float) -> list[int]:
     return far if len(far) < len(positions) else []
 
 
+def agreeing_majority(positions: dict[int, np.ndarray], limit_m: float) -> list[int]:
+    """The views whose own positions lie within half ``limit_m`` of their median (so within ``limit_m`` of each
+    other), in their order in ``positions``, when they are more than half of the views; else empty."""
+    centre = np.median(np.array(list(positions.values())), axis=0)
+    near = [i for i, p in positions.items() if np.linalg.norm(p - centre) <= limit_m / 2.0]
+    return near if 2 * len(near) > len(positions) else []
+
+
 def _disagreement(positions: dict[int, np.ndarray], limit_m: float) -> str | None:
     """Why the views' own positions cannot make one measurement (they lie more than ``limit_m`` apart), or None."""
     spread_m = _spread_m(list(positions.values()))
@@ -362,7 +370,8 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
     decides) when fewer than two views pose the query alone: where each view has too few points for a pose of
     its own, their points together may still make one. Views are chosen as for one PnP (the best, then as many
     on each side of the best view's pose as the database has); a view farther than ``max_view_spread_m`` from
-    the others' median is dropped, and the measurement rejected when the rest still disagree. Covariance: the
+    the others' median is dropped; where the rest still disagree, those that agree are kept when they are most of
+    them (``agreeing_majority``), and the measurement is rejected otherwise. Covariance: the
     views' PnP covariances summed over the square of their number (independent poses), the covariance of their
     mean from their spread, and the part of the lever term the views share (``common_lever_covariance_m2``). The
     inliers a tracker follows are every kept view's, with the pose of the best verified view."""
@@ -400,6 +409,9 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
     far = _far_views(positions, params.max_view_spread_m)
     kept = [i for i in kept if i not in far]
     positions = {i: positions[i] for i in kept}
+    if _disagreement(positions, params.max_view_spread_m):  # the views that agree, where most of them do
+        kept = agreeing_majority(positions, params.max_view_spread_m) or kept
+        positions = {i: positions[i] for i in kept}
     pnps = [alone[i][0] for i in kept]
     support = dict(view_indices=tuple(kept), neighbour_indices=tuple(j for i in kept for j in neighbours_used[i]),
                    n_correspondences_3d=sum(len(alone[i][1].points_world) for i in kept),
