@@ -200,9 +200,15 @@ def strict_text(strict: dict | None) -> str:
 
 def reused_note(r: dict) -> str:
     """How the page says that the peer's capped runs were taken from an earlier measurement (empty if not)."""
-    sources = sorted({d["peer_reused_from"] for c in r["caps"].values() for d in c["drives"].values()
-                      if d.get("peer_reused_from")})
-    return f"; the peer's capped runs are those of {', '.join(sources)}, its code and inputs unchanged" if sources else ""
+    reused = [(drive.removesuffix("_sync"), d["peer_reused_from"]) for c in r["caps"].values()
+              for drive, d in c["drives"].items() if d.get("peer_reused_from")]
+    if not reused:
+        return ""
+    fresh = sorted({drive.removesuffix("_sync") for c in r["caps"].values() for drive in c["drives"]}
+                   - {drive for drive, _ in reused})
+    where = f" on {', '.join(sorted({drive for drive, _ in reused}))}" if fresh else ""
+    return (f"; the peer's capped runs{where} are those of {', '.join(sorted({s for _, s in reused}))}, its code and "
+            f"inputs unchanged" + (f" (measured now on {', '.join(fresh)})" if fresh else ""))
 
 
 def add_arguments(p) -> None:
