@@ -50,6 +50,17 @@ def test_local_frame_axes_and_round_trip():
     assert np.hypot(*east_north[2]) == pytest.approx(geodesic_distance_m(49.0, 8.4, 49.0, 8.401), abs=1e-3)
 
 
+def test_a_geotag_micrometres_from_the_origin_keeps_its_offset():
+    """Drive 0001's two cameras' first geotags lie 15 micrometres apart (their images 1.2 us apart): the local
+    frame of one places the other there, and back, where PROJ's aeqd snaps points within 0.6 mm onto the origin."""
+    frame = LocalFrame(49.01500361489051, 8.434296575797951)
+    east_north = frame.to_local(49.01500361496352, 8.434296575981705)
+    assert 5e-6 < np.hypot(*east_north) < 5e-5
+    lat, lon = frame.to_geo(east_north)
+    assert (float(lat), float(lon)) == pytest.approx((49.01500361496352, 8.434296575981705), abs=1e-13)
+    np.testing.assert_allclose(frame.to_local(frame.origin_lat_deg, frame.origin_lon_deg), [0.0, 0.0], atol=1e-12)
+
+
 @pytest.mark.parametrize("yaw_rad,heading_deg", [(0.0, 90.0), (math.pi / 2, 0.0), (-math.pi / 2, 180.0), (math.pi, 270.0)])
 def test_kitti_yaw_to_compass_heading(yaw_rad, heading_deg):
     assert yaw_enu_to_heading_deg(yaw_rad) == pytest.approx(heading_deg)
