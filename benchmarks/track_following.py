@@ -8,7 +8,7 @@ evaluation protocol), four ``visloc track`` configurations on every frame, one a
 (each following one ``--repeats`` times, the run of median error standing for them):
 
 * ``full``: every frame localized in full (SIFT, retrieval, structure, PnP): the default;
-* ``follow``: ``--follow-points``, frames read as fast as possible: latency per frame (all, tracked,
+* ``follow``: ``--follow-points``, frames read as fast as possible: latency per frame (all, tracked, predicted,
   relocalized), the share of each kind and the sustained frames per second;
 * ``follow_paced``: ``--follow-points --pace-hz 10``, frames delivered at the camera's 10 Hz: latency and the
   processor time the process used per second of wall time (every thread; what is left of the machine is
@@ -105,16 +105,17 @@ def render(result: dict) -> str:
              "its 95 % ellipse; \"follow paced loaded\": paced at 10 Hz while another process keeps one core busy, "
              "its error within 10 % of the idle paced run's; a following run is made " f"{result.get('repeats', 1)} "
              "times, and the one of median error shown):", "",
-             "| drive | run | latency p50 / p95 / max (ms) | tracked frames: share, p95 (ms) | relocalized: p95 (ms) "
-             "| frames/s | processor (share of one core) | estimate error mean / max (m) | estimate NEES, inside 95 % "
-             "| within bound |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| drive | run | latency p50 / p95 / max (ms) | tracked frames: share, p95 (ms) | predicted frames: share "
+             "| relocalized: p95 (ms) | frames/s | processor (share of one core) | estimate error mean / max (m) "
+             "| estimate NEES, inside 95 % | within bound |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     for drive, runs in result["drives"].items():
         full_m = runs["full"]["error_mean_m"]
         for name, r in runs.items():
             lat, kinds = r["latency_ms"], r["kinds"]
             tracked, reloc = kinds.get("tracked"), kinds.get("relocalized")
             share = f"{tracked['share']:.0%}, {_ms(tracked['latency_ms'], 'p95')}" if tracked else "–"
+            predicted = f"{kinds['predicted']['share']:.0%}" if kinds.get("predicted") else ("0%" if tracked else "–")
             if name == "full":
                 within = "(reference)"
             else:
@@ -124,15 +125,15 @@ def render(result: dict) -> str:
             nees = (f"{r['estimate_nees']:.2f}, {r['estimate_inside_95']:.0%}" if r.get("estimate_nees") is not None
                     else "–")
             lines.append(f"| {drive} | {name.replace('_', ' ')} | {lat['p50']:.0f} / {lat['p95']:.0f} / "
-                         f"{lat['max']:.0f} | {share} | {_ms(reloc['latency_ms'], 'p95') if reloc else '–'} | "
+                         f"{lat['max']:.0f} | {share} | {predicted} | {_ms(reloc['latency_ms'], 'p95') if reloc else '–'} | "
                          f"{r['sustained_hz']:.1f} | {r['cpu_share_of_one_core']:.2f} | "
                          f"{r['error_mean_m']:.3f} / {r['error_max_m']:.2f}{_range(r)} | {nees} | {within} |")
     profiled = [(d, r["follow_paced"]) for d, r in result["drives"].items()
                 if r["follow_paced"].get("relocalizations") and r["follow_paced"].get("tracked_stages_ms")]
     if profiled:
         lines += ["", "Where the time goes, paced at 10 Hz (medians, ms): a tracked frame's stages, and the full "
-                  "localizations the run made (in the thread beside the tracker or on a frame that had lost its "
-                  "points), how many per second and their stages:", "",
+                  "localizations the run made (in the thread beside the tracker, and the first frame's), how many "
+                  "per second and their stages:", "",
                   "| drive | tracked: flow / pose / filter | relocalizations per s | relocalization: SIFT / "
                   "retrieval / measurement / widening its points / total |", "|---|---|---|---|"]
         for drive, r in profiled:

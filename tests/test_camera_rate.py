@@ -406,6 +406,53 @@ def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_
     assert load_run(tmp_path / "a.json").n_steps == 25  # the dashboard plays it like any track run
 
 
+@pytest.mark.slow
+def test_a_frame_that_loses_its_points_is_predicted_while_the_relocalization_beside_it_is_held(store, monkeypatch):
+    """Real frames of drive 0005 followed with the relocalization beside the tracker, every relocalization in that
+    thread held until frame 14 is out, and frames 12-14 dark (a camera blinded for a moment): the dark frames are
+    not posed and do not wait, the filter predicts them, and the run goes on to its last frame once the
+    relocalizations are let go."""
+    import threading
+
+    import visloc.tracking.follower as follower_module
+    from visloc.params import PAPER_FILTER, TRACK
+    from visloc.protocols.track import track_filter, track_localizer
+    from visloc.tracking.follower import PREDICTED, PointFollower
+
+    class HeldFollower(PointFollower):
+        gate = threading.Event()
+
+        def _relocalize(self, *args, **kwargs):
+            if threading.current_thread() is not threading.main_thread():  # the thread beside the tracker
+                assert self.gate.wait(timeout=120)
+            return super()._relocalize(*args, **kwargs)
+
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    seq = open_source(None, drive=DRIVE, camera="image_00")
+    params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=True, max_lost_wait_ms=0.0)
+    localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
+    follower = HeldFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model,
+                            localizer.measurer.params, sift, params, stored=localizer.measurer.structures)
+    dark = {str(seq.frames[k].image_path) for k in (12, 13, 14)}
+    real_load = follower_module.load_gray
+    monkeypatch.setattr(follower_module, "load_gray",
+                        lambda path: np.zeros_like(real_load(path)) if str(path) in dark else real_load(path))
+    steps = []
+    for step in follower.steps(seq, range(DRIVE_0005_FRAMES)):
+        steps.append(step)
+        if len(steps) == 15:
+            assert not follower.gate.is_set()  # frames 12-14 came out while every relocalization was held
+            follower.gate.set()
+    assert len(steps) == DRIVE_0005_FRAMES
+    for k in (12, 13, 14):
+        s = steps[k]
+        assert s.kind == PREDICTED and s.result.measurement_m is None, (k, s.kind)
+        assert s.result.filter.innovation is None and np.allclose(s.result.filter.x, s.result.filter.x_prior)
+    assert {s.kind for s in steps} <= {"tracked", "relocalized", PREDICTED} and steps[0].kind == "relocalized"
+    assert all(np.all(np.isfinite(s.result.filter.x[:2])) for s in steps)
+
+
 def test_a_first_fix_refuses_a_lone_far_candidate():
     from visloc.pose.measurement import Measurement
     from visloc.tracking.follower import first_fix

@@ -213,6 +213,10 @@ class TrackParams(Params):
                                                   "frame run beside the tracker, so no frame waits for one "
                                                   "(--no-background-relocalization: the frame that asks waits; "
                                                   "the run is then reproducible)", kind="bool", methods=TRACK_ONLY)
+    max_lost_wait_ms: float = param(30.0, "following points, with full localizations beside the tracker: a frame "
+                                          "whose points give no pose waits at most this long for the one under "
+                                          "way, then the filter predicts it (0: never waits)", unit="ms", low=0,
+                                    high=10000, methods=TRACK_ONLY)
     pace_hz: float = param(0.0, "read frames at this rate, as a live camera delivers them, to measure the share "
                                 "of the processor a live run takes (0: as fast as possible)", unit="Hz", low=0,
                            high=1000, methods=TRACK_ONLY)

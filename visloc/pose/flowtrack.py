@@ -15,7 +15,7 @@ Pure functions over numpy arrays (OpenCV for the flow).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -24,6 +24,7 @@ from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams
 from visloc.pose.measurement import Measurement, posed_measurement
 from visloc.pose.viewpose import DatabaseGeometry, MapCorrespondences, pose_from_views
+from visloc.stats import CHI2_2DOF_999
 
 FLOW_WINDOW_PX = 21  # Lucas-Kanade's window side
 FLOW_LEVELS = 3  # pyramid levels above the image: follows motions of up to about 2^3 windows
@@ -159,6 +160,28 @@ def pose_tracked(points: TrackedPoints, undistorted_px: np.ndarray, db_east_nort
         return Measurement(None, None, None, fallback_reason=f"tracked points: {posed.reason}", **posed.support), None
     m = posed_measurement(posed)
     return m, posed.inliers
+
+
+def shared_map_error(m: Measurement, frames: int) -> Measurement:
+    """A tracked measurement whose map part of the covariance (the views' spread, the lever and the geotags that are
+    no fix: errors of the map points, which every frame posed on the same points repeats) counts ``frames`` times:
+    the filter, which takes measurements as independent, then learns from ``frames`` frames on the same points what
+    it would learn from one about the map's error, and keeps the pixel noise (PnP's term), new in each frame."""
+    terms = m.cov_terms_m2
+    if m.cov_m2 is None or frames <= 1 or not {"pnp", "views", "lever"} <= set(terms):
+        return m
+    map_terms = [k for k in ("views", "lever", "geotags") if k in terms]
+    cov = np.asarray(terms["pnp"], float) + frames * sum(np.asarray(terms[k], float) for k in map_terms)
+    counted = {k: frames * np.asarray(terms[k], float) for k in map_terms}
+    return replace(m, cov_m2=cov, cov_terms_m2={**terms, **counted})
+
+
+def disagree(a: Measurement, b: Measurement) -> bool:
+    """Two positions farther apart than the 99.9 % ellipse of their summed covariances."""
+    if a.cov_m2 is None or b.cov_m2 is None or a.east_north_m is None or b.east_north_m is None:
+        return False
+    d = np.asarray(a.east_north_m, float) - np.asarray(b.east_north_m, float)
+    return float(d @ np.linalg.solve(np.asarray(a.cov_m2) + np.asarray(b.cov_m2), d)) > CHI2_2DOF_999
 
 
 def needs_relocalization(n_points: int, cells_occupied: int, lever_m: float | None, estimate_sigma_m: float,

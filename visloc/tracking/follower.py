@@ -11,14 +11,19 @@
   thread beside the tracker on the frame that asked, and its points are followed from that frame into the
   frame where it arrives and joined to the tracked ones (replacing them if its pose disagrees with the
   tracked pose of the same frame). Without, the frame that asked waits for it (reproducible runs).
-  A frame with nothing to follow (the first, or a track whose points were lost) is localized in full at once.
+* **No frame waits long.** With the relocalization beside the tracker, a frame whose followed points give no pose
+  (too few left, or a pose the checks refuse) waits at most ``max_lost_wait_ms`` for the one under way; without it,
+  the frame is not posed: the filter predicts it (kind "predicted"), a full
+  localization of it starts beside the tracker unless one is under way, and its measurement takes that frame's
+  place in the filter when it comes. Only a frame with no track to predict (the first) is localized in full at
+  once, as is every frame with nothing to follow without the background thread.
 * **A first fix.** A track's first measurement is the start of everything after it, so a first frame that
   only gets the geotag of its best candidate (no pose) takes the median geotag of its best candidates
   instead when the best one lies far from the others (``first_fix``).
 
-Each step carries its kind ("tracked" or "relocalized") and its latency: the wall time from its image read to
-its filter step done (flow and pose, or SIFT, retrieval and measurement; a frame that lost its points while a
-relocalization was under way waits for it). A background relocalization's own cost is on another core.
+Each step carries its kind ("tracked", "predicted" or "relocalized") and its latency: the wall time from its image
+read to its filter step done (flow and pose, or SIFT, retrieval and measurement). A background relocalization's
+own cost is on another core.
 """
 
 from __future__ import annotations
@@ -26,6 +31,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import TimeoutError as FutureTimeout
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -33,19 +39,20 @@ import numpy as np
 from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams, TrackParams
-from visloc.pose.flowtrack import (TrackedPoints, follow, grid_cells_occupied, guided_matches, merged,
-                                   needs_relocalization, points_of, pose_tracked)
+from visloc.pose.flowtrack import (TrackedPoints, disagree, follow, grid_cells_occupied, guided_matches, merged,
+                                   needs_relocalization, points_of, pose_tracked, predicted_camera,
+                                   shared_map_error)
 from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement
 from visloc.pose.structure import ViewStructure, choose_variant
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.drives import Drive, load_gray
-from visloc.stats import CHI2_2DOF_999
 from visloc.tracking.localizer import Localizer, StepResult
 
 TRACKED = "tracked"
 RELOCALIZED = "relocalized"
+PREDICTED = "predicted"  # no pose from the followed points and a full localization under way: the filter predicts
 FIRST_FIX_CANDIDATES = 5
 FIRST_FIX_AGREEMENT_M = 10.0
 LOOKAHEAD_S = 0.5  # the followed points must still serve this much later, or a full localization is asked for
@@ -123,26 +130,13 @@ def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: n
     return replace(measurement, east_north_m=centre, fallback_reason=reason)
 
 
-def shared_map_error(m: Measurement, frames: int) -> Measurement:
-    """A tracked measurement whose map part of the covariance (the views' spread, the lever and the geotags that are
-    no fix: errors of the map points, which every frame posed on the same points repeats) counts ``frames`` times:
-    the filter, which takes measurements as independent, then learns from ``frames`` frames on the same points what
-    it would learn from one about the map's error, and keeps the pixel noise (PnP's term), new in each frame."""
-    terms = m.cov_terms_m2
-    if m.cov_m2 is None or frames <= 1 or not {"pnp", "views", "lever"} <= set(terms):
-        return m
-    map_terms = [k for k in ("views", "lever", "geotags") if k in terms]
-    cov = np.asarray(terms["pnp"], float) + frames * sum(np.asarray(terms[k], float) for k in map_terms)
-    counted = {k: frames * np.asarray(terms[k], float) for k in map_terms}
-    return replace(m, cov_m2=cov, cov_terms_m2={**terms, **counted})
-
-
-def _disagree(a: Measurement, b: Measurement) -> bool:
-    """Two positions farther apart than the 99.9 % ellipse of their summed covariances."""
-    if a.cov_m2 is None or b.cov_m2 is None or a.east_north_m is None or b.east_north_m is None:
+def _done_within(future: Future, timeout_s: float) -> bool:
+    """Whether ``future`` is done, waiting for it at most ``timeout_s``."""
+    try:
+        future.result(timeout=max(timeout_s, 0.0))
+    except FutureTimeout:
         return False
-    d = np.asarray(a.east_north_m, float) - np.asarray(b.east_north_m, float)
-    return float(d @ np.linalg.solve(np.asarray(a.cov_m2) + np.asarray(b.cov_m2), d)) > CHI2_2DOF_999
+    return True
 
 
 def _at_pose(points: TrackedPoints, T_world_camera: np.ndarray, east_north_m: np.ndarray) -> TrackedPoints:
@@ -335,7 +329,7 @@ class PointFollower:
             fresh = follow(done.points, done.full.gray, gray, K, moved_m(done.full.query.timestamp_s))
             if current is None or not len(current):
                 return fresh, "joined"
-            replaced = tracked_then is not None and _disagree(done.full.measurement, tracked_then)
+            replaced = tracked_then is not None and disagree(done.full.measurement, tracked_then)
             return (fresh, "replaced") if replaced else (merged(current, fresh), "joined")
 
         try:
@@ -348,16 +342,20 @@ class PointFollower:
                 t0 = time.perf_counter()
                 used: list[_Relocalized | None] = [None]  # the relocalization whose result this frame used
                 tracked, kept, reason, joined, n_followed, flow_ms = None, None, None, None, 0, 0.0
+                followed = None
                 if points is not None and previous_gray is not None:
                     followed = follow(points, previous_gray, gray, K, moved_m(points_t_s))
-                    if pending is not None and pending[0].done():
-                        followed, joined = take(pending[0].result(), pending[1], followed, pending[2])
-                        pending = None
+                if pending is not None and pending[0].done():
+                    followed, joined = take(pending[0].result(), pending[1], followed, pending[2])
+                    pending = None
+                if followed is not None:
                     followed = self._allowed(followed, t_s)
-                    if len(followed) < min_points and pending is not None:  # lost: the relocalization under way
-                        followed, joined = take(pending[0].result(), None, followed, pending[2])  # nearer than anew
-                        pending = None
-                        followed = self._allowed(followed, t_s)
+                if (pending is not None and (followed is None or len(followed) < min_points)
+                        and _done_within(pending[0], p.max_lost_wait_ms / 1000.0 - (time.perf_counter() - t0))):
+                    followed, joined = take(pending[0].result(), None, followed, pending[2])  # lost: the one under way
+                    pending = None
+                    followed = self._allowed(followed, t_s)
+                if followed is not None:
                     n_followed = len(followed)
                     flow_ms = (time.perf_counter() - t0) * 1000.0
                     if n_followed >= min_points:
@@ -392,14 +390,27 @@ class PointFollower:
                                                     str(frame.image_path))
                             used[0] = done
                             if done.points is not None:
-                                replaced = _disagree(done.full.measurement, tracked)
+                                replaced = disagree(done.full.measurement, tracked)
                                 points = done.points if replaced else merged(points, done.points)
                                 joined = "replaced" if replaced else "joined"
                                 self.localizer.restore(history.pop()[1])
                                 result = fuse(done.full.query, done.full.retrieval, done.full.measurement,
                                               done.full.retrieval_ms, done.full.measurement_ms)
                             kind = RELOCALIZED
-                else:  # nothing to follow, or it no longer poses: localize in full now
+                elif pool is not None and self.localizer.started:  # no pose from its points: predicted, no wait
+                    if pending is None:  # a full localization of this frame, beside the tracker
+                        pending = (pool.submit(self._relocalize, gray, t_s, self.localizer.prediction(),
+                                               background_engine, str(frame.image_path)), None, n)
+                        since_full = 0
+                    m = tracked or Measurement(None, None, None, fallback_reason=reason or "no points to follow")
+                    result = fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, m)
+                    at_m = np.asarray(result.filter.x[:2], float)
+                    # too few points are followed on from the predicted pose; points that gave no pose are dropped
+                    points = None if followed is None or tracked is not None else _at_pose(
+                        followed, predicted_camera(followed.T_world_camera, followed.east_north_m, at_m), at_m)
+                    points_t_s, kind = t_s, PREDICTED
+                    reason = reason or "no points to follow"
+                else:  # nothing to follow, or it no longer poses, and no track to predict: localize in full now
                     if pending is not None:
                         pending[0].cancel()
                         pending = None
