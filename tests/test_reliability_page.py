@@ -86,7 +86,8 @@ def test_the_point_following_figures_are_what_their_json_renders():
     for runs in result["drives"].values():
         assert set(runs) == {"full", "follow", "follow_paced", "follow_paced_loaded"}
         assert all(0 < r["estimate_nees"] and 0 <= r["estimate_inside_95"] <= 1 for r in runs.values())
-        assert set(runs["full"]["kinds"]) == {"full"} and {"tracked", "relocalized"} <= set(runs["follow"]["kinds"]) <= {"tracked", "relocalized", "predicted"}
+        assert set(runs["full"]["kinds"]) == {"full"}
+        assert {"tracked", "relocalized"} <= set(runs["follow"]["kinds"]) <= {"tracked", "relocalized", "predicted"}
         assert runs["follow_paced"]["sustained_hz"] <= 10.5 and runs["follow_paced_loaded"]["sustained_hz"] <= 10.5
         profile = runs["follow_paced"]["relocalizations"]
         assert profile["n"] > 0 and profile["total_ms"] >= profile["stages_ms"]["sift_ms"] > 0

@@ -112,8 +112,9 @@ class TrackFrame:
     absolute_sigma_m: float | None = None  # refined: the map's own error, m per axis
     maneuver: bool = False  # the filter applied the measurement with its maneuver prediction
     retracted_previous: bool = False  # the filter took the previous frame's measurement out
-    # following points (visloc.tracking.follower): "tracked" (posed against followed points), "relocalized"
-    # (localized in full on this frame), or "full" (a run that localizes every frame in full)
+    # following points (visloc.tracking.follower): "tracked" (posed against followed points), "predicted" (no pose
+    # from its points, a relocalization under way: the filter predicted it), "relocalized" (localized in full on
+    # this frame), or "full" (a run that localizes every frame in full)
     kind: str = "full"
     flow_ms: float = 0.0  # following the points into this frame
     followed_points: int = 0

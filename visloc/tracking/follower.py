@@ -12,11 +12,11 @@
   frame where it arrives and joined to the tracked ones (replacing them if its pose disagrees with the
   tracked pose of the same frame). Without, the frame that asked waits for it (reproducible runs).
 * **No frame waits long.** With the relocalization beside the tracker, a frame whose followed points give no pose
-  (too few left, or a pose the checks refuse) waits at most ``max_lost_wait_ms`` for the one under way; without it,
-  the frame is not posed: the filter predicts it (kind "predicted"), a full
-  localization of it starts beside the tracker unless one is under way, and its measurement takes that frame's
-  place in the filter when it comes. Only a frame with no track to predict (the first) is localized in full at
-  once, as is every frame with nothing to follow without the background thread.
+  (too few left, or a pose the checks refuse) waits at most ``max_lost_wait_ms`` for the one under way. If it has
+  not come, the frame is not posed: the filter predicts it (kind "predicted"), a full localization of it starts
+  beside the tracker unless one is under way, and its measurement takes that frame's place in the filter when it
+  comes. Only a frame with no track to predict (the first) is localized in full at once, as is, without the
+  background thread, every frame with nothing to follow.
 * **A first fix.** A track's first measurement is the start of everything after it, so a first frame that
   only gets the geotag of its best candidate (no pose) takes the median geotag of its best candidates
   instead when the best one lies far from the others (``first_fix``).
@@ -30,8 +30,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
-from concurrent.futures import TimeoutError as FutureTimeout
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -128,15 +127,6 @@ def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: n
     reason = (f"{measurement.fallback_reason}; first fix: the best candidate's geotag lies far from the other "
               f"candidates', their median geotag is used")
     return replace(measurement, east_north_m=centre, fallback_reason=reason)
-
-
-def _done_within(future: Future, timeout_s: float) -> bool:
-    """Whether ``future`` is done, waiting for it at most ``timeout_s``."""
-    try:
-        future.result(timeout=max(timeout_s, 0.0))
-    except FutureTimeout:
-        return False
-    return True
 
 
 def _at_pose(points: TrackedPoints, T_world_camera: np.ndarray, east_north_m: np.ndarray) -> TrackedPoints:
@@ -351,7 +341,7 @@ class PointFollower:
                 if followed is not None:
                     followed = self._allowed(followed, t_s)
                 if (pending is not None and (followed is None or len(followed) < min_points)
-                        and _done_within(pending[0], p.max_lost_wait_ms / 1000.0 - (time.perf_counter() - t0))):
+                        and wait([pending[0]], max(0.0, p.max_lost_wait_ms / 1000.0 - (time.perf_counter() - t0))).done):
                     followed, joined = take(pending[0].result(), None, followed, pending[2])  # lost: the one under way
                     pending = None
                     followed = self._allowed(followed, t_s)
@@ -402,14 +392,14 @@ class PointFollower:
                         pending = (pool.submit(self._relocalize, gray, t_s, self.localizer.prediction(),
                                                background_engine, str(frame.image_path)), None, n)
                         since_full = 0
-                    m = tracked or Measurement(None, None, None, fallback_reason=reason or "no points to follow")
+                    reason = reason or "no points to follow"
+                    m = tracked or Measurement(None, None, None, fallback_reason=reason)
                     result = fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, m)
                     at_m = np.asarray(result.filter.x[:2], float)
                     # too few points are followed on from the predicted pose; points that gave no pose are dropped
                     points = None if followed is None or tracked is not None else _at_pose(
                         followed, predicted_camera(followed.T_world_camera, followed.east_north_m, at_m), at_m)
                     points_t_s, kind = t_s, PREDICTED
-                    reason = reason or "no points to follow"
                 else:  # nothing to follow, or it no longer poses, and no track to predict: localize in full now
                     if pending is not None:
                         pending[0].cancel()
