@@ -251,10 +251,22 @@ class PnPResult:
     pose_cov: np.ndarray
 
 
+REFINE_ROUNDS = 10  # PnP: inliers selected again and refined until they settle, at most this many times
+
+
 def solve_pnp(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, *, reprojection_px: float = 2.0,
               iterations: int = 1000, confidence: float = 0.999, seed: int = 0,
-              min_inliers: int = 12, points_cov: np.ndarray | None = None) -> PnPResult | str:
-    """Camera pose by PnP RANSAC (SQPnP minimal solver) refined with Levenberg-Marquardt on the inliers.
+              min_inliers: int = 12, points_cov: np.ndarray | None = None, kernel: int = cv2.SOLVEPNP_AP3P,
+              refine_rounds: int = REFINE_ROUNDS) -> PnPResult | str:
+    """Camera pose by PnP RANSAC, refined with Levenberg-Marquardt on the inliers until they settle.
+
+    The RANSAC hypotheses come from ``kernel``, by default AP3P on four points each: where many of a query's
+    correspondences are wrong, it reaches RANSAC's confidence in fewer and cheaper samples than a five-point
+    kernel (OpenCV's RANSAC with the EPnP or SQPnP flag): where fewer than half fit, 6-7 ms against 26-29 ms on
+    the shared drives' camera-rate tracks (``benchmarks/pnp_kernels.py``). A minimal sample is noisier than a larger one, so the
+    pose is then refined on its inliers, and the inliers are chosen again at ``reprojection_px`` and refined until
+    they no longer change (at most ``refine_rounds`` rounds): the consensus settles where the data put it, not
+    where one sample did.
 
     Returns a ``PnPResult``, or a one-line reason (str) when there are too few
     correspondences or inliers, or the solver fails. With ``points_cov`` (N, 3, 3), each
@@ -268,8 +280,8 @@ def solve_pnp(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, *, rep
     try:
         ok, rvec, tvec, inliers = cv2.solvePnPRansac(X, x, K, None, iterationsCount=int(iterations),
                                                      reprojectionError=float(reprojection_px), confidence=confidence,
-                                                     flags=cv2.SOLVEPNP_SQPNP)
-    except cv2.error:  # SQPnP asserts on degenerate samples (points nearly coincident)
+                                                     flags=int(kernel))
+    except cv2.error:  # the solver asserts on degenerate samples (points nearly coincident)
         return "PnP RANSAC: degenerate points"
     if not ok or inliers is None:
         return "PnP RANSAC found no pose"
@@ -277,13 +289,16 @@ def solve_pnp(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, *, rep
     if len(inliers) < min_inliers:
         return f"PnP RANSAC: {len(inliers)} inliers (need {min_inliers})"
     rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, None, rvec.copy(), tvec.copy())
-    # the refined pose may change which correspondences fit: re-select once and refine again
-    uv, _ = cv2.projectPoints(X, rvec, tvec, K, None)
-    residual = np.linalg.norm(uv.reshape(-1, 2) - x, axis=1)
-    inliers = np.flatnonzero(residual <= reprojection_px)
-    if len(inliers) < min_inliers:
-        return f"PnP refinement: {len(inliers)} inliers (need {min_inliers})"
-    rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, None, rvec, tvec)
+    # the refined pose may change which correspondences fit: select them again and refine, until they settle
+    for _ in range(max(int(refine_rounds), 1)):
+        uv, _ = cv2.projectPoints(X, rvec, tvec, K, None)
+        selected = np.flatnonzero(np.linalg.norm(uv.reshape(-1, 2) - x, axis=1) <= reprojection_px)
+        if len(selected) < min_inliers:
+            return f"PnP refinement: {len(selected)} inliers (need {min_inliers})"
+        if np.array_equal(selected, inliers):
+            break
+        inliers = selected
+        rvec, tvec = cv2.solvePnPRefineLM(X[inliers], x[inliers], K, None, rvec, tvec)
     uv, J = cv2.projectPoints(X[inliers], rvec, tvec, K, None)
     res = (uv.reshape(-1, 2) - x[inliers]).ravel()
     dof = max(res.size - 6, 1)
