@@ -262,11 +262,11 @@ def solve_pnp(points_world: np.ndarray, xy_px: np.ndarray, K: np.ndarray, *, rep
 
     The RANSAC hypotheses come from ``kernel``, by default AP3P on four points each: where many of a query's
     correspondences are wrong, it reaches RANSAC's confidence in fewer and cheaper samples than a five-point
-    kernel (OpenCV's RANSAC with the EPnP or SQPnP flag): where fewer than half fit, 6-7 ms against 26-29 ms on
-    the shared drives' camera-rate tracks (``benchmarks/pnp_kernels.py``). A minimal sample is noisier than a larger one, so the
-    pose is then refined on its inliers, and the inliers are chosen again at ``reprojection_px`` and refined until
-    they no longer change (at most ``refine_rounds`` rounds): the consensus settles where the data put it, not
-    where one sample did.
+    kernel (OpenCV's RANSAC with the EPnP or SQPnP flag): where fewer than half fit, 6-7 ms against 26-29 ms
+    on the shared drives' camera-rate tracks (``benchmarks/pnp_kernels.py``). A minimal sample is noisier than
+    a larger one, so the pose is then refined on its inliers, and the inliers are chosen again at
+    ``reprojection_px`` and refined until they no longer change (at most ``refine_rounds`` rounds): the
+    consensus settles where the data put it, not where one sample did.
 
     Returns a ``PnPResult``, or a one-line reason (str) when there are too few
     correspondences or inliers, or the solver fails. With ``points_cov`` (N, 3, 3), each
