@@ -110,10 +110,10 @@ def test_pnp_gives_back_the_query_position_within_centimetres(noise_px):
     assert not set(np.flatnonzero(vq)[pnp.inliers]) & set(outliers)
 
 
-
-def test_pnp_where_most_pairs_are_wrong_keeps_every_right_one_and_its_inliers_settle():
+def test_pnp_where_most_pairs_are_wrong_keeps_the_right_ones_and_its_inliers_settle():
     """60 % of the pairs wrong, as on a retrieval's correspondences: the pose within centimetres, no wrong pair
-    kept, and the inliers exactly those that fit the final pose (selected again until they no longer change)."""
+    kept unless it fits by chance, most right ones kept, and the inliers exactly those that fit the final pose
+    (selected again until they no longer change)."""
     points = street(n_points=200, seed=11)
     T_query_camera, T_query_imu = camera_pose(-6.0, north_m=0.3, yaw_rad=0.02)
     xq, vq = observe(points, T_query_camera, 1.0, np.random.default_rng(12))  # 1 px: pairs near the threshold
@@ -132,6 +132,7 @@ def test_pnp_where_most_pairs_are_wrong_keeps_every_right_one_and_its_inliers_se
     assert len(np.intersect1d(pnp.inliers, right)) >= 0.8 * len(right)  # 1 px noise puts ~14 % beyond 2 px
     uv, _ = project(K, pnp.T_world_camera, X)
     np.testing.assert_array_equal(np.flatnonzero(np.linalg.norm(uv - x, axis=1) <= 2.0), pnp.inliers)
+
 
 def test_pnp_covariance_matches_the_scatter_of_repeated_noisy_solutions():
     """With exact 3D points and pixel noise, PnP's propagated covariance should describe its own errors."""
