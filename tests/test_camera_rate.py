@@ -453,6 +453,50 @@ def test_a_frame_that_loses_its_points_is_predicted_while_the_relocalization_bes
     assert all(np.all(np.isfinite(s.result.filter.x[:2])) for s in steps)
 
 
+@pytest.mark.slow
+def test_a_frame_left_with_nothing_to_follow_by_a_relocalization_that_found_nothing_is_predicted(store):
+    """Real frames of drive 0005 with the relocalization beside the tracker; while the camera is blinded (frames
+    8-16) the followed points give no pose and every full localization comes back with no points. The frame after
+    the first blinded one has nothing to follow; it waits for the relocalization under way, which brings nothing,
+    and is predicted instead of failing; the run goes on to its last frame, posed again once the camera sees."""
+    from visloc.params import PAPER_FILTER, TRACK
+    from visloc.pose.measurement import Measurement
+    from visloc.protocols.track import track_filter, track_localizer
+    from visloc.tracking.follower import PREDICTED, PointFollower
+
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    seq = open_source(None, drive=DRIVE, camera="image_00")
+    blind = {float(seq.timestamps_s[k]) for k in range(8, 17)}
+
+    class Blinded(PointFollower):
+        def _relocalize(self, gray, timestamp_s, *args, **kwargs):
+            done = super()._relocalize(gray, timestamp_s, *args, **kwargs)
+            return replace(done, points=None) if float(timestamp_s) in blind else done
+
+        def _pose(self, points):
+            if self.now in blind:
+                return Measurement(None, None, None, fallback_reason="tracked points: no pose"), None
+            return super()._pose(points)
+
+    params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=True,
+                           max_lost_wait_ms=10_000.0)
+    localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
+    follower = Blinded(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model,
+                       localizer.measurer.params, sift, params, stored=localizer.measurer.structures)
+    steps = []
+    follower.now = float(seq.timestamps_s[0])
+    for k, step in enumerate(follower.steps(seq, range(DRIVE_0005_FRAMES))):
+        steps.append(step)
+        follower.now = float(seq.timestamps_s[min(k + 1, DRIVE_0005_FRAMES - 1)])
+    assert len(steps) == DRIVE_0005_FRAMES
+    assert [s.kind for s in steps[8:17]] == [PREDICTED] * 9
+    # frames that had nothing to follow, the relocalization they waited for bringing nothing
+    assert any(s.followed_points == 0 and s.relocalize_reason == "no points to follow" for s in steps[9:17])
+    assert any(s.kind == "tracked" for s in steps[17:])
+    assert all(np.all(np.isfinite(s.result.filter.x[:2])) for s in steps)
+
+
 def test_a_first_fix_refuses_a_lone_far_candidate():
     from visloc.pose.measurement import Measurement
     from visloc.tracking.follower import first_fix

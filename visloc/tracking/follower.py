@@ -344,7 +344,8 @@ class PointFollower:
                         and wait([pending[0]], max(0.0, p.max_lost_wait_ms / 1000.0 - (time.perf_counter() - t0))).done):
                     followed, joined = take(pending[0].result(), None, followed, pending[2])  # lost: the one under way
                     pending = None
-                    followed = self._allowed(followed, t_s)
+                    if followed is not None:  # it may bring no points to a frame that had none
+                        followed = self._allowed(followed, t_s)
                 if followed is not None:
                     n_followed = len(followed)
                     flow_ms = (time.perf_counter() - t0) * 1000.0
