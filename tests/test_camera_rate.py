@@ -362,7 +362,7 @@ def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covari
     previous = full.gray
     for k in range(start + 1, start + 4):
         gray = load_gray(seq.frames[k].image_path)
-        points = follower._allowed(follow(points, previous, gray, seq.camera_model.K, None), seq.timestamps_s[k])
+        points = follower.window.allowed(follow(points, previous, gray, seq.camera_model.K, None), seq.timestamps_s[k])
         tracked, inliers = pose_tracked(points, points.pixels_px, db.east_north_m, db.geometry(), seq.camera_model,
                                         pose)
         assert inliers is not None, tracked.fallback_reason

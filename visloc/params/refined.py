@@ -196,8 +196,9 @@ class TrackParams(Params):
     relocalize_every: int = param(10, "following points: localize in full at least every this many frames, to "
                                       "find new map points (0: only when the followed ones no longer serve)",
                                   kind="integer", low=0, high=MAX_C_INT, methods=TRACK_ONLY)
-    min_followed_points: int = param(40, "following points: fewer followed points than this: localize in full",
-                                     kind="integer", low=6, high=MAX_C_INT, methods=TRACK_ONLY)
+    min_followed_points: int = param(40, "following points: a frame posed on fewer image tracks (followed keypoints, "
+                                         "each once however many views' structure holds its map point) than this: "
+                                         "localize in full", kind="integer", low=6, high=MAX_C_INT, methods=TRACK_ONLY)
     min_followed_cells: int = param(4, "following points: points in fewer of the image's 4 x 4 cells than this: "
                                        "localize in full", kind="integer", low=0, high=16, methods=TRACK_ONLY)
     max_followed_lever_m: float = param(15.0, "following points: a frame farther than this from the nearest view "

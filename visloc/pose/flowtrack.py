@@ -37,11 +37,14 @@ class TrackedPoints:
     """Map points seen in one frame, as the tracker follows them.
 
     pixels_px: (M, 2) where they lie in the frame's image as read (before any undistortion);
+    track_of: (M,) the image track each point's pixel follows: one keypoint of a fully localized frame, followed
+    from frame to frame; the same map point in several views' structure is one track, flowed once;
     view_of, view_rows: (M,) the database view and keypoint row of each; points_world: (M, 3) m;
     points_cov: (M, 3, 3) m^2; neighbours: view -> the database images its structure was triangulated with;
     T_world_camera: (4, 4) the frame's pose; east_north_m: (2,) the frame's posed position."""
 
     pixels_px: np.ndarray
+    track_of: np.ndarray
     view_of: np.ndarray
     view_rows: np.ndarray
     points_world: np.ndarray
@@ -53,18 +56,26 @@ class TrackedPoints:
     def __len__(self) -> int:
         return len(self.pixels_px)
 
+    @property
+    def n_tracks(self) -> int:
+        """How many image tracks the points lie on (a keypoint seen in several views' structure counts once)."""
+        return int(len(np.unique(self.track_of)))
+
     def subset(self, keep: np.ndarray, pixels_px: np.ndarray | None = None) -> "TrackedPoints":
         """The points ``keep`` (bool or index), optionally at new pixels (already subset)."""
         px = self.pixels_px[keep] if pixels_px is None else pixels_px
-        return TrackedPoints(px, self.view_of[keep], self.view_rows[keep], self.points_world[keep],
-                             self.points_cov[keep], self.neighbours, self.T_world_camera, self.east_north_m)
+        return TrackedPoints(px, self.track_of[keep], self.view_of[keep], self.view_rows[keep],
+                             self.points_world[keep], self.points_cov[keep], self.neighbours, self.T_world_camera,
+                             self.east_north_m)
 
 
 def points_of(inliers: MapCorrespondences, raw_pixels_px: np.ndarray, east_north_m: np.ndarray,
-              neighbours: dict) -> TrackedPoints:
+              neighbours: dict, first_track: int = 0) -> TrackedPoints:
     """What a posed frame hands the tracker: its inliers at the pixels they have in the image as read
-    (``raw_pixels_px``: (N, 2) of every query keypoint, before undistortion)."""
+    (``raw_pixels_px``: (N, 2) of every query keypoint, before undistortion); keypoint row r follows track
+    ``first_track + r``."""
     return TrackedPoints(np.asarray(raw_pixels_px, np.float32)[inliers.query_rows].reshape(-1, 2),
+                         first_track + np.asarray(inliers.query_rows, np.int64),
                          inliers.view_of, inliers.view_rows, inliers.points_world, inliers.points_cov,
                          dict(neighbours), np.asarray(inliers.T_world_camera, float),
                          np.asarray(east_north_m, float))
@@ -124,8 +135,14 @@ def follow(points: TrackedPoints, previous_gray: np.ndarray, gray: np.ndarray, K
         last, last_front = project_px(points.points_world, points.T_world_camera, K)
         use = front & last_front
         guess[use] = uv[use] + (points.pixels_px[use] - last[use])
-    px, ok = follow_points(previous_gray, gray, points.pixels_px, guess, max_backward_px=max_backward_px)
-    return points.subset(ok, px[ok])
+    # each track flowed once, from where its points project on average
+    tracks, first, of = np.unique(points.track_of, return_index=True, return_inverse=True)
+    track_guess = np.zeros((len(tracks), 2))
+    np.add.at(track_guess, of, guess)
+    track_guess /= np.bincount(of, minlength=len(tracks))[:, None]
+    px, ok = follow_points(previous_gray, gray, points.pixels_px[first], track_guess, max_backward_px=max_backward_px)
+    keep = ok[of]
+    return points.subset(keep, px[of][keep])
 
 
 def grid_cells_occupied(pixels_px: np.ndarray, image_shape: tuple[int, int], cells: int = GRID_CELLS) -> int:
@@ -142,7 +159,9 @@ def pose_tracked(points: TrackedPoints, undistorted_px: np.ndarray, db_east_nort
                  geometry: DatabaseGeometry, query_camera: CameraModel,
                  params: RefinedParams) -> tuple[Measurement, MapCorrespondences | None]:
     """The frame posed against the followed points, by the full measurement's own ``pose_from_views`` (views
-    ranked by how many of their points were followed), or a measurement with no position and the reason."""
+    ranked by how many of their points were followed), each view alone and their positions averaged (each view's
+    structure is adjusted on its own, so the same map point lies a little apart in two views' structure, and the
+    followed points come from several views: ``linked``), or a measurement with no position and the reason."""
     views, counts = np.unique(points.view_of, return_counts=True)
     usable = [int(v) for v in views[np.argsort(-counts, kind="stable")]]
     rows = np.arange(len(points))
@@ -155,7 +174,7 @@ def pose_tracked(points: TrackedPoints, undistorted_px: np.ndarray, db_east_nort
     # every view the points come from, not only the best few: they are already the map's points this frame saw
     posed = pose_from_views(np.asarray(undistorted_px, float), usable, pairs_of, lambda i: (lookup[i], 0.0),
                             neighbours, db_east_north_m, geometry, query_camera,
-                            params.replace(n_views=max(params.n_views, len(usable))))
+                            params.replace(n_views=max(params.n_views, len(usable)), fuse_views=True))
     if posed.reason is not None:
         return Measurement(None, None, None, fallback_reason=f"tracked points: {posed.reason}", **posed.support), None
     m = posed_measurement(posed)
@@ -216,10 +235,106 @@ def merged(current: TrackedPoints | None, fresh: TrackedPoints) -> TrackedPoints
     have = set(zip(current.view_of.tolist(), current.view_rows.tolist()))
     new = np.array([(v, r) not in have for v, r in zip(fresh.view_of.tolist(), fresh.view_rows.tolist())], bool)
     cat = lambda a, b: np.concatenate([a, b[new]])  # noqa: E731
-    return TrackedPoints(cat(current.pixels_px, fresh.pixels_px), cat(current.view_of, fresh.view_of),
+    return TrackedPoints(cat(current.pixels_px, fresh.pixels_px), cat(current.track_of, fresh.track_of),
+                         cat(current.view_of, fresh.view_of),
                          cat(current.view_rows, fresh.view_rows), cat(current.points_world, fresh.points_world),
                          cat(current.points_cov, fresh.points_cov), {**fresh.neighbours, **current.neighbours},
                          current.T_world_camera, current.east_north_m)
+
+
+# Two views' points are the same map point (``linked``) when they lie within LINK_RADIUS_FRACTION of the point's depth
+# of each other (at least LINK_MIN_RADIUS_M), among the LINK_CANDIDATES nearest, and their descriptors lie at most
+# LINK_MAX_DESCRIPTOR_DISTANCE apart (L2, uint8 SIFT) and closer than LINK_RATIO times the next candidate's
+LINK_RADIUS_FRACTION = 0.06
+LINK_MIN_RADIUS_M = 0.3
+LINK_CANDIDATES = 4
+LINK_MAX_DESCRIPTOR_DISTANCE = 250.0
+LINK_RATIO = 0.8
+
+
+def linked(points: TrackedPoints, view_points: dict, db_descriptors_u8, *, neighbours: dict | None = None,
+           trees: dict | None = None,
+           radius_fraction: float = LINK_RADIUS_FRACTION, min_radius_m: float = LINK_MIN_RADIUS_M,
+           max_distance: float = LINK_MAX_DESCRIPTOR_DISTANCE, ratio: float = LINK_RATIO) -> TrackedPoints:
+    """``points`` with the points of other views that are the same map points: what lets a followed frame go on
+    from views it can no longer use (the exclusion window, or views it has left far behind) to nearer ones
+    without a full localization.
+
+    Each view's structure is triangulated on its own (its poses adjusted on its own), so one map point lies at
+    slightly different places in two views' structures: on the shared drives 1 % of its depth apart in median,
+    2-3 % at the upper quartile. A followed point takes, in each view of ``view_points`` (view -> (rows (K,),
+    points_world (K, 3), points_cov (K, 3, 3))) where its track has no point yet, the point among the
+    ``LINK_CANDIDATES`` nearest its own 3D point and within ``radius_fraction`` of its distance from the camera
+    (at least ``min_radius_m``) whose descriptor in that view lies nearest its descriptor in its own view, when
+    at most ``max_distance`` and below ``ratio`` times the next one's; a point of the view taken by several
+    keeps the nearest. The database alone links them, as a map's multi-view tracks do: the frame's own image is not
+    compared with the views. The new points follow the same image tracks as the points they were linked from.
+    ``neighbours``: view -> the database images its structure was triangulated with, for the views of
+    ``view_points``; ``trees``: a cache of each view's k-d tree over its points ((view, its neighbours) ->
+    ``cKDTree``)."""
+    from scipy.spatial import cKDTree  # here: scipy.spatial costs every command's start-up about 0.2 s
+
+    if not len(points) or not view_points:
+        return points
+    tracks, first = np.unique(points.track_of, return_index=True)
+    source_xyz = points.points_world[first]
+    source_desc = np.empty((len(first), 128), np.float32)
+    source_views = points.view_of[first]
+    for v in np.unique(source_views).tolist():
+        at = source_views == v
+        source_desc[at] = np.asarray(db_descriptors_u8[v])[points.view_rows[first][at]]
+    depth_m = np.linalg.norm(source_xyz - np.asarray(points.T_world_camera, float)[:3, 3], axis=1)
+    radius_m = np.maximum(min_radius_m, radius_fraction * depth_m)
+    parts = []
+    for view, (rows, xyz, cov) in view_points.items():
+        if not len(rows):
+            continue
+        key = (view, tuple((neighbours or {}).get(view, ())))  # a view's structure differs with its neighbours
+        tree = None if trees is None else trees.get(key)
+        if tree is None:
+            tree = cKDTree(np.asarray(xyz, float))
+            if trees is not None:
+                trees[key] = tree
+        untaken = ~np.isin(tracks, points.track_of[points.view_of == view])  # tracks without a point in the view
+        if not untaken.any():
+            continue
+        k = min(LINK_CANDIDATES, len(rows))
+        dist_m, nearest = tree.query(source_xyz[untaken], k=k, distance_upper_bound=radius_m[untaken].max())
+        dist_m, nearest = dist_m.reshape(-1, k), nearest.reshape(-1, k)
+        within = dist_m <= radius_m[untaken][:, None]
+        if not within.any():
+            continue
+        si = np.flatnonzero(untaken)[np.nonzero(within)[0]]  # (pairs,) source track index, view point index
+        pi = nearest[within]
+        view_desc = np.asarray(db_descriptors_u8[view])[rows[pi]].astype(np.float32)
+        dist = np.linalg.norm(view_desc - source_desc[si], axis=1)
+        order = np.lexsort((dist, si))
+        si, pi, dist = si[order], pi[order], dist[order]
+        starts = np.flatnonzero(np.r_[True, si[1:] != si[:-1]])
+        second = np.full(len(starts), np.inf)
+        has_second = np.r_[starts[1:], len(si)] - starts > 1
+        second[has_second] = dist[starts[has_second] + 1]
+        ok = starts[(dist[starts] <= max_distance) & (dist[starts] < ratio * second)]
+        if not ok.size:
+            continue
+        by_point = ok[np.lexsort((dist[ok], pi[ok]))]  # a view's point claimed by several tracks: the nearest
+        _, keep = np.unique(pi[by_point], return_index=True)
+        ok = by_point[keep]
+        parts.append((first[si[ok]], np.full(ok.size, view, np.int64), rows[pi[ok]], xyz[pi[ok]], cov[pi[ok]]))
+    if not parts:
+        return points
+    source, view_of, view_rows, xyz, cov = (np.concatenate(x) for x in zip(*parts))
+    return appended(points, TrackedPoints(points.pixels_px[source], points.track_of[source], view_of, view_rows, xyz,
+                                          cov, dict(neighbours or {}), points.T_world_camera, points.east_north_m))
+
+
+def appended(points: TrackedPoints, more: TrackedPoints) -> TrackedPoints:
+    """``points`` and then ``more`` (points it lacks), at ``points``' pose."""
+    cat = np.concatenate
+    return TrackedPoints(cat([points.pixels_px, more.pixels_px]), cat([points.track_of, more.track_of]),
+                         cat([points.view_of, more.view_of]), cat([points.view_rows, more.view_rows]),
+                         cat([points.points_world, more.points_world]), cat([points.points_cov, more.points_cov]),
+                         {**more.neighbours, **points.neighbours}, points.T_world_camera, points.east_north_m)
 
 
 def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,

@@ -257,10 +257,25 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
     # The camera-rate path's products are small (a frame's keypoints against a few views' structure, 3x3 and 6x6
     # covariances): with BLAS's own threads it was no faster, and their waiting between frames took 0.4-0.7 of a
     # core beside a 10 Hz run (benchmarks/track_following.py). The exact path shares its matching among threads of
-    # its own, as many as BLAS has, so it keeps them.
-    with one_blas_thread() if params.fast else contextlib.nullcontext():
+    # its own, as many as BLAS has, so it keeps them. Following points, the full localizations run in a thread beside
+    # the tracker: OpenCV's own threads on top of the two took a tenth of a core more at 10 Hz.
+    with one_blas_thread() if params.fast else contextlib.nullcontext(), \
+            one_opencv_thread() if params.fast and params.follow_points else contextlib.nullcontext():
         _record_steps(run, seq, indices, steps, db, truths, start, cpu_start, progress)
     return run
+
+
+@contextlib.contextmanager
+def one_opencv_thread():
+    """A context in which OpenCV runs its functions on the calling thread only; the process's setting is handed back."""
+    import cv2
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def _record_steps(run: TrackRun, seq: Drive, indices: list[int], steps, db: GeoDatabase, truths, start: float,

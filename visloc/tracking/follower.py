@@ -28,6 +28,7 @@ own cost is on another core.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor, wait
@@ -38,25 +39,28 @@ import numpy as np
 from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams, TrackParams
-from visloc.pose.flowtrack import (TrackedPoints, disagree, follow, grid_cells_occupied, guided_matches, merged,
-                                   needs_relocalization, points_of, pose_tracked, predicted_camera,
+from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied, guided_matches,
+                                   linked, merged, needs_relocalization, points_of, pose_tracked, predicted_camera,
                                    shared_map_error)
 from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement
-from visloc.pose.structure import ViewStructure, choose_variant
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.drives import Drive, load_gray
 from visloc.tracking.localizer import Localizer, StepResult
+from visloc.tracking.viewwindow import ViewWindow
 
 TRACKED = "tracked"
 RELOCALIZED = "relocalized"
 PREDICTED = "predicted"  # no pose from the followed points and a full localization under way: the filter predicts
 FIRST_FIX_CANDIDATES = 5
 FIRST_FIX_AGREEMENT_M = 10.0
-LOOKAHEAD_S = 0.5  # the followed points must still serve this much later, or a full localization is asked for
-EXTRA_VIEWS = 4  # a full localization also looks for the points of this many more views that keep serving
+LOOKAHEAD_S = 0.5  # a full localization also takes on the points of views that still serve this much later
+EXTRA_VIEWS = 4  # ... this many of them
 EXTRA_VIEW_RADIUS_M = 40.0
+LINKED_VIEWS = 4  # a followed frame takes on the same map points in this many views nearest it, half on each side
+POSED_VIEWS = 2  # ... and drops the views farther away than the POSED_VIEWS nearest on each side that hold
+POSED_VIEW_MIN_POINTS = 10  # ... this many points
 HISTORY_FRAMES = 50  # a relocalization that arrives later than this many frames is not fused in its frame's place
 NO_RETRIEVAL = Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
 
@@ -150,7 +154,14 @@ class PointFollower:
         self.params = params
         self.distortion = distortion
         self.stored = stored or {}
-        self._sign = 1.0
+        self.window = ViewWindow(db_east_north_m, db_timestamps_s, params.exclusion_s, self.stored)
+        # every keypoint of a fully localized frame starts an image track of its own: the first number the next one
+        # takes (full localizations run in the thread beside the tracker too), and per view structure (view, its
+        # neighbours) the first track not yet linked into it
+        self._next_track = 0
+        self._track_lock = threading.Lock()
+        self._linked_from: dict[tuple, int] = {}
+        self._trees: dict = {}  # each view structure's k-d tree over its points, for linking
 
     def _undistort(self, px: np.ndarray) -> np.ndarray:
         return undistort_keypoints(np.asarray(px, np.float32), self.camera.K, self.distortion)
@@ -182,17 +193,20 @@ class PointFollower:
             return None
         inliers = m.inliers
         neighbours = dict(inliers.neighbours or {})
-        base = points_of(inliers, full.raw_px, m.east_north_m, neighbours)
+        with self._track_lock:
+            first_track, self._next_track = self._next_track, self._next_track + len(full.raw_px)
+        base = points_of(inliers, full.raw_px, m.east_north_m, neighbours, first_track)
         if not inliers.view_structure:
             return base
         view_points = {v: self._view_points(v, neighbours.get(v, ()), structure)
                        for v, structure in inliers.view_structure.items()}
-        for view, s in self._lasting_views(m.east_north_m, full.query.timestamp_s).items():
+        for view, s in self.window.nearest_views(m.east_north_m, full.query.timestamp_s, LOOKAHEAD_S, EXTRA_VIEWS,
+                                                 EXTRA_VIEW_RADIUS_M).items():
             if view not in view_points:
                 view_points[view], neighbours[view] = (s.rows, s.points_world, s.cov_world), tuple(s.neighbours)
         guided = guided_matches(view_points, self.geometry.descriptors_u8, full.query.keypoints_f32[:, :2],
                                 full.query.descriptors_u8, inliers.T_world_camera, self.camera.K, full.gray.shape)
-        wide = points_of(guided, full.raw_px, m.east_north_m, neighbours)
+        wide = points_of(guided, full.raw_px, m.east_north_m, neighbours, first_track)
         if len(wide) <= len(base):
             return base
         posed, kept = pose_tracked(wide, full.query.keypoints_f32[guided.query_rows, :2], self.db_east_north_m,
@@ -207,48 +221,46 @@ class PointFollower:
         points = self._points(full)
         return _Relocalized(full, points, (time.perf_counter() - t0) * 1000.0)
 
-    def _lasting_views(self, east_north_m: np.ndarray, timestamp_s: float) -> dict[int, ViewStructure]:
-        """The stored structure of up to ``EXTRA_VIEWS`` database views nearest the pose (within
-        ``EXTRA_VIEW_RADIUS_M``) that this frame may use and the frames of the next ``LOOKAHEAD_S`` too (with the
-        exclusion window on, the views behind the vehicle, with their neighbours on the side away from it):
-        points that keep serving as the vehicle moves on."""
-        if not self.stored:
-            return {}
-        allowed = None
-        if self.params.exclusion_s > 0:
-            allowed = self._usable(timestamp_s) & self._usable(timestamp_s + LOOKAHEAD_S * self._sign)
-        distance = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)
-        out: dict[int, ViewStructure] = {}
-        per_side = {True: 0, False: 0}  # as many views before the frame as after it, nearest first
-        for v in np.argsort(distance, kind="stable").tolist():
-            if distance[v] > EXTRA_VIEW_RADIUS_M or len(out) >= EXTRA_VIEWS:
-                break
-            before = bool(self.db_timestamps_s[v] < timestamp_s)
-            if (allowed is not None and not allowed[v]) or per_side[before] >= EXTRA_VIEWS // 2:
-                continue
-            s = choose_variant(self.stored.get(v, {}), allowed, not before)
-            if s is not None:
-                out[v] = s
-                per_side[before] += 1
-        return out
-
-    def _usable(self, timestamp_s: float) -> np.ndarray:
-        """(N,) bool: the database views the exclusion window lets a frame at ``timestamp_s`` use."""
-        return np.abs(self.db_timestamps_s - timestamp_s) >= self.params.exclusion_s
-
-    def _nearest_view_m(self, east_north_m: np.ndarray, timestamp_s: float) -> float:
-        """How far from ``east_north_m`` the nearest database view a frame at ``timestamp_s`` may use is, m."""
-        d = np.linalg.norm(self.db_east_north_m - np.asarray(east_north_m, float), axis=1)[self._usable(timestamp_s)]
-        return float(d.min()) if d.size else np.inf
-
-    def _allowed(self, points: TrackedPoints, timestamp_s: float) -> TrackedPoints:
-        """The points the exclusion window lets a frame at ``timestamp_s`` use."""
-        if self.params.exclusion_s <= 0 or not len(points):
+    def _linked(self, points: TrackedPoints, timestamp_s: float, displacement_m: np.ndarray | None) -> TrackedPoints:
+        """``points`` on the views a frame at ``timestamp_s`` takes on: each image track linked into the structure
+        of the ``LINKED_VIEWS`` views nearest the frame that it may use where it has no point there yet
+        (``visloc.pose.flowtrack.linked``: the same map points in the database's other views), then without the
+        views farther away than the ``POSED_VIEWS`` nearest on each side that hold ``POSED_VIEW_MIN_POINTS`` points
+        (the error grows with the distance to the views). As the vehicle moves on, the views it passes and those
+        the exclusion window takes away hand their map points on to the views it nears, and the frames stay posed on
+        the nearest views without a full localization. ``displacement_m``: how far the vehicle moved since the
+        points' pose."""
+        if not self.stored or not len(points):
             return points
-        far = self._usable(timestamp_s)
-        ok_view = {v: bool(far[v]) and all(far[j] for j in points.neighbours.get(v, ()))
-                   for v in np.unique(points.view_of).tolist()}
-        return points.subset(np.array([ok_view[v] for v in points.view_of.tolist()], bool))
+        east_north_m = points.east_north_m + (0.0 if displacement_m is None else np.asarray(displacement_m, float))
+        out = points
+        for v, st in self.window.nearest_views(east_north_m, timestamp_s, 0.0, LINKED_VIEWS,
+                                               EXTRA_VIEW_RADIUS_M).items():
+            key = (v, tuple(st.neighbours))
+            newer = out.track_of >= self._linked_from.get(key, 0)  # the tracks not tried in this view yet
+            self._linked_from[key] = int(out.track_of.max()) + 1  # tracks are numbered in the order they come
+            if newer.any():
+                tried = out.subset(newer)
+                more = linked(tried, {v: (st.rows, st.points_world, st.cov_world)}, self.geometry.descriptors_u8,
+                              neighbours={v: tuple(st.neighbours)}, trees=self._trees)
+                if len(more) > len(tried):
+                    out = appended(out, more.subset(np.arange(len(tried), len(more))))
+        return self._nearest_views_only(out, east_north_m, timestamp_s)
+
+    def _nearest_views_only(self, points: TrackedPoints, east_north_m: np.ndarray,
+                            timestamp_s: float) -> TrackedPoints:
+        """``points`` without the views farther from ``east_north_m`` than the ``POSED_VIEWS`` nearest on their side
+        of the frame (before or after it) that hold ``POSED_VIEW_MIN_POINTS`` points or more."""
+        views, counts = np.unique(points.view_of, return_counts=True)
+        distance = np.linalg.norm(self.db_east_north_m[views] - np.asarray(east_north_m, float), axis=1)
+        keep = np.zeros(len(views), bool)
+        for before in (True, False):
+            side = np.flatnonzero((self.db_timestamps_s[views] < timestamp_s) == before)
+            side = side[np.argsort(distance[side], kind="stable")]
+            held = side[counts[side] >= POSED_VIEW_MIN_POINTS]
+            reach_m = distance[held[POSED_VIEWS - 1]] if len(held) >= POSED_VIEWS else np.inf
+            keep[side[distance[side] <= reach_m]] = True
+        return points if keep.all() else points.subset(np.isin(points.view_of, views[keep]))
 
     @staticmethod
     def _direction(seq: Drive) -> float:
@@ -270,7 +282,7 @@ class PointFollower:
         """The frames ``indices`` of ``seq`` in order, from the localizer's current state (see the module
         docstring); ``cancelled()`` is asked after each frame and raises ``MatchCancelled`` when true."""
         p, K = self.params, self.camera.K
-        self._sign = self._direction(seq)
+        self.window.direction = self._direction(seq)
         engine = make_sift(self.sift)
         pool = ThreadPoolExecutor(1, thread_name_prefix="relocalize") if p.background_relocalization else None
         background_engine = make_sift(self.sift) if pool else None
@@ -339,13 +351,13 @@ class PointFollower:
                     followed, joined = take(pending[0].result(), pending[1], followed, pending[2])
                     pending = None
                 if followed is not None:
-                    followed = self._allowed(followed, t_s)
+                    followed = self.window.allowed(self._linked(followed, t_s, moved_m(points_t_s)), t_s)
                 if (pending is not None and (followed is None or len(followed) < min_points)
                         and wait([pending[0]], max(0.0, p.max_lost_wait_ms / 1000.0 - (time.perf_counter() - t0))).done):
                     followed, joined = take(pending[0].result(), None, followed, pending[2])  # lost: the one under way
                     pending = None
-                    if followed is not None:  # it may bring no points to a frame that had none
-                        followed = self._allowed(followed, t_s)
+                    if followed is not None:
+                        followed = self.window.allowed(followed, t_s)
                 if followed is not None:
                     n_followed = len(followed)
                     flow_ms = (time.perf_counter() - t0) * 1000.0
@@ -362,14 +374,13 @@ class PointFollower:
                     points, points_t_s, kind = kept, t_s, TRACKED
                     since_full += 1
                     sigma_m = float(np.sqrt(max(np.linalg.eigvalsh(result.filter.P[:2, :2]).max(), 0.0)))
-                    # the points that will still serve a little later: a full localization takes a few frames
-                    lasting = self._allowed(points, t_s + LOOKAHEAD_S * self._sign)
+                    # the image tracks the frame was posed on: the next frames link them into the views they near
                     reason = needs_relocalization(
-                        len(lasting), grid_cells_occupied(points.pixels_px, gray.shape), tracked.lever_m, sigma_m,
+                        points.n_tracks, grid_cells_occupied(points.pixels_px, gray.shape), tracked.lever_m, sigma_m,
                         since_full, min_points=p.min_followed_points, min_cells=p.min_followed_cells,
                         max_lever_m=p.max_followed_lever_m, max_sigma_m=p.max_followed_sigma_m,
                         every_frames=p.relocalize_every,
-                        nearest_view_m=self._nearest_view_m(tracked.east_north_m, t_s),
+                        nearest_view_m=self.window.nearest_view_m(tracked.east_north_m, t_s),
                         max_lever_excess_m=p.max_followed_lever_excess_m)
                     if reason is not None and pending is None:
                         since_full = 0

@@ -1,0 +1,112 @@
+"""Following map points between full localizations, its pure parts: image tracks flowed once, the same map points
+linked across the database's views, and the exclusion window over a track's views."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from visloc.pose.flowtrack import TrackedPoints, follow, linked
+from visloc.pose.structure import ViewStructure
+from visloc.tracking.viewwindow import ViewWindow
+
+
+def _points(pixels, tracks, views, rows, xyz, neighbours=None, T=None) -> TrackedPoints:
+    n = len(tracks)
+    return TrackedPoints(np.asarray(pixels, np.float32).reshape(n, 2), np.asarray(tracks, np.int64),
+                         np.asarray(views, np.int64), np.asarray(rows, np.int64), np.asarray(xyz, float).reshape(n, 3),
+                         np.tile(np.eye(3) * 1e-4, (n, 1, 1)), dict(neighbours or {}),
+                         np.eye(4) if T is None else T, np.zeros(2))
+
+
+def _descriptor(seed: int) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 60, 128).astype(np.uint8)
+
+
+def test_a_followed_point_is_linked_to_the_same_map_point_of_another_view_and_to_nothing_else():
+    """Camera at the origin looking down +z. Track 0 has its point 0.2 m from a point of view 1 with the same
+    descriptor: linked. Track 1 has one nearby with a descriptor far from its own: not linked. Track 2 has two
+    nearby whose descriptors are about as near as each other: ambiguous, not linked. Track 3's nearest point of
+    view 1 lies farther than the radius (6 % of 20 m): not linked."""
+    own = np.stack([_descriptor(k) for k in range(4)])
+    ambiguous = own[2].astype(int)
+    other = np.stack([own[0], _descriptor(99), np.clip(ambiguous + 3, 0, 255), np.clip(ambiguous - 3, 0, 255),
+                      own[3]]).astype(np.uint8)
+    xyz = np.array([[0.0, 0.0, 20.0], [5.0, 0.0, 20.0], [-5.0, 0.0, 20.0], [0.0, 4.0, 20.0]])
+    points = _points([[600, 180], [800, 180], [400, 180], [600, 320]], [0, 1, 2, 3], [0] * 4, range(4), xyz,
+                     neighbours={0: (5,)})
+    view = (np.array([10, 11, 12, 13, 14]),
+            np.array([[0.2, 0.0, 20.0], [5.1, 0.0, 20.0], [-5.0, 0.1, 20.0], [-5.0, -0.1, 20.0], [0.0, 4.0, 22.0]]),
+            np.tile(np.eye(3) * 1e-4, (5, 1, 1)))
+    db_descriptors = {0: own, 1: np.concatenate([np.zeros((10, 128), np.uint8), other])}
+    out = linked(points, {1: view}, db_descriptors, neighbours={1: (2, 3)})
+    assert len(out) == 5
+    new = out.subset(np.arange(4, 5))
+    assert new.track_of.tolist() == [0] and new.view_of.tolist() == [1] and new.view_rows.tolist() == [10]
+    np.testing.assert_allclose(new.pixels_px, [[600, 180]])  # the same image track: its pixel, not the view's
+    np.testing.assert_allclose(new.points_world, [[0.2, 0.0, 20.0]])  # the view's own point
+    assert out.neighbours == {0: (5,), 1: (2, 3)}
+    # linked again: the track already has its point in view 1, and the others still fail
+    assert len(linked(out, {1: view}, db_descriptors, neighbours={1: (2, 3)})) == 5
+
+
+def test_a_view_point_claimed_by_two_tracks_goes_to_the_nearer_descriptor():
+    own = np.stack([_descriptor(1), _descriptor(1)]).astype(int)
+    own[1] = np.clip(own[1] + 20, 0, 255)
+    points = _points([[500, 100], [510, 100]], [7, 8], [0, 0], [0, 1], [[0, 0, 20.0], [0.1, 0, 20.0]])
+    view = (np.array([3]), np.array([[0.05, 0.0, 20.0]]), np.eye(3)[None] * 1e-4)
+    out = linked(points, {2: view}, {0: own.astype(np.uint8), 2: np.stack([_descriptor(9)] * 3 + [_descriptor(1)])})
+    assert out.subset(np.arange(2, len(out))).track_of.tolist() == [7]
+
+
+def test_points_of_one_image_track_are_flowed_once_and_keep_one_pixel(kitti_root):
+    """A real frame moved 3 px right and 2 px up: every track's points (the same keypoint in two views' structure)
+    end on one pixel, where the image moved."""
+    from helpers import DRIVE_0005
+    from visloc.sources.drives import load_gray
+    from visloc.sources.opening import open_source
+
+    seq = open_source(kitti_root, drive=DRIVE_0005, camera="image_00")
+    gray = load_gray(seq.frames[0].image_path)
+    moved = cv2.warpAffine(gray, np.float32([[1, 0, 3.0], [0, 1, -2.0]]), (gray.shape[1], gray.shape[0]))
+    corners = cv2.goodFeaturesToTrack(gray, 100, 0.01, 10).reshape(-1, 2)
+    corners = corners[(corners[:, 0] > 30) & (corners[:, 1] > 30) & (corners[:, 0] < gray.shape[1] - 30)
+                      & (corners[:, 1] < gray.shape[0] - 30)]
+    n = len(corners)
+    twice = np.concatenate([corners, corners])
+    points = _points(twice, np.r_[np.arange(n), np.arange(n)], np.r_[np.zeros(n), np.ones(n)], np.r_[np.arange(n),
+                     np.arange(n)], np.zeros((2 * n, 3)))
+    out = follow(points, gray, moved, seq.camera_model.K, None)
+    assert len(out) > 1.8 * n and len(out) % 2 == 0
+    by_track = {}
+    for track, pixel in zip(out.track_of.tolist(), out.pixels_px.tolist()):
+        by_track.setdefault(track, []).append(pixel)
+    assert all(len(p) == 2 and p[0] == p[1] for p in by_track.values())
+    first = np.array([p[0] for p in by_track.values()])
+    np.testing.assert_allclose(np.median(first - corners[list(by_track)], axis=0), [3.0, -2.0], atol=0.05)
+
+
+def test_the_window_drops_points_whose_view_or_neighbours_a_frame_may_not_use_and_offers_the_nearest_views():
+    t = np.arange(40) * 0.1  # ten views a second, 1 m apart
+    en = np.c_[np.arange(40, dtype=float), np.zeros(40)]
+
+    def structure(view: int, variant: str, neighbours: tuple) -> ViewStructure:
+        return ViewStructure(view, variant, neighbours, np.array([0]), np.zeros((1, 3)), np.eye(3)[None])
+
+    # no structure stored for views 7-10: the nearest views behind that have some are 5 and 6
+    stored = {v: {"before": structure(v, "before", (v - 2,)), "after": structure(v, "after", (v + 2,))}
+              for v in range(2, 38) if not 7 <= v <= 10}
+    window = ViewWindow(en, t, 1.0, stored)
+    # a frame at 2.0 s may use the views of 1.0 s and before, 3.0 s and after
+    points = _points(np.zeros((3, 2)), [0, 1, 2], [5, 30, 12], [0, 0, 0], np.zeros((3, 3)),
+                     neighbours={5: (3,), 30: (32,), 12: (10,)})
+    assert window.allowed(points, 2.0).view_of.tolist() == [5, 30]  # view 12 (1.2 s) is inside the window
+    # a view whose neighbour lies inside goes too
+    assert window.allowed(_points(np.zeros((1, 2)), [0], [9], [0], np.zeros((1, 3)), {9: (11,)}), 2.0).view_of.size == 0
+    nearest = window.nearest_views(en[20], 2.0, 0.0, 4, 40.0)
+    assert sorted(nearest) == [5, 6, 30, 31]  # two on each side, the nearest the window allows
+    # both variants of views 5 and 6 are allowed: the neighbours on the side away from the frame are taken
+    assert nearest[5].variant == nearest[6].variant == "before"
+    assert nearest[30].variant == "after" and nearest[31].variant == "after"  # its "before" neighbour is inside
+    assert window.nearest_view_m(en[20], 2.0) == 10.0
+    assert window.nearest_views(en[20], 2.0, 0.0, 4, 12.0).keys() == {30, 31}  # within 12 m: those ahead only
