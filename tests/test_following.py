@@ -110,3 +110,26 @@ def test_the_window_drops_points_whose_view_or_neighbours_a_frame_may_not_use_an
     assert nearest[30].variant == "after" and nearest[31].variant == "after"  # its "before" neighbour is inside
     assert window.nearest_view_m(en[20], 2.0) == 10.0
     assert window.nearest_views(en[20], 2.0, 0.0, 4, 12.0).keys() == {30, 31}  # within 12 m: those ahead only
+
+
+def test_a_followed_frame_keeps_the_two_nearest_views_on_each_side_that_hold_points():
+    """Views 1 m apart, the frame at 20 m (2.0 s): behind it views 8 (12 m away, 30 points), 9 (11 m, 5 points) and
+    10 (10 m, 12 points); ahead 31 (11 m, 40 points) and 35 (15 m, 40 points) and 36 (16 m, 3 points). Behind, the
+    two nearest holding ten points or more are 10 and 8, and 9 between them stays; ahead, 31 and 35, and 36 beyond
+    them goes."""
+    from visloc.tracking.follower import PointFollower
+
+    t = np.arange(40) * 0.1
+    en = np.c_[np.arange(40, dtype=float), np.zeros(40)]
+    counts = {8: 30, 9: 5, 10: 12, 31: 40, 35: 40, 36: 3}
+    views = np.concatenate([np.full(n, v) for v, n in counts.items()])
+    n = len(views)
+    points = _points(np.zeros((n, 2)), np.arange(n), views, np.zeros(n), np.zeros((n, 3)))
+    follower = PointFollower.__new__(PointFollower)
+    follower.db_east_north_m, follower.db_timestamps_s = en, t
+    kept = PointFollower._nearest_views_only(follower, points, en[20], 2.0)
+    assert sorted(set(kept.view_of.tolist())) == [8, 9, 10, 31, 35]
+    assert len(kept) == n - 3
+    # with fewer than two views holding ten points on a side, every view there stays
+    few = points.subset(np.isin(points.view_of, [9, 10, 36]))
+    assert sorted(set(PointFollower._nearest_views_only(follower, few, en[20], 2.0).view_of.tolist())) == [9, 10, 36]
