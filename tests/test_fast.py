@@ -56,6 +56,27 @@ def test_faiss_nearest_two_equals_brute_force_on_real_sift(sift_pair):
         assert count_correspondences_with("faiss", a.descriptors_u8, b.descriptors_u8, match) == n
 
 
+def test_structure_matches_pass_the_ratio_and_the_cross_check_as_a_brute_force_does():
+    """The camera-rate path's matches of a query to a view's 3D-carrying keypoints against a loop over every pair:
+    a query descriptor's nearest keypoint, nearer than 0.8 times the next one, whose own nearest query is it."""
+    from visloc.pose.fastpose import _matches
+
+    rng = np.random.default_rng(21)
+    view = sift_like(rng, 300).astype(np.float32)
+    query = sift_like(rng, 200).astype(np.float32)
+    query[:120] = np.clip(view[:120] + rng.integers(-4, 5, (120, 128)), 0, 255)  # seen again, a little changed
+    query[120:130] = np.clip(view[:10] + rng.integers(-9, 10, (10, 128)), 0, 255)  # a second, worse look at 0-9
+    got = _matches(query, np.einsum("ij,ij->i", query, query), view, 0.5 * np.einsum("ij,ij->i", view, view), 0.8,
+                   mutual=True)
+    d2 = ((query[:, None, :].astype(np.float64) - view[None, :, :]) ** 2).sum(axis=2)
+    nearest, second = np.argsort(d2, axis=1)[:, 0], np.sort(d2, axis=1)[:, 1]
+    back = np.argmin(d2, axis=0)
+    want = [[i, int(nearest[i])] for i in range(len(query))
+            if d2[i, nearest[i]] < 0.8**2 * second[i] and back[nearest[i]] == i]
+    assert got.tolist() == want
+    assert 100 < len(want) < 130 and not any(i in range(120, 130) for i, _ in want)  # the worse looks lose
+
+
 def test_batched_counts_equal_one_by_one_counts():
     rng = np.random.default_rng(5)
     query = sift_like(rng, 300)

@@ -55,17 +55,15 @@ def _matches(q: np.ndarray, q_sq: np.ndarray, d: np.ndarray, half_d_sq: np.ndarr
     if len(q) == 0 or len(d) < 2:
         return np.zeros((0, 2), np.int64)
     score = q @ d.T  # |g - f|^2 = |g|^2 + |f|^2 - 2 g.f
-    rows = np.arange(len(q))
-    back = None
-    if mutual:  # each database row's nearest query: the largest g.f - |g|^2 / 2 down its column
-        score -= 0.5 * q_sq[:, None]
-        back = np.argmax(score, axis=0)
-        score += 0.5 * q_sq[:, None]
-    score -= half_d_sq[None, :]
-    index1, _, d1, d2 = best_two(score, q_sq)
+    score -= half_d_sq[None, :]  # g.f - |f|^2 / 2: the largest along a row is that query's nearest
+    column_best = None
+    if mutual:  # each database row's nearest query: the largest g.f - |g|^2 / 2 down its column (a maximum over
+        # rows, which numpy takes row by row, where an argmax down columns walks the matrix across)
+        column_best = (score - 0.5 * q_sq[:, None]).max(axis=0) + half_d_sq
+    index1, best, d1, d2 = best_two(score, q_sq)
     ok = d1 < ratio**2 * d2
-    if mutual:
-        ok &= back[index1] == rows
+    if mutual:  # the query is its nearest database row's nearest query: g.f - |g|^2 / 2 is that column's largest
+        ok &= best + half_d_sq[index1] - 0.5 * q_sq >= column_best[index1]
     return np.stack([np.flatnonzero(ok), index1[ok]], axis=1).astype(np.int64)
 
 
