@@ -377,6 +377,39 @@ def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covari
         previous = gray
 
 
+def test_a_frame_followed_on_a_few_image_tracks_is_not_posed_however_many_views_repeat_them(store):
+    """Real frames: frame 10's map points followed into frame 11 and linked into the views nearest it, so that one
+    keypoint meets its map point in several views' structure. On every track the frame is posed; on the ten tracks
+    with most views, more 2D-3D pairs than a pose needs but fewer keypoints, it is not, and says why."""
+    from visloc.params import PAPER_FILTER, TRACK
+    from visloc.features.sift import make_sift
+    from visloc.pose.flowtrack import follow, pose_tracked
+    from visloc.protocols.track import track_filter, track_localizer
+    from visloc.sources.drives import load_gray
+    from visloc.tracking.follower import PointFollower
+    ws = Workspace(store)
+    db = ws.load_database(SOURCE, "image_00")
+    seq = open_source(None, drive=DRIVE, camera="image_00")
+    params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=False)
+    localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
+    pose = localizer.measurer.params
+    follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose, sift,
+                             params, stored=localizer.measurer.structures)
+    full = follower._full(load_gray(seq.frames[10].image_path), seq.timestamps_s[10], None, make_sift(sift), "frame")
+    t_s = seq.timestamps_s[11]
+    followed = follow(follower._points(full), full.gray, load_gray(seq.frames[11].image_path), seq.camera_model.K, None)
+    points = follower.window.allowed(follower._linked(follower.window.allowed(followed, t_s), t_s, None), t_s)
+    tracked, inliers = pose_tracked(points, points.pixels_px, db.east_north_m, db.geometry(), seq.camera_model, pose)
+    assert inliers is not None, tracked.fallback_reason
+    tracks, views_per_track = np.unique(points.track_of, return_counts=True)
+    few = tracks[np.argsort(-views_per_track, kind="stable")[:10]]
+    thin = points.subset(np.isin(points.track_of, few))
+    assert thin.n_tracks == 10 and len(thin) >= pose.min_pnp_inliers  # a count of pairs would let it pose
+    tracked, inliers = pose_tracked(thin, thin.pixels_px, db.east_north_m, db.geometry(), seq.camera_model, pose)
+    assert inliers is None and tracked.east_north_m is None
+    assert "image tracks among the PnP inliers" in tracked.fallback_reason
+
+
 @pytest.mark.slow
 def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_background_thread(
         store, kitti_root, tmp_path):

@@ -177,6 +177,13 @@ def pose_tracked(points: TrackedPoints, undistorted_px: np.ndarray, db_east_nort
                             params.replace(n_views=max(params.n_views, len(usable)), fuse_views=True))
     if posed.reason is not None:
         return Measurement(None, None, None, fallback_reason=f"tracked points: {posed.reason}", **posed.support), None
+    # a keypoint followed into several views' structure constrains the pose once: a pose on a handful of image
+    # tracks, each repeated in many views, passes a count of 2D-3D inliers and claims an ellipse it has not earned
+    n_tracks = int(len(np.unique(points.track_of[posed.inliers.query_rows])))
+    if n_tracks < params.min_pnp_inliers:
+        return Measurement(None, None, None, fallback_reason=f"tracked points: {n_tracks} image tracks among the PnP "
+                                                             f"inliers (fewer than {params.min_pnp_inliers})",
+                           **posed.support), None
     m = posed_measurement(posed)
     return m, posed.inliers
 

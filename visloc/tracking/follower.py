@@ -4,7 +4,8 @@
 
 * **Tracked frames.** The map points the last posed frame saw are followed into this frame by optical flow
   and the frame is posed against them (``visloc.pose.flowtrack``), with the full measurement's own PnP,
-  checks and covariance. No SIFT, no retrieval. Points whose view (or the views it was triangulated
+  checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in several views' structure
+  counts once). No SIFT, no retrieval. Points whose view (or the views it was triangulated
   with) lies inside the exclusion window of this frame are dropped, as the full path would not use them.
 * **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
   serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
@@ -352,7 +353,7 @@ class PointFollower:
                     pending = None
                 if followed is not None:
                     followed = self.window.allowed(self._linked(followed, t_s, moved_m(points_t_s)), t_s)
-                if (pending is not None and (followed is None or len(followed) < min_points)
+                if (pending is not None and (followed is None or followed.n_tracks < min_points)
                         and wait([pending[0]], max(0.0, p.max_lost_wait_ms / 1000.0 - (time.perf_counter() - t0))).done):
                     followed, joined = take(pending[0].result(), None, followed, pending[2])  # lost: the one under way
                     pending = None
@@ -361,11 +362,11 @@ class PointFollower:
                 if followed is not None:
                     n_followed = len(followed)
                     flow_ms = (time.perf_counter() - t0) * 1000.0
-                    if n_followed >= min_points:
+                    if followed.n_tracks >= min_points:  # image tracks: a keypoint in several views counts once
                         tracked, kept = self._pose(followed)
                         reason = None if kept is not None else tracked.fallback_reason
                     else:
-                        reason = f"{n_followed} points followed"
+                        reason = f"{followed.n_tracks} image tracks followed"
                 if kept is not None:
                     on_points = 1 if joined else on_points + 1
                     tracked = shared_map_error(tracked, on_points)
