@@ -336,25 +336,31 @@ def test_optical_flow_finds_points_of_a_shifted_real_image_again(kitti_root):
     assert ok_other.mean() < ok.mean() - 0.3
 
 
-def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covariance(store):
-    """Real frames: frame 10 localized in full, its map points followed into frames 11-13 by optical flow, each
-    posed against them; the full path poses the same frames on its own. Each pair agrees within their
-    covariances, and the tracked pose is as close to the frame's geotag as the full one, give or take."""
+def _follower(store: Path):
+    """(database, drive, a point follower) on the store: queries and database from image_00, 1 s exclusion, full
+    localizations on the calling thread."""
     from visloc.params import PAPER_FILTER, TRACK
-    from visloc.pose.flowtrack import follow, pose_tracked
     from visloc.protocols.track import track_filter, track_localizer
-    from visloc.sources.drives import load_gray
     from visloc.tracking.follower import PointFollower
     ws = Workspace(store)
     db = ws.load_database(SOURCE, "image_00")
     seq = open_source(None, drive=DRIVE, camera="image_00")
     params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=False)
     localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
-    pose = localizer.measurer.params
-    follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose, sift,
-                             params, stored=localizer.measurer.structures)
+    return db, seq, PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model,
+                                  localizer.measurer.params, sift, params, stored=localizer.measurer.structures)
+
+
+def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covariance(store):
+    """Real frames: frame 10 localized in full, its map points followed into frames 11-13 by optical flow, each
+    posed against them; the full path poses the same frames on its own. Each pair agrees within their
+    covariances, and the tracked pose is as close to the frame's geotag as the full one, give or take."""
     from visloc.features.sift import make_sift
-    engine = make_sift(sift)
+    from visloc.pose.flowtrack import follow, pose_tracked
+    from visloc.sources.drives import load_gray
+    db, seq, follower = _follower(store)
+    pose = follower.pose
+    engine = make_sift(follower.sift)
     start = 10
     full = follower._full(load_gray(seq.frames[start].image_path), seq.timestamps_s[start], None, engine, "frame")
     points = follower._points(full)
@@ -381,21 +387,13 @@ def test_a_frame_followed_on_a_few_image_tracks_is_not_posed_however_many_views_
     """Real frames: frame 10's map points followed into frame 11 and linked into the views nearest it, so that one
     keypoint meets its map point in several views' structure. On every track the frame is posed; on the ten tracks
     with most views, more 2D-3D pairs than a pose needs but fewer keypoints, it is not, and says why."""
-    from visloc.params import PAPER_FILTER, TRACK
     from visloc.features.sift import make_sift
     from visloc.pose.flowtrack import follow, pose_tracked
-    from visloc.protocols.track import track_filter, track_localizer
     from visloc.sources.drives import load_gray
-    from visloc.tracking.follower import PointFollower
-    ws = Workspace(store)
-    db = ws.load_database(SOURCE, "image_00")
-    seq = open_source(None, drive=DRIVE, camera="image_00")
-    params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=False)
-    localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
-    pose = localizer.measurer.params
-    follower = PointFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model, pose, sift,
-                             params, stored=localizer.measurer.structures)
-    full = follower._full(load_gray(seq.frames[10].image_path), seq.timestamps_s[10], None, make_sift(sift), "frame")
+    db, seq, follower = _follower(store)
+    pose = follower.pose
+    full = follower._full(load_gray(seq.frames[10].image_path), seq.timestamps_s[10], None, make_sift(follower.sift),
+                          "frame")
     t_s = seq.timestamps_s[11]
     followed = follow(follower._points(full), full.gray, load_gray(seq.frames[11].image_path), seq.camera_model.K, None)
     points = follower.window.allowed(follower._linked(follower.window.allowed(followed, t_s), t_s, None), t_s)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from visloc.pose.flowtrack import TrackedPoints, follow, linked
+from visloc.pose.flowtrack import TrackedPoints, follow, linked, merged
 from visloc.pose.structure import ViewStructure
 from visloc.tracking.viewwindow import ViewWindow
 
@@ -133,3 +133,15 @@ def test_a_followed_frame_keeps_the_two_nearest_views_on_each_side_that_hold_poi
     # with fewer than two views holding ten points on a side, every view there stays
     few = points.subset(np.isin(points.view_of, [9, 10, 36]))
     assert sorted(set(PointFollower._nearest_views_only(follower, few, en[20], 2.0).view_of.tolist())) == [9, 10, 36]
+
+
+def test_points_merged_keep_the_current_ones_and_add_the_fresh_ones_they_lack():
+    current = _points([[1, 1], [2, 2]], [0, 1], [0, 0], [0, 1], np.ones((2, 3)), neighbours={0: (3,)})
+    fresh = _points([[9, 9], [5, 5]], [7, 8], [0, 1], [1, 5], np.zeros((2, 3)), neighbours={0: (4,), 1: (2,)},
+                    T=np.diag([2.0, 2.0, 2.0, 1.0]))
+    out = merged(current, fresh)
+    assert list(zip(out.view_of.tolist(), out.view_rows.tolist())) == [(0, 0), (0, 1), (1, 5)]
+    np.testing.assert_allclose(out.pixels_px, [[1, 1], [2, 2], [5, 5]])  # the current pixel where both have the point
+    assert out.track_of.tolist() == [0, 1, 8] and out.neighbours == {0: (3,), 1: (2,)}
+    np.testing.assert_allclose(out.T_world_camera, np.eye(4))  # at the current points' pose
+    assert merged(None, fresh) is fresh

@@ -235,18 +235,13 @@ def needs_relocalization(n_points: int, cells_occupied: int, lever_m: float | No
 
 
 def merged(current: TrackedPoints | None, fresh: TrackedPoints) -> TrackedPoints:
-    """``fresh`` points with the ``current`` ones it lacks (same view and keypoint row: the current one is kept),
-    at ``fresh``'s pose."""
+    """``current`` points and the ``fresh`` ones they lack (same view and keypoint row: the current one is kept),
+    at ``current``'s pose (``fresh`` alone when there are no current points)."""
     if current is None or not len(current):
         return fresh
     have = set(zip(current.view_of.tolist(), current.view_rows.tolist()))
     new = np.array([(v, r) not in have for v, r in zip(fresh.view_of.tolist(), fresh.view_rows.tolist())], bool)
-    cat = lambda a, b: np.concatenate([a, b[new]])  # noqa: E731
-    return TrackedPoints(cat(current.pixels_px, fresh.pixels_px), cat(current.track_of, fresh.track_of),
-                         cat(current.view_of, fresh.view_of),
-                         cat(current.view_rows, fresh.view_rows), cat(current.points_world, fresh.points_world),
-                         cat(current.points_cov, fresh.points_cov), {**fresh.neighbours, **current.neighbours},
-                         current.T_world_camera, current.east_north_m)
+    return appended(current, fresh.subset(new))
 
 
 # Two views' points are the same map point (``linked``) when they lie within LINK_RADIUS_FRACTION of the point's depth

@@ -360,13 +360,13 @@ class PointFollower:
                     if followed is not None:
                         followed = self.window.allowed(followed, t_s)
                 if followed is not None:
-                    n_followed = len(followed)
+                    n_followed, n_tracks = len(followed), followed.n_tracks  # a keypoint in several views: one track
                     flow_ms = (time.perf_counter() - t0) * 1000.0
-                    if followed.n_tracks >= min_points:  # image tracks: a keypoint in several views counts once
+                    if n_tracks >= min_points:
                         tracked, kept = self._pose(followed)
                         reason = None if kept is not None else tracked.fallback_reason
                     else:
-                        reason = f"{followed.n_tracks} image tracks followed"
+                        reason = f"{n_tracks} image tracks followed"
                 if kept is not None:
                     on_points = 1 if joined else on_points + 1
                     tracked = shared_map_error(tracked, on_points)
