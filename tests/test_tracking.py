@@ -13,9 +13,27 @@ def test_transition_and_process_noise_match_equation_6_and_the_white_acceleratio
     F = transition_matrix(2.0)
     assert F.tolist() == [[1, 0, 2, 0], [0, 1, 0, 2], [0, 0, 1, 0], [0, 0, 0, 1]]
     Q = process_noise(2.0, 3.0)
-    # G = [dt^2/2, dt] = [2, 2]: per axis 3 * [[4, 4], [4, 4]]
-    assert Q[0, 0] == Q[0, 2] == Q[2, 2] == Q[1, 1] == Q[1, 3] == Q[3, 3] == pytest.approx(12.0)
+    # G = [dt^2/2, dt] = [2, 2]: per axis 3 * (1 s / 2 s) * [[4, 4], [4, 4]]
+    assert Q[0, 0] == Q[0, 2] == Q[2, 2] == Q[1, 1] == Q[1, 3] == Q[3, 3] == pytest.approx(6.0)
     assert Q[0, 1] == Q[0, 3] == 0.0
+    # at the paper's 1 s interval, exactly sigma_a^2 G G^T: [[1/4, 1/2], [1/2, 1]] per axis
+    assert process_noise(1.0, 3.0)[np.ix_([0, 2], [0, 2])].tolist() == [[0.75, 1.5], [1.5, 3.0]]
+
+
+@pytest.mark.parametrize("hz", [2, 10, 30])
+def test_the_velocity_may_change_as_much_in_a_second_at_any_rate(hz):
+    """Predicting a second ahead in steps of 1/hz s grows the velocity's variance by as much as one step of 1 s
+    (the same car, however often it is measured), and the position's by nearly as much (a finer piecewise-constant
+    acceleration: sigma_a^2 T^3 / 3 in the limit, against T^3 / 4 in one step)."""
+    accel_var = 2.0
+    one = transition_matrix(1.0) @ np.eye(4) @ transition_matrix(1.0).T + process_noise(1.0, accel_var)
+    F, Q = transition_matrix(1.0 / hz), process_noise(1.0 / hz, accel_var)
+    P = np.eye(4)
+    for _ in range(hz):
+        P = F @ P @ F.T + Q
+    assert P[2, 2] == pytest.approx(one[2, 2]) and P[3, 3] == pytest.approx(one[3, 3])
+    grown_one, grown_fast = one[0, 0] - 2.0, P[0, 0] - 2.0  # beyond what the unit velocity variance moves it
+    assert grown_one <= grown_fast <= grown_one * 4 / 3 + 1e-12
 
 
 def test_hand_worked_two_steps():
@@ -377,7 +395,8 @@ def test_measurements_sharing_their_errors_at_ten_hertz_keep_the_estimate_honest
     them as independent claims far too small an ellipse; with the shared part modelled its NEES is near 2 and
     about 95 % of estimates lie inside their 95 % ellipse, and it is as accurate."""
     rng = np.random.default_rng(7)
-    fp = FilterParams(dt_s=0.1, meas_var_m2=1.0, accel_var_m2_s4=1.0, init_var=1000.0)
+    # the car holds its speed: a filter that expects little acceleration (0.1 m^2/s^4 over a second)
+    fp = FilterParams(dt_s=0.1, meas_var_m2=1.0, accel_var_m2_s4=0.1, init_var=1000.0)
     sigma_m = 0.2
     R = sigma_m**2 * np.eye(2)
     nees = {0.0: [], 0.55: []}

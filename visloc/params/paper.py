@@ -113,11 +113,13 @@ class FilterParams(Params):
                         hint="R = σ² I: how far (m) the filter expects a geotag measurement to be off. The paper's "
                              "0.0001° is 11.12 m. Refined poses bring their own R"))
     accel_var_m2_s4: float = param(
-        1.0, "white acceleration variance of the constant-velocity model, Q", unit="m^2/s^4", kind="variance",
+        1.0, "white acceleration variance of the constant-velocity model, Q, over the paper's 1 s query interval "
+             "(queried faster, the filter scales it by 1 s / interval: the velocity may change as much in a second "
+             "at any rate)", unit="m^2/s^4", kind="variance",
         symbol="Q",
         control=Control("Q: accel. σ (m/s²)", 0.0, 5.0, 0.05, "filter", shows="sigma",
-                        hint="Process noise Q: how hard (m/s²) the filter expects the car to accelerate between "
-                             "queries (constant-velocity model, white acceleration)"))
+                        hint="Process noise Q: how hard (m/s²) the filter expects the car to accelerate over a "
+                             "second (constant-velocity model, white acceleration; the same car at any query rate)"))
     init_var: float = param(
         1000.0, "initial uncertainty, P0 = this * I (m^2 on position, m^2/s^2 on velocity; Table 1's 'Q = I x "
                 "1000')", unit="m^2, m^2/s^2", kind="variance", symbol="P0",

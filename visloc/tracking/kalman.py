@@ -34,6 +34,10 @@ measurement that was an outlier is replaced as soon as the measurements after it
 each other. ``rts_smooth`` is the Rauch-Tung-Striebel smoother over a finished run's steps,
 run on each segment between restarts on its own.
 
+At any rate: Q's acceleration variance is the paper's over its 1 s query interval, and a filter
+stepped faster scales it by 1 s / dt, so the velocity may change as much in a second at 10 Hz as at
+1 Hz (``process_noise``); at 1 s, Q is the paper's.
+
 Beyond the paper (the refined modes at any rate): consecutive pose measurements share part of their
 errors (the same database views, the same stored structure), so ten of them a second are not ten
 independent looks. With ``corr_fraction`` c > 0 the state gains a measurement-bias state u (2,
@@ -63,6 +67,7 @@ from visloc.params import FilterParams
 
 STATE_DIM = 4
 MEAS_DIM = 2
+REFERENCE_INTERVAL_S = 1.0  # the interval over which Q's acceleration variance holds (the paper's query interval)
 
 H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]])  # (7)
 
@@ -75,9 +80,14 @@ def transition_matrix(dt_s: float) -> np.ndarray:
 
 
 def process_noise(dt_s: float, accel_var_m2_s4: float) -> np.ndarray:
-    """Q for piecewise-constant white acceleration: sigma_a^2 G G^T, G = [dt^2/2, dt] per axis."""
+    """Q for piecewise-constant white acceleration: sigma_a^2 (T / dt) G G^T, G = [dt^2/2, dt] per axis, where
+    sigma_a^2 = ``accel_var_m2_s4`` is the variance of the acceleration held over one reference interval T
+    (``REFERENCE_INTERVAL_S``, the paper's 1 s query interval: there Q is the paper's sigma_a^2 G G^T). At any
+    other step the velocity's variance then grows by sigma_a^2 T per second, as at 1 s: the same vehicle, however
+    often it is measured. Without the T / dt, ten steps of 0.1 s would let the velocity change a tenth as much in
+    a second as one step of 1 s, and at the camera's rate the estimate would lag every turn and brake."""
     g = np.array([0.5 * dt_s**2, dt_s])
-    block = accel_var_m2_s4 * np.outer(g, g)
+    block = accel_var_m2_s4 * (REFERENCE_INTERVAL_S / dt_s) * np.outer(g, g)
     Q = np.zeros((STATE_DIM, STATE_DIM))
     Q[np.ix_([0, 2], [0, 2])] = block
     Q[np.ix_([1, 3], [1, 3])] = block
