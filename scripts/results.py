@@ -77,8 +77,11 @@ def run(data: Path, speed_only: bool = False, suite_only: bool = False) -> int:
     manifest = {"commit": commit, "started": now, "cores": os.cpu_count(), "load_before": os.getloadavg()[0],
                 "runs": []}
     if speed_only:  # keep the evaluations of the last full run, measure the speed sections again
-        manifest = json.loads((OUT / "manifest.json").read_text())
-        manifest["runs"] = [r for r in manifest["runs"] if r["kind"] not in ("bench", "track")]
+        if (OUT / "manifest.json").is_file():
+            manifest = json.loads((OUT / "manifest.json").read_text())
+            manifest["runs"] = [r for r in manifest["runs"] if r["kind"] not in ("bench", "track")]
+        else:  # no run here to keep: the page keeps every other section of the committed digest
+            manifest = {"speed_over_digest": True, "runs": []}
         manifest["speed"] = {"commit": commit, "started": now, "load_before": os.getloadavg()[0]}
 
     def command(name: str, args: list[str], **meta) -> None:
@@ -210,6 +213,8 @@ def page() -> int:
         print(f"results: {manifest_path}: not found (run: python scripts/results.py run)", file=sys.stderr)
         return 2
     manifest = json.loads(manifest_path.read_text())
+    if manifest.get("speed_over_digest"):
+        return speed_page(manifest)
     digest = {"commit": manifest["commit"], "started": manifest["started"], "finished": manifest["finished"],
               "cores": manifest["cores"], "load_before": manifest["load_before"], "load_after": manifest["load_after"],
               "drives": {}, "bench": {}, "haversine": None, "speed": manifest.get("speed"), "filter_replay": {}}
@@ -256,6 +261,29 @@ def page() -> int:
     PAGE.write_text(render_page(digest))
     if digest.get("suite"):
         calibration_figure(digest["suite"], DIGEST.parent / "calibration.png")
+    print(f"results: wrote {DIGEST} and {PAGE}")
+    return 0
+
+
+def speed_page(manifest: dict) -> int:
+    """The page of a ``run --speed-only`` made where no full run's JSON was kept: the committed digest with its
+    speed sections ("Camera rate" and "Speed") measured again."""
+    if not DIGEST.is_file():
+        print(f"results: {DIGEST}: not found; a --speed-only run needs a full run before it "
+              "(python scripts/results.py run)", file=sys.stderr)
+        return 2
+    digest = json.loads(DIGEST.read_text())
+    digest["bench"], digest["tracks"] = {}, {}
+    for entry in manifest["runs"]:
+        report = json.loads((OUT / entry["file"]).read_text())
+        if entry["kind"] == "bench":
+            digest["bench"][entry["drive"]] = {"command": entry["command"], **digest_bench(report)}
+        elif entry["kind"] == "track":
+            digest["tracks"][f"{entry['drive']}, {entry['setup_label']}"] = {"command": entry["command"],
+                                                                            **digest_track(report)}
+    digest["speed"] = manifest["speed"]
+    DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
+    PAGE.write_text(render_page(digest))
     print(f"results: wrote {DIGEST} and {PAGE}")
     return 0
 
@@ -757,7 +785,8 @@ def main(argv: list[str]) -> int:
     sub = parser.add_subparsers(dest="what", required=True)
     p = sub.add_parser("run", help="run every command (out/results/)")
     p.add_argument("--speed-only", action="store_true",
-                   help="run only visloc bench and visloc track again, keeping the other runs' JSON")
+                   help="run only visloc bench and visloc track again, keeping the other runs' JSON (none kept: the "
+                        "page keeps the other sections of docs/results/digest.json)")
     p.add_argument("--suite-only", action="store_true",
                    help="run only visloc evaluate-drives; the page keeps the other sections of docs/results/digest.json")
     p.add_argument("--data", type=Path, default=Path(os.environ.get("VISLOC_DATA", REPO.parent / "shared" / "data"

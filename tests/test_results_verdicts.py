@@ -3,6 +3,7 @@ honest covariance gives a small split's coverage."""
 
 from __future__ import annotations
 
+import json
 import sys
 
 import pytest
@@ -66,3 +67,35 @@ def test_verdicts_name_what_is_missed_with_enough_digits():
     assert len(missed) == 2
     assert "views on one side" in missed[0] and "80 % inside" in missed[0]
     assert "0.0949" in missed[1] and "0.0925" in missed[1] and "+2.4 mm" in missed[1] and "12 one-second" in missed[1]
+
+
+def test_a_speed_only_run_with_no_full_run_kept_keeps_every_other_section_of_the_committed_digest(tmp_path,
+                                                                                                   monkeypatch):
+    """``run --speed-only`` where out/results holds no full run: the page is the committed digest with only its
+    speed sections replaced by what that run measured, and says which commit measured them."""
+    committed = json.loads((REPO / "docs" / "results" / "digest.json").read_text())
+    digest, page, out = tmp_path / "digest.json", tmp_path / "results.md", tmp_path / "out"
+    out.mkdir()
+    digest.write_text(json.dumps(committed))
+    monkeypatch.setattr(results, "DIGEST", digest)
+    monkeypatch.setattr(results, "PAGE", page)
+    monkeypatch.setattr(results, "OUT", out)
+    speed = {"commit": "abc1234", "started": "2026-01-01T00:00:00+00:00", "finished": "2026-01-01T00:30:00+00:00",
+             "load_before": 0.5, "load_after": 1.5}
+    (out / "manifest.json").write_text(json.dumps({"speed_over_digest": True, "runs": [], "speed": speed}))
+    assert results.page() == 0
+    made = json.loads(digest.read_text())
+    assert made["speed"] == speed and made["bench"] == {} and made["tracks"] == {}
+    for key in ("suite", "drives", "diagnostics", "haversine", "peer", "commit", "started"):
+        assert made[key] == committed[key], key
+    text = page.read_text()
+    assert "measured again with commit `abc1234`" in text and f"Measured with commit `{committed['commit']}`" in text
+
+
+def test_a_speed_only_page_needs_a_committed_digest(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(results, "DIGEST", tmp_path / "missing.json")
+    monkeypatch.setattr(results, "OUT", tmp_path)
+    (tmp_path / "manifest.json").write_text(json.dumps({"speed_over_digest": True, "runs": [], "speed": {}}))
+    assert results.page() == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "missing.json: not found" in err[0]
