@@ -213,11 +213,18 @@ def page() -> int:
         print(f"results: {manifest_path}: not found (run: python scripts/results.py run)", file=sys.stderr)
         return 2
     manifest = json.loads(manifest_path.read_text())
-    if manifest.get("speed_over_digest"):
-        return speed_page(manifest)
-    digest = {"commit": manifest["commit"], "started": manifest["started"], "finished": manifest["finished"],
-              "cores": manifest["cores"], "load_before": manifest["load_before"], "load_after": manifest["load_after"],
-              "drives": {}, "bench": {}, "haversine": None, "speed": manifest.get("speed"), "filter_replay": {}}
+    over_digest = bool(manifest.get("speed_over_digest"))
+    if over_digest:  # a --speed-only run with no full run kept: the committed digest, its speed sections measured again
+        if not DIGEST.is_file():
+            print(f"results: {DIGEST}: not found; a --speed-only run needs a full run before it "
+                  "(python scripts/results.py run)", file=sys.stderr)
+            return 2
+        digest = {**json.loads(DIGEST.read_text()), "bench": {}, "tracks": {}, "speed": manifest["speed"]}
+    else:
+        digest = {"commit": manifest["commit"], "started": manifest["started"], "finished": manifest["finished"],
+                  "cores": manifest["cores"], "load_before": manifest["load_before"],
+                  "load_after": manifest["load_after"], "drives": {}, "bench": {}, "haversine": None,
+                  "speed": manifest.get("speed"), "filter_replay": {}}
     for entry in manifest["runs"]:
         report = json.loads((OUT / entry["file"]).read_text())
         if entry["kind"] == "haversine":
@@ -253,37 +260,16 @@ def page() -> int:
             setup["modes"][entry["mode"]] = result
         else:
             drive["variants"][entry["variant"]] = {"setup": entry["setup"], **result}
-    digest["peer"] = digest_peer({"peer/results": PEER, "docs/results/peer": REPO / "docs" / "results" / "peer"}, OUT)
+    if not over_digest:
+        digest["peer"] = digest_peer({"peer/results": PEER, "docs/results/peer": REPO / "docs" / "results" / "peer"},
+                                     OUT)
     if manifest.get("suite_only"):
         carry_over(digest, json.loads(DIGEST.read_text()) if DIGEST.is_file() else {})
     DIGEST.parent.mkdir(parents=True, exist_ok=True)
     DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
     PAGE.write_text(render_page(digest))
-    if digest.get("suite"):
+    if digest.get("suite") and not over_digest:
         calibration_figure(digest["suite"], DIGEST.parent / "calibration.png")
-    print(f"results: wrote {DIGEST} and {PAGE}")
-    return 0
-
-
-def speed_page(manifest: dict) -> int:
-    """The page of a ``run --speed-only`` made where no full run's JSON was kept: the committed digest with its
-    speed sections ("Camera rate" and "Speed") measured again."""
-    if not DIGEST.is_file():
-        print(f"results: {DIGEST}: not found; a --speed-only run needs a full run before it "
-              "(python scripts/results.py run)", file=sys.stderr)
-        return 2
-    digest = json.loads(DIGEST.read_text())
-    digest["bench"], digest["tracks"] = {}, {}
-    for entry in manifest["runs"]:
-        report = json.loads((OUT / entry["file"]).read_text())
-        if entry["kind"] == "bench":
-            digest["bench"][entry["drive"]] = {"command": entry["command"], **digest_bench(report)}
-        elif entry["kind"] == "track":
-            digest["tracks"][f"{entry['drive']}, {entry['setup_label']}"] = {"command": entry["command"],
-                                                                            **digest_track(report)}
-    digest["speed"] = manifest["speed"]
-    DIGEST.write_text(json.dumps(digest, indent=1, sort_keys=True) + "\n")
-    PAGE.write_text(render_page(digest))
     print(f"results: wrote {DIGEST} and {PAGE}")
     return 0
 
