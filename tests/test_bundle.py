@@ -1,11 +1,15 @@
 """Bundle adjustment of posed database cameras with priors on their poses (visloc.geometry.bundle)."""
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
 from visloc.geometry.bundle import PosePriors, bundle_adjust, refine_database_poses, rotation_exp, rotation_log
 from visloc.geometry.multiview import triangulate_tracks
 from visloc.geometry.projective import project, rotation_from_rpy
+from visloc.params import REFINED
+from visloc.pose.refined import refined_poses
 
 K = np.array([[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]])
 R_IMU_CAMERA = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])  # camera z forward = imu x
@@ -128,3 +132,33 @@ def test_where_the_most_seen_points_start_too_few_every_point_is_tried():
     capped = refine_database_poses(K, recorded, xy, used, priors, max_points=20)
     assert capped is not None and np.all(np.isfinite(capped.points_world), axis=1).sum() == 20
     assert _yaw_error_deg(capped.T_world_camera, true).max() < 0.1
+
+
+def _jittered_scene(jitter_m, seed=7):
+    """Cameras 2 m apart heading east, their recorded positions off sideways by ``jitter_m`` (a jittery GPS)."""
+    rng = np.random.default_rng(seed)
+    points = street(n_points=800, seed=seed)
+    east = 2.0 * np.arange(len(jitter_m))
+    true = np.array([camera_pose(e) for e in east])
+    recorded = true.copy()
+    recorded[:, 1, 3] += jitter_m
+    xy = np.full((len(points), len(east), 2), np.nan)
+    for c, T in enumerate(true):
+        uv, visible = observe(points, T, 0.3, rng)
+        xy[visible, c] = uv[visible]
+    return true, recorded, xy[np.sum(np.isfinite(xy[..., 0]), axis=1) >= 2]
+
+
+@pytest.mark.parametrize("relative_geotag_sigma_m", [0.05, 0.005])
+def test_the_images_not_the_prior_shape_a_jittery_track(relative_geotag_sigma_m):
+    """Geotags off sideways by up to 0.2 m from one image to the next: the structure's poses follow the
+    images, whatever the position prior, because a prior the images move the poses well beyond is loosened
+    to what they moved (held at 5 mm, the poses would stay 0.14 m off)."""
+    true, recorded, xy = _jittered_scene(np.array([0.0, 0.2, -0.15, 0.175, -0.2, 0.15]))
+    geometry = SimpleNamespace(camera=SimpleNamespace(K=K), heading_spread_rad=None)
+
+    def sideways_error_m(T):  # each camera's sideways offset from the first, against the truth's
+        return np.abs((T[:, 1, 3] - T[0, 1, 3]) - (true[:, 1, 3] - true[0, 1, 3])).max()
+
+    refined = refined_poses(geometry, recorded, xy, REFINED.replace(relative_geotag_sigma_m=relative_geotag_sigma_m))
+    assert sideways_error_m(recorded) > 0.15 and sideways_error_m(refined) < 0.03, sideways_error_m(refined)
