@@ -45,14 +45,15 @@ def test_rotation_vectors_round_trip():
     np.testing.assert_allclose(rotation_log(np.eye(3)), np.zeros(3), atol=1e-15)
 
 
-def _scene(yaw_errors_deg, noise_px=0.3, seed=5):
-    """Cameras 2 m apart heading east with recorded yaws off by ``yaw_errors_deg``; each point observed by
-    every camera that sees it."""
+def _scene(yaw_errors_deg, noise_px=0.3, seed=5, sideways_m=0.0):
+    """Cameras 2 m apart heading east with recorded yaws off by ``yaw_errors_deg`` and recorded positions off
+    sideways by ``sideways_m`` (a jittery GPS); each point observed by every camera that sees it."""
     rng = np.random.default_rng(seed)
     points = street(n_points=800, seed=seed)
     east = 2.0 * np.arange(len(yaw_errors_deg))
     true = np.array([camera_pose(e) for e in east])
     recorded = np.array([camera_pose(e, yaw_rad=np.radians(d)) for e, d in zip(east, yaw_errors_deg)])
+    recorded[:, 1, 3] += sideways_m
     xy = np.full((len(points), len(east), 2), np.nan)
     for c, T in enumerate(true):
         uv, visible = observe(points, T, noise_px, rng)
@@ -134,27 +135,12 @@ def test_where_the_most_seen_points_start_too_few_every_point_is_tried():
     assert _yaw_error_deg(capped.T_world_camera, true).max() < 0.1
 
 
-def _jittered_scene(jitter_m, seed=7):
-    """Cameras 2 m apart heading east, their recorded positions off sideways by ``jitter_m`` (a jittery GPS)."""
-    rng = np.random.default_rng(seed)
-    points = street(n_points=800, seed=seed)
-    east = 2.0 * np.arange(len(jitter_m))
-    true = np.array([camera_pose(e) for e in east])
-    recorded = true.copy()
-    recorded[:, 1, 3] += jitter_m
-    xy = np.full((len(points), len(east), 2), np.nan)
-    for c, T in enumerate(true):
-        uv, visible = observe(points, T, 0.3, rng)
-        xy[visible, c] = uv[visible]
-    return true, recorded, xy[np.sum(np.isfinite(xy[..., 0]), axis=1) >= 2]
-
-
 @pytest.mark.parametrize("relative_geotag_sigma_m", [0.05, 0.005])
 def test_the_images_not_the_prior_shape_a_jittery_track(relative_geotag_sigma_m):
     """Geotags off sideways by up to 0.2 m from one image to the next: the structure's poses follow the
     images, whatever the position prior, because a prior the images move the poses well beyond is loosened
     to what they moved (held at 5 mm, the poses would stay 0.14 m off)."""
-    true, recorded, xy = _jittered_scene(np.array([0.0, 0.2, -0.15, 0.175, -0.2, 0.15]))
+    true, recorded, xy = _scene([0.0] * 6, seed=7, sideways_m=np.array([0.0, 0.2, -0.15, 0.175, -0.2, 0.15]))
     geometry = SimpleNamespace(camera=SimpleNamespace(K=K), heading_spread_rad=None)
 
     def sideways_error_m(T):  # each camera's sideways offset from the first, against the truth's
