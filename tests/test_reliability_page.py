@@ -93,6 +93,25 @@ def test_the_point_following_figures_are_what_their_json_renders():
         assert profile["n"] > 0 and profile["total_ms"] >= profile["stages_ms"]["sift_ms"] > 0
 
 
+def test_the_self_check_agreement_is_what_its_json_renders():
+    """docs/performance.md's comparison of each store's self-check with its queries is rendered from
+    docs/results/self_check_agreement.json (written by benchmarks/self_check_agreement.py): every drive and setup,
+    every configuration, each with the gain its own self-check fitted."""
+    import json
+
+    import self_check_agreement
+
+    result = json.loads(self_check_agreement.SECTION.out.read_text())
+    assert self_check_agreement.SECTION.updated_page(self_check_agreement.render(result)) == \
+        (REPO / "docs" / "performance.md").read_text()
+    setups = {(s["drive"], s["protocol"]) for s in result["setups"]}
+    assert len(setups) == 4  # 0001 stereo and left, 0005, 0027
+    assert [s["config"] for s in result["setups"]] == list(self_check_agreement.CONFIGS) * len(setups)
+    for s in result["setups"]:
+        assert s["lever_gain"]["n_both"] + s["lever_gain"]["n_one"] > 0
+        assert s["query_error_m"]["n"] == len(s["frames"]) > 0
+
+
 def test_the_support_figures_are_what_their_json_renders():
     """docs/performance.md's support table is rendered from docs/results/refined_support.json (written by
     benchmarks/refined_support.py): every drive, both configurations, on the same frames."""

@@ -26,7 +26,7 @@ CHI2_2DOF_95 = 5.991
 # of two positions that disagree
 CHI2_2DOF_999 = 13.82
 
-FIGURES = ("mean", "median", "min", "max", "p50", "p90", "p95")  # what ``summary_of`` can compute
+FIGURES = ("mean", "median", "min", "max", "p50", "p80", "p90", "p95")  # what ``summary_of`` can compute
 ERROR_FIGURES = ("median", "mean", "p90", "max")  # how an error series is summarised
 LATENCY_FIGURES = ("p50", "p95", "max")  # how a series of timings is summarised
 
@@ -45,7 +45,7 @@ def summary_of(values: Iterable[float | None], names: Iterable[str] = ERROR_FIGU
 
     compute = {"mean": np.mean, "median": np.median, "min": np.min, "max": np.max,
                "p50": lambda a: np.percentile(a, 50), "p90": lambda a: np.percentile(a, 90),
-               "p95": lambda a: np.percentile(a, 95)}
+               "p80": lambda a: np.percentile(a, 80), "p95": lambda a: np.percentile(a, 95)}
     v = np.asarray([x for x in values if x is not None], float)
     out: dict = {n: (float(compute[n](v)) if v.size else None) for n in names}
     if count:

@@ -32,7 +32,8 @@ from visloc.store.tilecache import TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
-from visloc.pose.selfcheck import CAMERA_RATE_PARAMS, lever_gain_from, record_pose, self_check_settings_json
+from visloc.pose.selfcheck import (CAMERA_RATE_PARAMS, SelfCheckPose, lever_gain_from, record_pose,
+                                    self_check_settings_json)
 from visloc.sources.drives import Drive
 from visloc.pose.structure import (ViewStructure, structure_settings_json)
 from visloc.pose.uncertainty import LeverGain
@@ -225,18 +226,24 @@ class Workspace:
         with self._store() as store:
             SelfCheckTable(store).add(records)
 
+    def self_check_poses(self, db: GeoDatabase, params: RefinedParams = REFINED, *,
+                         camera_rate: bool = False) -> list[SelfCheckPose]:
+        """``db``'s stored self-check made with ``params``' settings, one pose per checked image (by database
+        index, in the order stored; empty when there is none). ``camera_rate``: the camera-rate path's."""
+        settings = self_check_settings_json(params, camera_rate=camera_rate)
+        with self._store() as store:
+            records = SelfCheckTable(store).get([im.image_id for im in db.images], settings)
+        index_of = {im.image_id: k for k, im in enumerate(db.images)}
+        return [record_pose(r, index_of[r.image_id]) for r in records.values()]
+
     def lever_gain(self, db: GeoDatabase, params: RefinedParams = REFINED, *,
                    camera_rate: bool = False) -> LeverGain | None:
         """The lever gain ``db``'s stored self-check calls for (``visloc.pose.selfcheck.lever_gain_from``);
         None when the store holds no self-check of it with ``params``' settings. ``camera_rate``: the
         camera-rate path's self-check's (``params``: that path's, ``CAMERA_RATE_PARAMS``)."""
-        settings = self_check_settings_json(params, camera_rate=camera_rate)
-        with self._store() as store:
-            records = SelfCheckTable(store).get([im.image_id for im in db.images], settings)
-        if not records:
+        poses = self.self_check_poses(db, params, camera_rate=camera_rate)
+        if not poses:
             return None
-        index_of = {im.image_id: k for k, im in enumerate(db.images)}
-        poses = [record_pose(r, index_of[r.image_id]) for r in records.values()]
         what = "camera-rate self-check" if camera_rate else "self-check"
         return lever_gain_from(poses, source=f"{what} of {db.source}/{db.camera} ({len(poses)} images)")
 
