@@ -39,10 +39,12 @@ def load_line(result: dict) -> str:
             "2 cores.")
 
 
-def drives_and_store_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--root`` (the KITTI raw root, default the shared data) and ``--db`` (the results' store)."""
-    parser.add_argument("--root", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-    parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite")
+def drives_and_store_arguments(parser: argparse.ArgumentParser, root_flag: str = "--root") -> None:
+    """``root_flag`` (the KITTI raw root, default the shared data) and ``--db`` (the results' store)."""
+    parser.add_argument(root_flag, type=Path, default=REPO.parent / "shared" / "data" / "kitti")
+    parser.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite",
+                        help="a store holding every drive's cameras (default scripts/results.py's, "
+                             "out/results/visloc.sqlite)")
 
 
 def track_run(root: Path, drive: str, db: Path, flags: list[str], out: Path) -> dict:

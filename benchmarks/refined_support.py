@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from measuring import REPO, Section, load_1min
+from measuring import REPO, Section, drives_and_store_arguments, load_1min
 from visloc import Workspace  # noqa: E402
 from visloc.params import REFINED, MatchParams, RetrievalParams  # noqa: E402
 from visloc.pose.refined import PoseMeasurer, StructureCache  # noqa: E402
@@ -137,9 +137,7 @@ def _nees(c: dict | None) -> str:
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-    p.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite",
-                   help="a store holding every drive's cameras (default scripts/results.py's, out/results/visloc.sqlite)")
+    drives_and_store_arguments(p, "--data")
     p.add_argument("--every", type=int, default=5, help="measure every n-th query (default %(default)s)")
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from measuring import REPO, Section, load_1min
+from measuring import REPO, Section, drives_and_store_arguments, load_1min
 from refined_support import measured_row
 
 from visloc import Workspace
@@ -50,36 +50,47 @@ def _errors(values: list[float]) -> dict:
     return summary_of(values, ("median", "p80"), count=True) if values else {"n": 0}
 
 
-def measure_setup(ws: Workspace, folder: Path, protocol, params, every: int) -> dict:
-    """One drive's setup under ``params``: the self-check made with them (where the store has none), its gain,
-    its poses' errors by side, and every ``every``-th query posed with them and that gain."""
-    build_self_check(ws, folder.name, protocol.db_camera, params)
+def measure_setup(ws: Workspace, folder: Path, protocol, every: int) -> list[dict]:
+    """One drive's setup under each configuration: the self-check made with it (where the store has none), its
+    gain, its poses' errors by side, and every ``every``-th query posed with it and that gain. The database,
+    the queries and their match counts are read once for every configuration."""
+    for params in CONFIGS.values():
+        build_self_check(ws, folder.name, protocol.db_camera, params)
     db = ws.load_database(folder.name, protocol.db_camera)
-    gain = ws.lever_gain(db, params)
-    poses = [p for p in ws.self_check_poses(db, params) if p.error_m is not None]
-    db = dataclasses.replace(db, lever_gain=gain)
     queries = ws.load_queries(folder.name, protocol.query_camera)
     truth = db.frame.to_local(queries.lat_deg, queries.lon_deg)
     retriever = WindowRetriever(db.timestamps_s, ws.pair_cache(db, queries, MatchParams()),
                                 RetrievalParams(exclusion_s=1.0))
-    measurer = PoseMeasurer(db.east_north_m, db.geometry(), queries.camera_model, params)
-    rows = []
-    for i in range(0, len(queries), every):
-        q = queries.query(i)
-        retriever.reset()
-        m = measurer.measure(q, retriever.retrieve(q, None))
-        rows.append({**measured_row(int(queries.frames[i]), m, truth[i]),
-                     "side": m.side if m.source == "geometry" else None})
+    out = []
+    for name, params in CONFIGS.items():
+        gain = ws.lever_gain(db, params)
+        poses = [p for p in ws.self_check_poses(db, params) if p.error_m is not None]
+        geometry = dataclasses.replace(db, lever_gain=gain).geometry()
+        measurer = PoseMeasurer(db.east_north_m, geometry, queries.camera_model, params)
+        rows = []
+        for i in range(0, len(queries), every):
+            q = queries.query(i)
+            retriever.reset()
+            m = measurer.measure(q, retriever.retrieve(q, None))
+            rows.append({**measured_row(int(queries.frames[i]), m, truth[i]),
+                         "side": m.side if m.source == "geometry" else None})
+        out.append({"drive": folder.name, "protocol": protocol.key, "protocol_label": protocol.label,
+                    "config": name, "lever_gain": gain.as_dict() if gain is not None else None,
+                    **_summary(poses, rows)})
+    return out
+
+
+def _summary(poses: list, rows: list[dict]) -> dict:
+    """The self-check's ``poses`` and the queries' ``rows`` by side, and the queries' figures over all."""
     posed = [r for r in rows if r["source"] == "geometry"]
     sides = {}
     for side in SIDES:
-        checked = [float(np.linalg.norm(p.error_m)) for p in poses if p.side == side]
         mine = [r for r in posed if r["side"] == side]
-        sides[side] = {"self_check_error_m": _errors(checked),
+        sides[side] = {"self_check_error_m": _errors([float(np.linalg.norm(p.error_m)) for p in poses
+                                                      if p.side == side]),
                        "query_error_m": _errors([r["error_m"] for r in mine]),
                        "query_nees": calibration([r["nees"] for r in mine]).as_dict()}
-    return {"drive": folder.name, "protocol": protocol.key, "protocol_label": protocol.label,
-            "lever_gain": gain.as_dict() if gain is not None else None, "sides": sides,
+    return {"sides": sides,
             "query_error_m": summary_of([r["error_m"] for r in rows], ("median", "p90", "max"), count=True),
             "query_nees": calibration([r["nees"] for r in posed]).as_dict(),
             "geotag_fallbacks": len(rows) - len(posed), "frames": rows}
@@ -94,11 +105,10 @@ def measure(a) -> dict:
         ws = Workspace(copy)
         for folder in drives_of(a.data):
             for protocol in drive_protocols(folder):
-                for name, params in CONFIGS.items():
-                    s = {**measure_setup(ws, folder, protocol, params, a.every), "config": name}
+                for s in measure_setup(ws, folder, protocol, a.every):
                     result["setups"].append(s)
                     g, n = s["lever_gain"] or {}, s["query_nees"]
-                    print(f"{s['drive']} {s['protocol']} {name}: gain {g.get('both_sides', float('nan')):.4f} / "
+                    print(f"{s['drive']} {s['protocol']} {s['config']}: gain {g.get('both_sides', float('nan')):.4f} / "
                           f"{g.get('one_side', float('nan')):.4f}, error median {s['query_error_m']['median']:.3f} m, "
                           f"NEES {n['nees_mean']:.2f} ({100 * n['inside_95']:.0f} % inside)", flush=True)
     result["load_after"] = load_1min()
@@ -140,9 +150,7 @@ def render(r: dict) -> str:
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-    p.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite",
-                   help="a store holding every drive's cameras (default scripts/results.py's, out/results/visloc.sqlite)")
+    drives_and_store_arguments(p, "--data")
     p.add_argument("--every", type=int, default=2, help="pose every n-th query (default %(default)s: the frames the "
                                                         "self-check poses)")
 

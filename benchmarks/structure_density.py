@@ -29,7 +29,7 @@ import statistics
 import sys
 from pathlib import Path
 
-from measuring import REPO, Section, load_1min
+from measuring import REPO, Section, drives_and_store_arguments, load_1min
 from refined_support import measured_row
 from thinning_stress import peer_runs
 
@@ -175,9 +175,7 @@ def render(r: dict) -> str:
 
 
 def add_arguments(p) -> None:
-    p.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data" / "kitti")
-    p.add_argument("--db", type=Path, default=REPO / "out" / "results" / "visloc.sqlite",
-                   help="a store holding every drive's cameras (default scripts/results.py's, out/results/visloc.sqlite)")
+    drives_and_store_arguments(p, "--data")
 
 
 if __name__ == "__main__":
