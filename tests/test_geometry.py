@@ -22,7 +22,7 @@ from visloc.pose.selfcheck import self_check_params
 from visloc.pose.viewpose import DatabaseGeometry, agreeing_majority
 from visloc.retrieval.retrievers import Retrieval
 from visloc.tracking.kalman import run_filter
-from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2
+from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain
 
 K = np.array([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]])
 WIDTH_PX, HEIGHT_PX = 1242, 375
@@ -324,10 +324,10 @@ def test_where_views_disagree_most_of_them_that_agree_make_the_measurement():
     assert agreeing_majority({1: np.array([0.0, 0.0]), 2: np.array([3.0, 0.0])}, 1.5) == []
 
 
-def shared_lever(m, gain):
-    """The lever term a measurement of views posed apart should carry: what of (gain * lever)^2 its views share."""
-    assert len(m.view_indices) >= 2
-    return common_lever_covariance_m2((gain * m.lever_m) ** 2 * np.eye(2), m.cov_terms_m2["views"], len(m.view_indices))
+def whole_lever(m, gain):
+    """The lever term a measurement carries: (gain * lever)^2 per axis, whole, also for views posed apart (the gain
+    is measured on means of views posed apart, so it is what they share beyond their spread)."""
+    return (gain * m.lever_m) ** 2 * np.eye(2)
 
 
 def test_the_covariance_is_relative_to_the_map_and_grows_with_the_lever_to_the_nearest_view():
@@ -346,7 +346,7 @@ def test_the_covariance_is_relative_to_the_map_and_grows_with_the_lever_to_the_n
         # every view lies ahead of these queries: one side, the lever to the nearest view's geotag
         assert m.side == "one"
         assert m.lever_m == pytest.approx(np.linalg.norm(near[1][list(m.view_indices)] - m.east_north_m, axis=1).min())
-        np.testing.assert_allclose(m.cov_terms_m2["lever"], shared_lever(m, 0.03))
+        np.testing.assert_allclose(m.cov_terms_m2["lever"], whole_lever(m, 0.03))
         # the geotags' stated accuracy is the map's own error: stated apart, not in the relative covariance
         assert m.absolute_sigma_m == pytest.approx(0.3)
         assert m.sigma_m < 0.3
@@ -356,7 +356,7 @@ def test_the_covariance_is_relative_to_the_map_and_grows_with_the_lever_to_the_n
     # geotag_sigma_m as its absolute error
     unstated = replace(near[0], geotag_sigma_m=None, lever_gain=None)
     m = pose_measurement(near[2], near[3], retrieval_over(5), near[1], unstated, CAMERA, params.replace(geotag_sigma_m=2.0))
-    np.testing.assert_allclose(m.cov_terms_m2["lever"], shared_lever(m, DEFAULT_LEVER_GAIN.one_side))
+    np.testing.assert_allclose(m.cov_terms_m2["lever"], whole_lever(m, DEFAULT_LEVER_GAIN.one_side))
     assert m.absolute_sigma_m == pytest.approx(2.0)
 
 
@@ -368,7 +368,7 @@ def test_views_on_both_sides_use_the_both_sides_gain():
     m = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA,
                          RefinedParams(neighbour_baselines_m=(3.0,), max_neighbour_gap=2, n_views=2))
     assert m.side == "both"
-    np.testing.assert_allclose(m.cov_terms_m2["lever"], shared_lever(m, 0.01))
+    np.testing.assert_allclose(m.cov_terms_m2["lever"], whole_lever(m, 0.01))
     assert m.lever_m == pytest.approx(np.linalg.norm(geotags[list(m.view_indices)] - m.east_north_m, axis=1).min())
 
 

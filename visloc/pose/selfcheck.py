@@ -3,9 +3,16 @@
 Every other database image (``self_checked_indices``) is treated as a query of its own drive: the images
 closer to it in time than ``SELF_CHECK_EXCLUSION_S`` (the evaluation's exclusion window) are left out, the
 ``top_k`` allowed images most like it by global vector are its candidates, and the refined measurement
-(``visloc.pose.refined``: verification, structure with refined database poses, PnP) poses it. Its error
+(``visloc.pose.refined``: verification, structure with refined database poses, PnP) poses it as it poses a
+query, with the same settings: the same views posed apart and averaged, the same guided matching. Its error
 against its own geotag, with the covariance the measurement gives without the lever term, says how
-far this database's poses are off per metre of lever (``visloc.pose.uncertainty.fit_lever_gain``).
+far this database's poses are off per metre of lever (``visloc.pose.uncertainty.fit_lever_gain``). Each pose
+is the mean of views posed apart, as a query's measurement is, with their spread in its covariance: the gain is
+then what such views share beyond their spread, the lever term a query's measurement carries. A cheaper
+stand-in (two views in one PnP) was tried and does not speak for the queries: a tighter
+position prior in the structure made the queries' poses better and the stand-in's worse on drive 0001, so its
+gain rose while the queries' errors fell and their ellipses came out twice too large
+(``benchmarks/self_check_agreement.py``).
 
 Only the database's own data is used: its images, geotags, attitudes and calibration. The
 retrieval is shortcut (global vectors instead of the paper's counts) because it is not what is
@@ -44,7 +51,10 @@ from visloc.pose.viewpose import DatabaseGeometry
 SELF_CHECK_EXCLUSION_S = 1.0  # as the evaluation's: a same-drive query never sees its own second of driving
 SELF_CHECK_PROBABILITY = 0.8  # the level at which the lever gain matches the errors (see fit_lever_gain)
 MIN_POSES_PER_SIDE = 10  # fewer: that side keeps the default gain (never below the other side's)
-SELF_CHECK_VERSION = 1  # bump when what a self-check measures changes: older rows are then not used
+SELF_CHECK_VERSION = 2  # bump when what a self-check measures changes: older rows are then not used
+CAMERA_RATE_SELF_CHECK_VERSION = 1  # the same, for the camera-rate path's
+# what of a query's pose settings a stored self-check depends on beyond the structure's, top_k and pnp_px
+POSE_SETTINGS = ("n_views", "fuse_views", "guided_radius_px", "thin_support_pnp_px", "other_side_candidates")
 # every other image of a drive is checked: adjacent frames' poses share nearly all their errors (the same views,
 # the same structure), so half of them give the same gain at half the cost (on every shared drive the even and
 # the odd images' gains lie within 13 % of their mean)
@@ -69,29 +79,27 @@ class SelfCheckPose:
 
 
 def self_check_params(params: RefinedParams) -> RefinedParams:
-    """The pose a self-check makes: ``params`` with two views, no guided matching and one PnP over both. What
-    the lever gain measures (the database's own pose errors per metre of lever) does not need the query's extra
-    support, and this pose costs about 40 % less per image (1.6 s against 2.5 s on drive 0001). One PnP: the
-    gain then holds for the camera-rate path's poses, which are made so, and the query's views posed apart add
-    their disagreement to its covariance themselves (a gain fitted on two views posed apart made the refined
-    mode's ellipses too small on drives 0005 and 0027). No second, looser pose where support is thin: the gain is
-    fitted on the poses the strict threshold makes, and a store's self-check stays valid whatever
-    ``thin_support_pnp_px`` is. No search for views on the other side either: the gain's one-sided poses are
-    the database's own extrapolation over the lever, whatever ``other_side_candidates`` is."""
+    """The pose the camera-rate path's self-check makes (``FastPoseMeasurer``): ``params`` with two views, no
+    guided matching and one PnP over both, as that path poses a frame. No second, looser pose where support is
+    thin, and no search for views on the other side: the gain's one-sided poses are the database's own
+    extrapolation over the lever."""
     return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False, thin_support_pnp_px=0.0,
                           other_side_candidates=0)
 
 
 def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S, *,
                              camera_rate: bool = False) -> str:
-    """What a stored self-check was made with: the structure's settings, the exclusion, the version, and for
-    the camera-rate path's, ``"path": "camera-rate"`` and the frames' SIFT scale and keypoints (the exact path's
-    leaves those out, as stores made before the camera-rate path had its own self-check keep theirs)."""
+    """What a stored self-check was made with: the structure's settings, the exclusion, ``top_k``, ``pnp_px``,
+    the version, and for the exact path's, the query's pose settings (``POSE_SETTINGS``); for the camera-rate
+    path's, ``"path": "camera-rate"`` and the frames' SIFT scale and keypoints."""
     settings = {"structure": json.loads(structure_settings_json(params)), "exclusion_s": exclusion_s,
-                "top_k": params.top_k, "pnp_px": params.pnp_px, "version": SELF_CHECK_VERSION}
+                "top_k": params.top_k, "pnp_px": params.pnp_px}
     if camera_rate:
         settings.update(path="camera-rate", query_image_scale=TRACK.query_image_scale,
-                        query_max_keypoints=TRACK.query_max_keypoints)
+                        query_max_keypoints=TRACK.query_max_keypoints, version=CAMERA_RATE_SELF_CHECK_VERSION)
+    else:
+        d = params.as_dict()
+        settings.update(pose={k: d[k] for k in POSE_SETTINGS}, version=SELF_CHECK_VERSION)
     return json.dumps(settings, sort_keys=True)
 
 
@@ -121,8 +129,7 @@ def self_check_pose(k: int, geometry: DatabaseGeometry, db_east_north_m: np.ndar
     retrieval = Retrieval(candidates=chosen, counts=np.arange(len(chosen), 0, -1, dtype=np.int64),
                           best_index=int(chosen[0]), allowed=allowed)
     camera: CameraModel = geometry.camera
-    m = pose_measurement(keypoints_f32, descriptors_u8, retrieval, db_east_north_m, geometry, camera,
-                         self_check_params(params), cache)
+    m = pose_measurement(keypoints_f32, descriptors_u8, retrieval, db_east_north_m, geometry, camera, params, cache)
     return _pose_of(k, m, db_east_north_m)
 
 

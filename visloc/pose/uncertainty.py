@@ -8,8 +8,9 @@ the query's true position has two parts, kept apart here:
   and what the database's poses get wrong over the metres between the query and its nearest view
   (a residual bend of the structure, a heading or a scale a little off: an error that grows with
   that *lever*, and faster where every view lies on one side of the query, as a ruler read beyond
-  its end; for views posed apart and averaged, the part of it the views share,
-  ``common_lever_covariance_m2``). The filter fuses this part: it differs from one query to the next.
+  its end). For the mean of views posed apart, the part of that error each view has of its own is in
+  their spread; the lever term is what they share, and the gain is measured on such means. The filter
+  fuses this part: it differs from one query to the next.
 * the **absolute** part, the error the map's geotags share with any map of that receiver (the
   stated accuracy of the views' geotags: OXTS ``pos_accuracy``). No number of queries averages it
   away, so it is not fed to the filter: it is stated beside the estimate (``absolute_cov_m2``).
@@ -17,7 +18,8 @@ the query's true position has two parts, kept apart here:
 The lever's gain (metres of error per metre of lever) is a property of each database, and is
 measured on it: the store poses its own images from their neighbours, each with the images
 closer in time than the evaluation's exclusion window left out, as a query of that drive would
-be (``visloc.pose.selfcheck``), and ``fit_lever_gain`` finds, per side, the gain whose ellipses hold
+be (``visloc.pose.selfcheck``: posed as the path's measurements are, each the mean of views posed apart with
+their spread in its covariance), and ``fit_lever_gain`` finds, per side, the gain whose ellipses hold
 those poses as a Gaussian's would (80 % of them inside their 80 % ellipse). Nothing of a query's ground truth enters it. A store
 without a self-check uses ``DEFAULT_LEVER_GAIN``, fitted once on the shared development drives.
 
@@ -60,29 +62,15 @@ class LeverGain:
 
 
 # Fitted (``visloc.pose.selfcheck.lever_gain_from``) on the self-checks of the shared development drives pooled
-# (2011_09_26_drive_0001 both cameras, 2011_09_26_drive_0005, 2011_10_03_drive_0027: 524 poses; per drive
-# they range from 0.004 to 0.038): used only by a store that has no self-check yet.
-DEFAULT_LEVER_GAIN = LeverGain(both_sides=0.016, one_side=0.018)
+# (2011_09_26_drive_0001 both cameras, 2011_09_26_drive_0005, 2011_10_03_drive_0027: 264 poses, each the mean of
+# views posed apart; per drive they range from 0.002 to 0.031; ``benchmarks/self_check_agreement.py`` prints the
+# pooled fit): used only by a store that has no self-check yet.
+DEFAULT_LEVER_GAIN = LeverGain(both_sides=0.006, one_side=0.020)
 
 
 def lever_covariance_m2(gain: float, lever_m: float) -> np.ndarray:
     """(2, 2) covariance of the database's error carried over a lever: (gain * lever)^2 per axis."""
     return (float(gain) * float(lever_m)) ** 2 * np.eye(2)
-
-
-def common_lever_covariance_m2(lever_m2: np.ndarray, views_m2: np.ndarray, n_views: int) -> np.ndarray:
-    """(2, 2) the part of the lever's covariance ``lever_m2`` that views posed apart share, for a mean of
-    ``n_views`` poses whose spread gives the covariance of their mean ``views_m2``.
-
-    Each view's pose carries the database's error over the lever, ``lever_m2`` per pose (the gain was
-    measured on such poses): a part c common to the views (what they share: the drive's scale, a heading) and
-    a part u_v of each view's own (its structure, its neighbours' geotags). Their mean carries c and the mean
-    of the u_v, whose covariance ``views_m2`` estimates from their spread; one view's own part is then about
-    ``n_views * views_m2``, and what of ``lever_m2`` is left is the common part: lever_m2 - n views_m2,
-    clipped at zero (where the views disagree more than the gain says, their spread alone stands for it)."""
-    d = np.asarray(lever_m2, float) - int(n_views) * np.asarray(views_m2, float)
-    w, V = np.linalg.eigh((d + d.T) / 2.0)
-    return (V * np.maximum(w, 0.0)) @ V.T
 
 
 def unstated_geotags(geotag_sigma_m: np.ndarray | None) -> np.ndarray:

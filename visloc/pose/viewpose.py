@@ -18,7 +18,7 @@ from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, 
                                         imu_east_north_covariance, imu_pose_from_camera, refine_pose, solve_pnp)
 from visloc.params import RefinedParams
 from visloc.pose.guided import guided_pairs
-from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, common_lever_covariance_m2, lever_covariance_m2,
+from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, lever_covariance_m2,
                                      unstated_geotag_covariance_m2, unstated_geotags)
 
 
@@ -303,11 +303,10 @@ def thin_support_params(params: RefinedParams) -> RefinedParams:
 def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen: list[int],
             per_view: dict[int, np.ndarray], pnp_cov_m2: np.ndarray, reprojection_rms_px: float,
             inliers: MapCorrespondences, support: dict, structure_ms: float, db_east_north_m: np.ndarray,
-            geometry: DatabaseGeometry, params: RefinedParams, posed_apart: bool = False) -> PosedViews:
+            geometry: DatabaseGeometry, params: RefinedParams) -> PosedViews:
     """The checks of step 4 that need the pose, and step 5's covariance: a posed ``PosedViews``, or why not.
     ``T_world_imu``: the query vehicle's pose (its heading and height); ``east_north`` its position;
-    ``posed_apart``: ``per_view`` are the views' own poses and ``east_north`` their mean (the lever term is then
-    the part of it the views share, ``common_lever_covariance_m2``)."""
+    ``per_view``: the views' own poses (``east_north`` is their mean where they were posed apart)."""
     offset_m = float(np.linalg.norm(east_north - np.asarray(db_east_north_m[anchor], float)))
     if not np.all(np.isfinite(east_north)) or offset_m > params.max_offset_m:
         return PosedViews(f"PnP pose {offset_m:.1f} m from the geotag of view {anchor} (limit "
@@ -328,8 +327,6 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
     gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
     terms = {"pnp": pnp_cov_m2, "views": _mean_covariance(list(per_view.values())),
              "lever": lever_covariance_m2(gain.of(side), lever_m)}
-    if posed_apart and len(per_view) >= 2:
-        terms["lever"] = common_lever_covariance_m2(terms["lever"], terms["views"], len(per_view))
     terms["geotags"] = unstated_geotag_covariance_m2(inliers.neighbours or {}, geometry.unstated_geotags,
                                                      params.geotag_sigma_m)
     cov = terms["pnp"] + terms["views"] + terms["lever"] + terms["geotags"]
@@ -373,7 +370,8 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
     the others' median is dropped; where the rest still disagree, those that agree are kept when they are most of
     them (``agreeing_majority``), and the measurement is rejected otherwise. Covariance: the
     views' PnP covariances summed over the square of their number (independent poses), the covariance of their
-    mean from their spread, and the part of the lever term the views share (``common_lever_covariance_m2``). The
+    mean from their spread, and the lever term, what the views share beyond their spread (the gain is measured
+    on such means: ``visloc.pose.selfcheck``). The
     inliers a tracker follows are every kept view's, with the pose of the best verified view."""
     spent = 0.0
     structures: dict[int, dict] = {}
@@ -436,7 +434,7 @@ def _views_fused(query_xy: np.ndarray, usable: list[int], pairs_of: dict[int, np
                                  {i: structures[i] for i in kept})
     east_north = np.mean(np.array(list(positions.values())), axis=0)
     return _finish(east_north, T_world_imu, anchor, kept, positions, pnp_cov_m2, rms_px, inliers, support, spent,
-                   db_east_north_m, geometry, params, posed_apart=True), spent
+                   db_east_north_m, geometry, params), spent
 
 
 def _geotag_sigma_m(geometry: DatabaseGeometry, i: int, params: RefinedParams) -> float:
