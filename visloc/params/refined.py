@@ -33,8 +33,8 @@ class RefinedParams(Params):
     essential_px: float = _refined(1.0, "RANSAC threshold of the essential matrix", unit="px", low=0, open_low=True)
     min_verified_inliers: int = _refined(20, "essential-matrix inliers a candidate needs to count as verified",
                                          kind="integer", low=5)
-    n_views: int = _refined(6, "verified candidates the query is posed against, each alone (refined-fast: 2, in "
-                               "one PnP, for its latency)", kind="integer", low=1)
+    n_views: int = _refined(6, "verified candidates the query is posed against, each alone (refined-fast: 2, for "
+                               "its latency)", kind="integer", low=1)
     both_sides: bool = _refined(True, "choose the views on both sides of the query where the database has both "
                                       "(best first otherwise)", kind="bool")
     other_side_candidates: int = _refined(
@@ -50,7 +50,7 @@ class RefinedParams(Params):
         True, "pose the query against each view alone (its own RANSAC and guided matching) and average the views' "
               "positions; off: one PnP over every view's points. Each view's structure is adjusted on its own, and where "
               "geotags disagree by more than the PnP threshold (float GPS) one PnP keeps only the views that agree, "
-              "often those on one side (refined-fast: off, for the points it follows between frames)",
+              "often those on one side",
         kind="bool")
     neighbour_baselines_m: tuple[float, ...] = _refined(
         (2.0, 5.0, 10.0),

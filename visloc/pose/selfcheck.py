@@ -52,7 +52,7 @@ SELF_CHECK_EXCLUSION_S = 1.0  # as the evaluation's: a same-drive query never se
 SELF_CHECK_PROBABILITY = 0.8  # the level at which the lever gain matches the errors (see fit_lever_gain)
 MIN_POSES_PER_SIDE = 10  # fewer: that side keeps the default gain (never below the other side's)
 SELF_CHECK_VERSION = 2  # bump when what a self-check measures changes: older rows are then not used
-CAMERA_RATE_SELF_CHECK_VERSION = 1  # the same, for the camera-rate path's
+CAMERA_RATE_SELF_CHECK_VERSION = 2  # the same, for the camera-rate path's (2: its two views posed apart)
 # what of a query's pose settings a stored self-check depends on beyond the structure's, top_k and pnp_px
 POSE_SETTINGS = ("n_views", "fuse_views", "guided_radius_px", "thin_support_pnp_px", "other_side_candidates")
 # every other image of a drive is checked: adjacent frames' poses share nearly all their errors (the same views,
@@ -79,12 +79,11 @@ class SelfCheckPose:
 
 
 def self_check_params(params: RefinedParams) -> RefinedParams:
-    """The pose the camera-rate path's self-check makes (``FastPoseMeasurer``): ``params`` with two views, no
-    guided matching and one PnP over both, as that path poses a frame. No second, looser pose where support is
-    thin, and no search for views on the other side: the gain's one-sided poses are the database's own
-    extrapolation over the lever."""
-    return params.replace(n_views=2, guided_radius_px=0.0, fuse_views=False, thin_support_pnp_px=0.0,
-                          other_side_candidates=0)
+    """The pose the camera-rate path's self-check makes (``FastPoseMeasurer``): ``params`` with two views and no
+    guided matching, as that path poses a frame (each view alone and averaged where ``params.fuse_views``). No
+    second, looser pose where support is thin, and no search for views on the other side: the gain's one-sided
+    poses are the database's own extrapolation over the lever."""
+    return params.replace(n_views=2, guided_radius_px=0.0, thin_support_pnp_px=0.0, other_side_candidates=0)
 
 
 def self_check_settings_json(params: RefinedParams, exclusion_s: float = SELF_CHECK_EXCLUSION_S, *,
