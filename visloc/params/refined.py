@@ -72,7 +72,7 @@ class RefinedParams(Params):
                                            "(0: all; a few hundred cut the cost of many neighbours)", kind="integer",
                                         low=0)
     relative_geotag_sigma_m: float = _refined(
-        0.05, "position prior of a pose in that adjustment: how well neighbouring geotags agree with each other over "
+        0.005, "position prior of a pose in that adjustment: how well neighbouring geotags agree with each other over "
               "a few metres, per axis (loosened where the images move the poses farther)",
         unit="m", low=0, open_low=True)
     attitude_prior_per_heading_spread: float = _refined(
