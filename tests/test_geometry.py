@@ -307,6 +307,9 @@ def test_views_posed_apart_and_averaged_keep_both_sides_where_their_geotags_disa
     # and their disagreement is in its covariance: the spread of two poses 0.6 m apart, north
     assert fused.cov_terms_m2["views"][1, 1] == pytest.approx(0.3**2, rel=0.3)
     np.testing.assert_allclose(fused.cov_m2, sum(fused.cov_terms_m2.values()))
+    # the spread came from the two views' own positions; one PnP kept one side's points, one view: no spread
+    assert fused.views_posed_apart == 2
+    assert pooled.views_posed_apart == 1 and not pooled.cov_terms_m2["views"].any()
     # where the geotags agree, the views posed apart give back the known position
     geometry, geotags, xq, dq, truth = synthetic_database(east_m, query_east_m=0.0)
     agreed = pose_measurement(xq, dq, retrieval, geotags, geometry, CAMERA, params)

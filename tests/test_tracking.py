@@ -347,6 +347,52 @@ def test_frames_posed_on_the_same_points_count_the_map_error_once():
     np.testing.assert_allclose(third.cov_terms_m2["lever"], np.eye(2) * 0.09)
 
 
+def _posed_apart(east_north_m, views_m, lever_m):
+    """A geometry measurement at the mean of ``views_m`` (one view's positions), its "views" term the covariance of
+    that mean from their spread, as ``pose_from_views`` states it."""
+    from visloc.pose.measurement import Measurement
+    from visloc.pose.viewpose import _mean_covariance
+
+    views = _mean_covariance(list(views_m)) if len(views_m) > 1 else np.zeros((2, 2))
+    terms = {"pnp": np.eye(2) * 1e-4, "views": views, "lever": np.eye(2) * 1e-4}
+    return Measurement(np.asarray(east_north_m, float), sum(terms.values()), "geometry", lever_m=lever_m,
+                       cov_terms_m2=terms, views_posed_apart=len(views_m))
+
+
+def test_a_frame_posed_on_one_view_states_the_scatter_the_runs_poses_on_several_views_show():
+    from visloc.pose.flowtrack import ViewScatter
+    from visloc.pose.measurement import Measurement
+
+    # one view's pose strays 1 cm per metre of lever, per axis; the run's poses average three views posed apart
+    rng = np.random.default_rng(7)
+    per_m = 0.01
+    scatter = ViewScatter()
+    lone = Measurement(np.zeros(2), np.eye(2) * 2e-4, "geometry", lever_m=8.0,
+                       cov_terms_m2={"pnp": np.eye(2) * 1e-4, "views": np.zeros((2, 2)), "lever": np.eye(2) * 1e-4},
+                       views_posed_apart=1)
+    assert scatter.stated(lone) is lone  # nothing to learn from yet: as posed
+    for _ in range(200):
+        lever_m = rng.uniform(4.0, 15.0)
+        scatter.add(_posed_apart(np.zeros(2), rng.normal(0.0, per_m * lever_m, (3, 2)), lever_m))
+    # pooled over the last poses, n times each mean's covariance is one view's: about (1 cm)^2 per m^2 of lever
+    assert np.trace(scatter.per_m2()) / 2 == pytest.approx(per_m**2, rel=0.25)
+    stated = scatter.stated(lone)
+    assert np.trace(stated.cov_terms_m2["views"]) / 2 == pytest.approx((per_m * 8.0) ** 2, rel=0.25)
+    np.testing.assert_allclose(stated.cov_m2, sum(stated.cov_terms_m2.values()))
+    # single views' poses at the lever: their ellipses hold them (NEES near 2, as a 2-D chi-square's mean)
+    nees = []
+    for _ in range(2000):
+        lever_m = rng.uniform(4.0, 15.0)
+        one = _posed_apart(rng.normal(0.0, per_m * lever_m, 2), [np.zeros(2)], lever_m)
+        m = scatter.stated(one)
+        nees.append(float(m.east_north_m @ np.linalg.solve(m.cov_m2, m.east_north_m)))
+    assert np.mean(nees) == pytest.approx(2.0, rel=0.3)
+    # a pose on views posed apart states its own spread, and a geotag has none: both as they are
+    two = _posed_apart(np.zeros(2), [np.zeros(2), np.ones(2) * 0.1], 6.0)
+    geotag = Measurement(np.zeros(2), None, "geotag")
+    assert scatter.stated(two) is two and scatter.stated(geotag) is geotag
+
+
 def test_a_track_chooses_only_its_first_measurement_with_its_first_rule():
     from types import SimpleNamespace
 

@@ -15,14 +15,15 @@ Pure functions over numpy arrays (OpenCV for the flow).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections import deque
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
 
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams
-from visloc.pose.measurement import Measurement, posed_measurement
+from visloc.pose.measurement import GEOMETRY, Measurement, posed_measurement
 from visloc.pose.viewpose import DatabaseGeometry, MapCorrespondences, pose_from_views
 from visloc.stats import CHI2_2DOF_999
 
@@ -200,6 +201,50 @@ def shared_map_error(m: Measurement, frames: int) -> Measurement:
     cov = np.asarray(terms["pnp"], float) + frames * sum(np.asarray(terms[k], float) for k in map_terms)
     counted = {k: frames * np.asarray(terms[k], float) for k in map_terms}
     return replace(m, cov_m2=cov, cov_terms_m2={**terms, **counted})
+
+
+VIEW_SCATTER_MEASUREMENTS = 50  # the view scatter is pooled over the run's last this many poses on views posed apart
+
+
+@dataclass
+class ViewScatter:
+    """How far one view's pose strays, per square metre of lever: pooled over a run's last
+    ``VIEW_SCATTER_MEASUREMENTS`` poses on two or more views posed apart.
+
+    A pose on n views posed apart states the covariance of their mean from their spread (its "views" term,
+    the views' sample covariance over n, with n - 1 degrees of freedom); n times it is one view's scatter. A
+    followed frame often rests on one view only (at speed, with the exclusion window on, the views that hold
+    its points lie behind it), and then no spread states how far that view's pose strays: its "views" term is
+    zero, and its ellipse as small as if it had been averaged over two views. ``stated`` gives it the scatter
+    the run's own poses on several views show, at its own lever (the farther the view, the farther its pose
+    strays)."""
+
+    samples: deque = field(default_factory=lambda: deque(maxlen=VIEW_SCATTER_MEASUREMENTS))
+
+    def add(self, m: Measurement) -> None:
+        """Learn from ``m`` when it is a pose on views posed apart (the terms as posed, before any counting)."""
+        n, lever_m = m.views_posed_apart, m.lever_m
+        if m.source != GEOMETRY or n < 2 or not lever_m or "views" not in m.cov_terms_m2:
+            return
+        self.samples.append((n - 1, n * np.asarray(m.cov_terms_m2["views"], float) / lever_m ** 2))
+
+    def per_m2(self) -> np.ndarray | None:
+        """One view's scatter per square metre of lever, m^2/m^2 (None: no pose on several views yet)."""
+        if not self.samples:
+            return None
+        dof = sum(d for d, _ in self.samples)
+        return sum(d * c for d, c in self.samples) / dof
+
+    def stated(self, m: Measurement) -> Measurement:
+        """``m`` with, when it rests on fewer than two views posed apart, one view's scatter at its lever as its
+        "views" term; anything else as it is."""
+        per_m2 = self.per_m2()
+        if (per_m2 is None or m.source != GEOMETRY or m.views_posed_apart >= 2 or m.cov_m2 is None
+                or not m.lever_m or "views" not in m.cov_terms_m2):
+            return m
+        views = per_m2 * m.lever_m ** 2
+        cov = np.asarray(m.cov_m2, float) - np.asarray(m.cov_terms_m2["views"], float) + views
+        return replace(m, cov_m2=cov, cov_terms_m2={**m.cov_terms_m2, "views": views})
 
 
 def disagree(a: Measurement, b: Measurement) -> bool:

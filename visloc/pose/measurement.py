@@ -56,6 +56,9 @@ class Measurement:
     thin_support:        geometry: no pose reached ``min_pnp_inliers`` at ``pnp_px``, so this one was made at
                          ``thin_support_pnp_px`` with ``thin_support_min_inliers`` (``viewpose.thin_support_params``).
     cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever", "geotags").
+    views_posed_apart:   geometry: how many views' own positions the "views" term comes from (the covariance of
+                         their mean, from their spread); fewer than 2: the term is zero, nothing stated how far
+                         one view's pose strays.
     inliers:             geometry: the pose's 2D-3D inliers (``visloc.pose.viewpose.MapCorrespondences``), what
                          ``visloc.pose.flowtrack`` follows into the next frame.
     compute_ms:          wall time this measurement took when it was made (query side: matching,
@@ -82,6 +85,7 @@ class Measurement:
     lever_m: float | None = None
     thin_support: bool = False
     cov_terms_m2: dict = field(default_factory=dict, repr=False)
+    views_posed_apart: int = 0
     compute_ms: float = 0.0
     structure_ms: float = 0.0
     candidate_inliers: dict[int, int] = field(default_factory=dict, repr=False)
@@ -116,7 +120,8 @@ def posed_measurement(posed: "PosedViews", **extra) -> Measurement:
         posed.east_north_m, posed.cov_m2, GEOMETRY, fallback_reason=None, db_index=posed.anchor,
         reprojection_rms_px=posed.reprojection_rms_px, up_m=posed.up_m, heading_deg=posed.heading_deg,
         absolute_sigma_m=posed.absolute_sigma_m, side=posed.side, lever_m=posed.lever_m,
-        cov_terms_m2=posed.cov_terms_m2, inliers=posed.inliers, thin_support=posed.thin_support, **posed.support,
+        cov_terms_m2=posed.cov_terms_m2, inliers=posed.inliers, thin_support=posed.thin_support,
+        views_posed_apart=posed.views_posed_apart, **posed.support,
         **extra)
 
 

@@ -184,6 +184,7 @@ class PosedViews:
     absolute_sigma_m: float | None = None
     inliers: "MapCorrespondences | None" = None  # the PnP inliers, what a tracker follows to the next frame
     thin_support: bool = False  # posed at thin_support_pnp_px with thin_support_min_inliers (``thin_support_params``)
+    views_posed_apart: int = 0  # the views' own positions the "views" term's spread comes from (fewer than 2: none)
 
 
 @dataclass(frozen=True)
@@ -332,7 +333,8 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
     cov = terms["pnp"] + terms["views"] + terms["lever"] + terms["geotags"]
     absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
     return PosedViews(None, support, structure_ms, east_north, cov, anchor, reprojection_rms_px,
-                      float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m, inliers)
+                      float(T_world_imu[2, 3]), heading, terms, side, lever_m, absolute_sigma_m, inliers,
+                      views_posed_apart=len(per_view))
 
 
 def _solve(views: _Views, query_camera: CameraModel, params: RefinedParams) -> PnPResult | str:

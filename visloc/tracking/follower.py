@@ -5,7 +5,8 @@
 * **Tracked frames.** The map points the last posed frame saw are followed into this frame by optical flow
   and the frame is posed against them (``visloc.pose.flowtrack``), with the full measurement's own PnP,
   checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in several views' structure
-  counts once). No SIFT, no retrieval. Points whose view (or the views it was triangulated
+  counts once). No SIFT, no retrieval. A frame posed on one view only states the scatter of one view's pose
+  that the run's poses on several views posed apart show (``visloc.pose.flowtrack.ViewScatter``). Points whose view (or the views it was triangulated
   with) lies inside the exclusion window of this frame are dropped, as the full path would not use them.
 * **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
   serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
@@ -40,9 +41,9 @@ import numpy as np
 from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams, TrackParams
-from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied, guided_matches,
-                                   linked, merged, needs_relocalization, points_of, pose_tracked, predicted_camera,
-                                   shared_map_error)
+from visloc.pose.flowtrack import (TrackedPoints, ViewScatter, appended, disagree, follow, grid_cells_occupied,
+                                   guided_matches, linked, merged, needs_relocalization, points_of, pose_tracked,
+                                   predicted_camera, shared_map_error)
 from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.matching import MatchCancelled
@@ -295,6 +296,7 @@ class PointFollower:
         since_full = 0
         on_points = 0  # frames posed on the points since fresh ones last came
         min_points = max(6, self.pose.min_pnp_inliers)
+        scatter = ViewScatter()  # one view's scatter, from this run's poses on several views posed apart
         started = time.perf_counter()
 
         def moved_m(since_s: float) -> np.ndarray | None:
@@ -325,6 +327,7 @@ class PointFollower:
                  n_then: int):
             """The points a relocalization brings, followed into this frame and joined to ``current``; its
             measurement takes the place of the tracked one of its frame in the filter."""
+            scatter.add(done.full.measurement)
             refuse_from(n_then, done.full.measurement)
             used[0] = done
             if done.points is None:
@@ -369,7 +372,8 @@ class PointFollower:
                         reason = f"{n_tracks} image tracks followed"
                 if kept is not None:
                     on_points = 1 if joined else on_points + 1
-                    tracked = shared_map_error(tracked, on_points)
+                    scatter.add(tracked)
+                    tracked = shared_map_error(scatter.stated(tracked), on_points)
                     result = fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, tracked, 0.0,
                                   tracked.compute_ms)
                     points, points_t_s, kind = kept, t_s, TRACKED
@@ -392,6 +396,7 @@ class PointFollower:
                             done = self._relocalize(gray, t_s, self.localizer.prediction(), engine,
                                                     str(frame.image_path))
                             used[0] = done
+                            scatter.add(done.full.measurement)
                             if done.points is not None:
                                 replaced = disagree(done.full.measurement, tracked)
                                 points = done.points if replaced else merged(points, done.points)
@@ -420,6 +425,7 @@ class PointFollower:
                     done = self._relocalize(gray, t_s, self.localizer.prediction(), engine, str(frame.image_path))
                     used[0] = done
                     m = done.full.measurement
+                    scatter.add(m)
                     if not self.localizer.started:
                         m = first_fix(m, done.full.retrieval, self.db_east_north_m)
                     result = fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,
