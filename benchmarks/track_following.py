@@ -50,7 +50,11 @@ def _digest(run: dict) -> dict:
             "error_max_m": run["error_m"]["max"], "frames": run["frames"],
             "relocalizations": run.get("relocalizations"), "tracked_stages_ms": run.get("tracked_stages_ms"),
             "estimate_nees": run["estimate_calibration"]["nees_mean"],
-            "estimate_inside_95": run["estimate_calibration"]["inside_95"]}
+            "estimate_inside_95": run["estimate_calibration"]["inside_95"],
+            "estimate_coverage": run["estimate_calibration"].get("coverage")}
+
+
+LEVELS = ("0.5", "0.8", "0.9", "0.95", "0.99")  # the calibration curve's nominal levels shown
 
 
 @contextlib.contextmanager
@@ -142,6 +146,17 @@ def render(result: dict) -> str:
             lines.append(f"| {drive} | {t['flow_ms']:.1f} / {t['geometry_ms']:.1f} / {t['filter_ms']:.1f} | "
                          f"{rel['per_s']:.1f} | {st['sift_ms']:.0f} / {st['retrieval_ms']:.0f} / "
                          f"{st['measurement_ms']:.0f} / {st['points_ms']:.0f} / {rel['total_ms']:.0f} |")
+    curves = [(d, n, r["estimate_coverage"]) for d, runs in result["drives"].items() for n, r in runs.items()
+              if r.get("estimate_coverage")]
+    if curves:
+        lines += ["", "How honest the estimate's ellipses are at every level, at 10 Hz (\"follow\": as fast as possible, "
+                  "the same frames): the share of frames whose estimate lies inside its ellipse of each nominal level "
+                  "(honest: the level itself; the one-query-a-second curves are on the results page):", "",
+                  "| drive | run | " + " | ".join(f"{100 * float(p):.0f} %" for p in LEVELS) + " |",
+                  "|---|---|" + "---|" * len(LEVELS)]
+        for drive, name, coverage in curves:
+            cells = " | ".join(f"{100 * coverage[p]:.0f}" if p in coverage else "–" for p in LEVELS)
+            lines.append(f"| {drive} | {name.replace('_', ' ')} | {cells} |")
     lines += ["", load_line(result), END]
     return "\n".join(lines)
 
