@@ -211,13 +211,14 @@ class ViewScatter:
     """How far one view's pose strays, per square metre of lever: pooled over a run's last
     ``VIEW_SCATTER_MEASUREMENTS`` poses on two or more views posed apart.
 
-    A pose on n views posed apart states the covariance of their mean from their spread (its "views" term,
-    the views' sample covariance over n, with n - 1 degrees of freedom); n times it is one view's scatter. A
-    followed frame often rests on one view only (at speed, with the exclusion window on, the views that hold
-    its points lie behind it), and then no spread states how far that view's pose strays: its "views" term is
-    zero, and its ellipse as small as if it had been averaged over two views. ``stated`` gives it the scatter
-    the run's own poses on several views show, at its own lever (the farther the view, the farther its pose
-    strays)."""
+    A pose on n views posed apart states the covariance of their mean from their spread (its "views" term: the
+    views' sample covariance over n). Two views' spread is one degree of freedom: where they happen to agree, the
+    term is near zero however far one view's pose may stray, and the ellipse claims far too much; and a followed
+    frame often rests on one view only (at speed, with the exclusion window on, the views that hold its points lie
+    behind it), with no spread at all. ``stated`` counts the scatter the run's own poses on several views show, at
+    the frame's lever (the farther the view, the farther its pose strays), as one more view's worth of spread:
+    the views' sample covariance S (n - 1 degrees of freedom) and the pooled one P (one) make
+    ((n - 1) S + P) / n, over n for their mean; one view alone states P."""
 
     samples: deque = field(default_factory=lambda: deque(maxlen=VIEW_SCATTER_MEASUREMENTS))
 
@@ -236,14 +237,16 @@ class ViewScatter:
         return sum(d * c for d, c in self.samples) / dof
 
     def stated(self, m: Measurement) -> Measurement:
-        """``m`` with, when it rests on fewer than two views posed apart, one view's scatter at its lever as its
-        "views" term; anything else as it is."""
+        """``m`` with its "views" term made from its own spread and the pooled scatter at its lever (the class
+        docstring); as it is when nothing is pooled yet, or it is no pose."""
         per_m2 = self.per_m2()
-        if (per_m2 is None or m.source != GEOMETRY or m.views_posed_apart >= 2 or m.cov_m2 is None
-                or not m.lever_m or "views" not in m.cov_terms_m2):
+        if (per_m2 is None or m.source != GEOMETRY or m.cov_m2 is None or not m.lever_m
+                or "views" not in m.cov_terms_m2):
             return m
-        views = per_m2 * m.lever_m ** 2
-        cov = np.asarray(m.cov_m2, float) - np.asarray(m.cov_terms_m2["views"], float) + views
+        n = max(m.views_posed_apart, 1)
+        own = np.asarray(m.cov_terms_m2["views"], float)
+        views = ((n - 1) * n * own + per_m2 * m.lever_m ** 2) / n / n
+        cov = np.asarray(m.cov_m2, float) - own + views
         return replace(m, cov_m2=cov, cov_terms_m2={**m.cov_terms_m2, "views": views})
 
 

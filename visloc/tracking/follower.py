@@ -5,8 +5,9 @@
 * **Tracked frames.** The map points the last posed frame saw are followed into this frame by optical flow
   and the frame is posed against them (``visloc.pose.flowtrack``), with the full measurement's own PnP,
   checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in several views' structure
-  counts once). No SIFT, no retrieval. A frame posed on one view only states the scatter of one view's pose
-  that the run's poses on several views posed apart show (``visloc.pose.flowtrack.ViewScatter``). Points whose view (or the views it was triangulated
+  counts once). No SIFT, no retrieval. How far one view's pose strays, which the spread of the one or two views a
+  followed frame rests on hardly says, comes from the run's poses on several views posed apart as well
+  (``visloc.pose.flowtrack.ViewScatter``). Points whose view (or the views it was triangulated
   with) lies inside the exclusion window of this frame are dropped, as the full path would not use them.
 * **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
   serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
