@@ -510,10 +510,10 @@ def test_a_frame_left_with_nothing_to_follow_by_a_relocalization_that_found_noth
                 return points.subset(np.zeros(len(points), bool))
             return super()._linked(points, timestamp_s, displacement_m)
 
-        def _pose(self, points):
+        def _pose(self, points, *args):
             if self.now in blind:
                 return Measurement(None, None, None, fallback_reason="tracked points: no pose"), None
-            return super()._pose(points)
+            return super()._pose(points, *args)
 
     params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=True,
                            max_lost_wait_ms=10_000.0)

@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 
 from visloc.pose.flowtrack import TrackedPoints, follow, linked, merged
+from visloc.pose.measurement import Measurement
 from visloc.pose.structure import ViewStructure
 from visloc.tracking.viewwindow import ViewWindow
 
@@ -127,12 +128,49 @@ def test_a_followed_frame_keeps_the_two_nearest_views_on_each_side_that_hold_poi
     points = _points(np.zeros((n, 2)), np.arange(n), views, np.zeros(n), np.zeros((n, 3)))
     follower = PointFollower.__new__(PointFollower)
     follower.db_east_north_m, follower.db_timestamps_s = en, t
-    kept = PointFollower._nearest_views_only(follower, points, en[20], 2.0)
+    kept = PointFollower._nearest_views_only(follower, points, en[20], 2.0, 2)
     assert sorted(set(kept.view_of.tolist())) == [8, 9, 10, 31, 35]
     assert len(kept) == n - 3
     # with fewer than two views holding ten points on a side, every view there stays
     few = points.subset(np.isin(points.view_of, [9, 10, 36]))
-    assert sorted(set(PointFollower._nearest_views_only(follower, few, en[20], 2.0).view_of.tolist())) == [9, 10, 36]
+    assert sorted(set(PointFollower._nearest_views_only(follower, few, en[20], 2.0, 2).view_of.tolist())) == [9, 10, 36]
+
+
+def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_ones(monkeypatch):
+    """The frame at 20 m (2.0 s), points in views 10 and 11 behind it (10 and 9 m away), 29, 30 and 33 ahead (9, 10
+    and 13 m). It is posed on the two nearest views on each side that hold ten points (10, 11, 29, 30), not on 33;
+    it keeps its pose's inliers and carries view 33's points on, but for the image track its pose refused."""
+    import visloc.tracking.follower as follower_module
+    from visloc.pose.viewpose import MapCorrespondences
+    from visloc.tracking.follower import PointFollower
+
+    t = np.arange(40) * 0.1
+    en = np.c_[np.arange(40, dtype=float), np.zeros(40)]
+    views = np.repeat([10, 11, 29, 30, 33], 12)
+    tracks = np.tile(np.arange(12), 5)  # each image track in every view's structure
+    n = len(views)
+    points = _points(np.zeros((n, 2)), tracks, views, np.arange(n), np.zeros((n, 3)))
+    posed_on = []
+
+    def pose_tracked(posed, px, *args):
+        posed_on.append(sorted(set(posed.view_of.tolist())))
+        inliers = np.flatnonzero(posed.track_of != 5)  # track 5 followed wrongly
+        T = np.eye(4)
+        T[:2, 3] = [20.0, 0.5]
+        corr = MapCorrespondences(inliers, posed.view_of[inliers], posed.view_rows[inliers],
+                                  posed.points_world[inliers], posed.points_cov[inliers], T)
+        return Measurement(np.array([20.0, 0.5]), np.eye(2) * 0.01, "geometry"), corr
+
+    monkeypatch.setattr(follower_module, "pose_tracked", pose_tracked)
+    follower = PointFollower.__new__(PointFollower)
+    follower.db_east_north_m, follower.db_timestamps_s, follower.stored = en, t, {"stored": True}
+    follower.distortion, follower.geometry, follower.pose = None, None, None
+    follower.camera = type("Camera", (), {"K": np.eye(3)})()
+    m, kept = PointFollower._pose(follower, points, en[20], 2.0)
+    assert posed_on == [[10, 11, 29, 30]]
+    assert sorted(set(kept.view_of.tolist())) == [10, 11, 29, 30, 33]
+    assert 5 not in kept.track_of.tolist() and len(kept) == n - 5
+    np.testing.assert_allclose(kept.east_north_m, [20.0, 0.5])  # every point kept at the frame's pose
 
 
 def test_points_merged_keep_the_current_ones_and_add_the_fresh_ones_they_lack():

@@ -193,8 +193,9 @@ class TrackParams(Params):
                                        "rate, but on the shared drives not yet as accurate as localizing every "
                                        "frame in full (the default)",
                                 kind="bool", methods=TRACK_ONLY)
-    relocalize_every: int = param(10, "following points: localize in full at least every this many frames, to "
-                                      "find new map points (0: only when the followed ones no longer serve)",
+    relocalize_every: int = param(4, "following points: localize in full at least every this many frames, to "
+                                     "find new map points on the nearest views (0: only when the followed ones no "
+                                     "longer serve)",
                                   kind="integer", low=0, high=MAX_C_INT, methods=TRACK_ONLY)
     min_followed_points: int = param(40, "following points: a frame posed on fewer image tracks (followed keypoints, "
                                          "each once however many views' structure holds its map point) than this: "

@@ -3,12 +3,15 @@
 ``PointFollower.steps`` runs a drive's frames in order through a ``Localizer`` (the refined method):
 
 * **Tracked frames.** The map points the last posed frame saw are followed into this frame by optical flow
-  and the frame is posed against them (``visloc.pose.flowtrack``), with the full measurement's own PnP,
-  checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in several views' structure
-  counts once). No SIFT, no retrieval. How far one view's pose strays, which the spread of the one or two views a
+  and the frame is posed against those of its nearest views (``visloc.pose.flowtrack``), with the full
+  measurement's own PnP, checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in
+  several views' structure counts once). No SIFT, no retrieval. How far one view's pose strays, which the spread of the one or two views a
   followed frame rests on hardly says, comes from the run's poses on several views posed apart as well
   (``visloc.pose.flowtrack.ViewScatter``). Points whose view (or the views it was triangulated
-  with) lies inside the exclusion window of this frame are dropped, as the full path would not use them.
+  with) lies inside the exclusion window of this frame are dropped, as the full path would not use them. The
+  points of a few farther views are carried on unposed: with the window on, the nearest view ahead leaves it
+  every frame or two, and its points would leave with it (half of them from one frame to the next), where the
+  carried ones take over without a full localization.
 * **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
   serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
   thread beside the tracker on the frame that asked, and its points are followed from that frame into the
@@ -62,8 +65,10 @@ LOOKAHEAD_S = 0.5  # a full localization also takes on the points of views that 
 EXTRA_VIEWS = 4  # ... this many of them
 EXTRA_VIEW_RADIUS_M = 40.0
 LINKED_VIEWS = 4  # a followed frame takes on the same map points in this many views nearest it, half on each side
-POSED_VIEWS = 2  # ... and drops the views farther away than the POSED_VIEWS nearest on each side that hold
+POSED_VIEWS = 2  # ... is posed on the views no farther away than the POSED_VIEWS nearest on each side that hold
 POSED_VIEW_MIN_POINTS = 10  # ... this many points
+CARRIED_VIEWS = 4  # ... and carries on the points of the views up to the CARRIED_VIEWS nearest on each side, for when
+# the exclusion window takes the nearest views away
 HISTORY_FRAMES = 50  # a relocalization that arrives later than this many frames is not fused in its frame's place
 NO_RETRIEVAL = Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
 
@@ -228,10 +233,10 @@ class PointFollower:
         """``points`` on the views a frame at ``timestamp_s`` takes on: each image track linked into the structure
         of the ``LINKED_VIEWS`` views nearest the frame that it may use where it has no point there yet
         (``visloc.pose.flowtrack.linked``: the same map points in the database's other views), then without the
-        views farther away than the ``POSED_VIEWS`` nearest on each side that hold ``POSED_VIEW_MIN_POINTS`` points
-        (the error grows with the distance to the views). As the vehicle moves on, the views it passes and those
-        the exclusion window takes away hand their map points on to the views it nears, and the frames stay posed on
-        the nearest views without a full localization. ``displacement_m``: how far the vehicle moved since the
+        views farther away than the ``CARRIED_VIEWS`` nearest on each side that hold ``POSED_VIEW_MIN_POINTS``
+        points. As the vehicle moves on, the views it passes and those the exclusion window takes away hand their
+        map points on to the views it nears, and the frames stay posed on the nearest views (``_pose``) without a
+        full localization. ``displacement_m``: how far the vehicle moved since the
         points' pose."""
         if not self.stored or not len(points):
             return points
@@ -248,11 +253,11 @@ class PointFollower:
                               neighbours={v: tuple(st.neighbours)}, trees=self._trees)
                 if len(more) > len(tried):
                     out = appended(out, more.subset(np.arange(len(tried), len(more))))
-        return self._nearest_views_only(out, east_north_m, timestamp_s)
+        return self._nearest_views_only(out, east_north_m, timestamp_s, CARRIED_VIEWS)
 
-    def _nearest_views_only(self, points: TrackedPoints, east_north_m: np.ndarray,
-                            timestamp_s: float) -> TrackedPoints:
-        """``points`` without the views farther from ``east_north_m`` than the ``POSED_VIEWS`` nearest on their side
+    def _nearest_views_only(self, points: TrackedPoints, east_north_m: np.ndarray, timestamp_s: float,
+                            per_side: int) -> TrackedPoints:
+        """``points`` without the views farther from ``east_north_m`` than the ``per_side`` nearest on their side
         of the frame (before or after it) that hold ``POSED_VIEW_MIN_POINTS`` points or more."""
         views, counts = np.unique(points.view_of, return_counts=True)
         distance = np.linalg.norm(self.db_east_north_m[views] - np.asarray(east_north_m, float), axis=1)
@@ -261,7 +266,7 @@ class PointFollower:
             side = np.flatnonzero((self.db_timestamps_s[views] < timestamp_s) == before)
             side = side[np.argsort(distance[side], kind="stable")]
             held = side[counts[side] >= POSED_VIEW_MIN_POINTS]
-            reach_m = distance[held[POSED_VIEWS - 1]] if len(held) >= POSED_VIEWS else np.inf
+            reach_m = distance[held[per_side - 1]] if len(held) >= per_side else np.inf
             keep[side[distance[side] <= reach_m]] = True
         return points if keep.all() else points.subset(np.isin(points.view_of, views[keep]))
 
@@ -270,15 +275,26 @@ class PointFollower:
         t = seq.timestamps_s
         return 1.0 if len(t) < 2 or t[-1] >= t[0] else -1.0
 
-    def _pose(self, points: TrackedPoints) -> tuple[Measurement, TrackedPoints | None]:
-        """A frame posed on followed points, and the points it keeps (its inliers at its pose; None: no pose)."""
+    def _pose(self, points: TrackedPoints, east_north_m: np.ndarray,
+              timestamp_s: float) -> tuple[Measurement, TrackedPoints | None]:
+        """A frame posed on the followed points of its nearest views (``POSED_VIEWS`` on each side: the error grows
+        with the distance to the views), and the points it keeps (None: no pose): its inliers at its pose, and the
+        points of the farther views it carries on (``CARRIED_VIEWS``), but for the image tracks its pose found wrong.
+        The carried views are the ones that serve once the exclusion window has taken the nearest away."""
         t1 = time.perf_counter()
-        m, inliers = pose_tracked(points, self._undistort(points.pixels_px)[:, :2], self.db_east_north_m,
+        posed = self._nearest_views_only(points, east_north_m, timestamp_s, POSED_VIEWS) if self.stored else points
+        m, inliers = pose_tracked(posed, self._undistort(posed.pixels_px)[:, :2], self.db_east_north_m,
                                   self.geometry, self.camera, self.pose)
         m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)
         if inliers is None:
             return m, None
-        return m, _at_pose(points.subset(inliers.query_rows), inliers.T_world_camera, m.east_north_m)
+        kept = posed.subset(inliers.query_rows)
+        outliers = np.setdiff1d(posed.track_of, kept.track_of)
+        carried = points.subset(~np.isin(points.view_of, np.unique(posed.view_of))
+                                & ~np.isin(points.track_of, outliers))
+        if len(carried):
+            kept = appended(kept, carried)
+        return m, _at_pose(kept, inliers.T_world_camera, m.east_north_m)
 
     def steps(self, seq: Drive, indices: Iterable[int],
               cancelled: Callable[[], bool] | None = None) -> Iterator[FollowedStep]:
@@ -367,7 +383,8 @@ class PointFollower:
                     n_followed, n_tracks = len(followed), followed.n_tracks  # a keypoint in several views: one track
                     flow_ms = (time.perf_counter() - t0) * 1000.0
                     if n_tracks >= min_points:
-                        tracked, kept = self._pose(followed)
+                        moved = moved_m(points_t_s)
+                        tracked, kept = self._pose(followed, followed.east_north_m + (0.0 if moved is None else moved), t_s)
                         reason = None if kept is not None else tracked.fallback_reason
                     else:
                         reason = f"{n_tracks} image tracks followed"
