@@ -535,7 +535,7 @@ def test_a_frame_left_with_nothing_to_follow_by_a_relocalization_that_found_noth
 
 def test_a_first_fix_refuses_a_lone_far_candidate():
     from visloc.pose.measurement import Measurement
-    from visloc.tracking.follower import first_fix
+    from visloc.tracking.localizer import first_fix
     db_en = np.array([[0.0, 0], [1, 0], [2, 0], [3, 0], [80, 0]])
     retrieval = Retrieval(np.arange(5), np.array([30, 28, 27, 25, 40]), 4)
     lone = Measurement(db_en[4], None, "geotag", fallback_reason="no pose")

@@ -118,7 +118,6 @@ def test_a_followed_frame_keeps_the_two_nearest_views_on_each_side_that_hold_poi
     10 (10 m, 12 points); ahead 31 (11 m, 40 points) and 35 (15 m, 40 points) and 36 (16 m, 3 points). Behind, the
     two nearest holding ten points or more are 10 and 8, and 9 between them stays; ahead, 31 and 35, and 36 beyond
     them goes."""
-    from visloc.tracking.follower import PointFollower
 
     t = np.arange(40) * 0.1
     en = np.c_[np.arange(40, dtype=float), np.zeros(40)]
@@ -126,14 +125,13 @@ def test_a_followed_frame_keeps_the_two_nearest_views_on_each_side_that_hold_poi
     views = np.concatenate([np.full(n, v) for v, n in counts.items()])
     n = len(views)
     points = _points(np.zeros((n, 2)), np.arange(n), views, np.zeros(n), np.zeros((n, 3)))
-    follower = PointFollower.__new__(PointFollower)
-    follower.db_east_north_m, follower.db_timestamps_s = en, t
-    kept = PointFollower._nearest_views_only(follower, points, en[20], 2.0, 2)
+    window = ViewWindow(en, t, 1.0, None)
+    kept = window.nearest_views_only(points, en[20], 2.0, 2, 10)
     assert sorted(set(kept.view_of.tolist())) == [8, 9, 10, 31, 35]
     assert len(kept) == n - 3
     # with fewer than two views holding ten points on a side, every view there stays
     few = points.subset(np.isin(points.view_of, [9, 10, 36]))
-    assert sorted(set(PointFollower._nearest_views_only(follower, few, en[20], 2.0, 2).view_of.tolist())) == [9, 10, 36]
+    assert sorted(set(window.nearest_views_only(few, en[20], 2.0, 2, 10).view_of.tolist())) == [9, 10, 36]
 
 
 def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_ones(monkeypatch):
@@ -163,7 +161,8 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
 
     monkeypatch.setattr(follower_module, "pose_tracked", pose_tracked)
     follower = PointFollower.__new__(PointFollower)
-    follower.db_east_north_m, follower.db_timestamps_s, follower.stored = en, t, {"stored": True}
+    follower.db_east_north_m, follower.stored = en, {"stored": True}
+    follower.window = ViewWindow(en, t, 1.0, None)
     follower.distortion, follower.geometry, follower.pose = None, None, None
     follower.camera = type("Camera", (), {"K": np.eye(3)})()
     m, kept = PointFollower._pose(follower, points, en[20], 2.0)

@@ -35,7 +35,8 @@ from visloc.params import (MAX_DT_S, MIN_DT_S, PAPER_FILTER, PAPER_MATCH, REFINE
 from visloc.sources.queries import extract_queries
 from visloc.pose.refined import one_blas_thread
 from visloc.pose.structure import seeded_structure_cache
-from visloc.tracking.follower import FollowedStep, PointFollower, first_fix
+from visloc.tracking.follower import FollowedStep, PointFollower
+from visloc.tracking.localizer import first_fix
 from visloc.tracking.runs import steps_of
 from visloc.sources.drives import Drive
 from visloc.pose.uncertainty import SIDES, calibration

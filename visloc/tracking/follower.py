@@ -25,7 +25,7 @@
   background thread, every frame with nothing to follow.
 * **A first fix.** A track's first measurement is the start of everything after it, so a first frame that
   only gets the geotag of its best candidate (no pose) takes the median geotag of its best candidates
-  instead when the best one lies far from the others (``first_fix``).
+  instead when the best one lies far from the others (``visloc.tracking.localizer.first_fix``).
 
 Each step carries its kind ("tracked", "predicted" or "relocalized") and its latency: the wall time from its image
 read to its filter step done (flow and pose, or SIFT, retrieval and measurement). A background relocalization's
@@ -48,19 +48,17 @@ from visloc.params import RefinedParams, SiftParams, TrackParams
 from visloc.pose.flowtrack import (TrackedPoints, ViewScatter, appended, disagree, follow, grid_cells_occupied,
                                    guided_matches, linked, merged, needs_relocalization, points_of, pose_tracked,
                                    predicted_camera, shared_map_error)
-from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement
+from visloc.pose.measurement import GEOMETRY, Measurement
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.drives import Drive, load_gray
-from visloc.tracking.localizer import Localizer, StepResult
+from visloc.tracking.localizer import Localizer, StepResult, first_fix
 from visloc.tracking.viewwindow import ViewWindow
 
 TRACKED = "tracked"
 RELOCALIZED = "relocalized"
 PREDICTED = "predicted"  # no pose from the followed points and a full localization under way: the filter predicts
-FIRST_FIX_CANDIDATES = 5
-FIRST_FIX_AGREEMENT_M = 10.0
 LOOKAHEAD_S = 0.5  # a full localization also takes on the points of views that still serve this much later
 EXTRA_VIEWS = 4  # ... this many of them
 EXTRA_VIEW_RADIUS_M = 40.0
@@ -119,26 +117,6 @@ class _Full:
     @property
     def cost_ms(self) -> float:
         return self.query.sift_ms + self.retrieval_ms + self.measurement.query_side_ms
-
-
-def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: np.ndarray,
-              k: int = FIRST_FIX_CANDIDATES, agreement_m: float = FIRST_FIX_AGREEMENT_M) -> Measurement:
-    """A track's first measurement: a refined measurement's geotag fallback whose candidate lies more than ``agreement_m`` from the median
-    geotag of the ``k`` best candidates is replaced by that median (a lone far candidate is more often a
-    look-alike place than the vehicle's); anything else is kept."""
-    if measurement.source != GEOTAG or measurement.fallback_reason is None or retrieval.counts.size < 3:
-        return measurement  # a pose, or the paper's own measurement (the geotag by design, not a fallback)
-    best = np.argsort(-retrieval.counts, kind="stable")[:k]
-    best = best[retrieval.counts[best] > 0]
-    if best.size < 3:
-        return measurement
-    positions = np.asarray(db_east_north_m, float)[retrieval.candidates[best]]
-    centre = np.median(positions, axis=0)
-    if np.linalg.norm(np.asarray(measurement.east_north_m, float) - centre) <= agreement_m:
-        return measurement
-    reason = (f"{measurement.fallback_reason}; first fix: the best candidate's geotag lies far from the other "
-              f"candidates', their median geotag is used")
-    return replace(measurement, east_north_m=centre, fallback_reason=reason)
 
 
 def _at_pose(points: TrackedPoints, T_world_camera: np.ndarray, east_north_m: np.ndarray) -> TrackedPoints:
@@ -253,22 +231,7 @@ class PointFollower:
                               neighbours={v: tuple(st.neighbours)}, trees=self._trees)
                 if len(more) > len(tried):
                     out = appended(out, more.subset(np.arange(len(tried), len(more))))
-        return self._nearest_views_only(out, east_north_m, timestamp_s, CARRIED_VIEWS)
-
-    def _nearest_views_only(self, points: TrackedPoints, east_north_m: np.ndarray, timestamp_s: float,
-                            per_side: int) -> TrackedPoints:
-        """``points`` without the views farther from ``east_north_m`` than the ``per_side`` nearest on their side
-        of the frame (before or after it) that hold ``POSED_VIEW_MIN_POINTS`` points or more."""
-        views, counts = np.unique(points.view_of, return_counts=True)
-        distance = np.linalg.norm(self.db_east_north_m[views] - np.asarray(east_north_m, float), axis=1)
-        keep = np.zeros(len(views), bool)
-        for before in (True, False):
-            side = np.flatnonzero((self.db_timestamps_s[views] < timestamp_s) == before)
-            side = side[np.argsort(distance[side], kind="stable")]
-            held = side[counts[side] >= POSED_VIEW_MIN_POINTS]
-            reach_m = distance[held[per_side - 1]] if len(held) >= per_side else np.inf
-            keep[side[distance[side] <= reach_m]] = True
-        return points if keep.all() else points.subset(np.isin(points.view_of, views[keep]))
+        return self.window.nearest_views_only(out, east_north_m, timestamp_s, CARRIED_VIEWS, POSED_VIEW_MIN_POINTS)
 
     @staticmethod
     def _direction(seq: Drive) -> float:
@@ -282,7 +245,8 @@ class PointFollower:
         points of the farther views it carries on (``CARRIED_VIEWS``), but for the image tracks its pose found wrong.
         The carried views are the ones that serve once the exclusion window has taken the nearest away."""
         t1 = time.perf_counter()
-        posed = self._nearest_views_only(points, east_north_m, timestamp_s, POSED_VIEWS) if self.stored else points
+        posed = (self.window.nearest_views_only(points, east_north_m, timestamp_s, POSED_VIEWS, POSED_VIEW_MIN_POINTS)
+                 if self.stored else points)
         m, inliers = pose_tracked(posed, self._undistort(posed.pixels_px)[:, :2], self.db_east_north_m,
                                   self.geometry, self.camera, self.pose)
         m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)

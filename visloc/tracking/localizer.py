@@ -9,7 +9,8 @@
 * the filter (``visloc.tracking.kalman.ConstantVelocityKalman``), with an optional Mahalanobis gate.
 
 ``visloc.tracking.methods`` composes them into the named methods (the paper's, the refined one).
-Each ``step`` returns everything about that query, its timings included.
+Each ``step`` returns everything about that query, its timings included. ``first_fix`` makes a track's first
+measurement (``step(first=...)``).
 """
 
 from __future__ import annotations
@@ -17,19 +18,21 @@ from __future__ import annotations
 import copy
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 
 from visloc.features.sift import Query
-from visloc.pose.measurement import GEOMETRY, Measurement, Measurer
+from visloc.pose.measurement import GEOMETRY, GEOTAG, Measurement, Measurer
 from visloc.params import FilterParams
 from visloc.retrieval.retrievers import Prediction, Retrieval
 from visloc.tracking.kalman import ConstantVelocityKalman, FilterStep
 
 
 FirstMeasurement = Callable[[Measurement, Retrieval], Measurement]
+FIRST_FIX_CANDIDATES = 5
+FIRST_FIX_AGREEMENT_M = 10.0
 
 
 class Retriever(Protocol):
@@ -141,3 +144,23 @@ class Localizer:
         if first is not None and not self.started:
             measurement = first(measurement, retrieval)
         return self.fuse(query, retrieval, measurement, retrieval_ms, measurement_ms)
+
+
+def first_fix(measurement: Measurement, retrieval: Retrieval, db_east_north_m: np.ndarray,
+              k: int = FIRST_FIX_CANDIDATES, agreement_m: float = FIRST_FIX_AGREEMENT_M) -> Measurement:
+    """A track's first measurement: a refined measurement's geotag fallback whose candidate lies more than ``agreement_m`` from the median
+    geotag of the ``k`` best candidates is replaced by that median (a lone far candidate is more often a
+    look-alike place than the vehicle's); anything else is kept."""
+    if measurement.source != GEOTAG or measurement.fallback_reason is None or retrieval.counts.size < 3:
+        return measurement  # a pose, or the paper's own measurement (the geotag by design, not a fallback)
+    best = np.argsort(-retrieval.counts, kind="stable")[:k]
+    best = best[retrieval.counts[best] > 0]
+    if best.size < 3:
+        return measurement
+    positions = np.asarray(db_east_north_m, float)[retrieval.candidates[best]]
+    centre = np.median(positions, axis=0)
+    if np.linalg.norm(np.asarray(measurement.east_north_m, float) - centre) <= agreement_m:
+        return measurement
+    reason = (f"{measurement.fallback_reason}; first fix: the best candidate's geotag lies far from the other "
+              f"candidates', their median geotag is used")
+    return replace(measurement, east_north_m=centre, fallback_reason=reason)

@@ -75,3 +75,19 @@ class ViewWindow:
                 out[v] = s
                 taken[before] += 1
         return out
+
+    def nearest_views_only(self, points: TrackedPoints, east_north_m: np.ndarray, timestamp_s: float, per_side: int,
+                           min_points: int) -> TrackedPoints:
+        """``points`` without the views farther from ``east_north_m`` than the ``per_side`` nearest on their side
+        of a frame at ``timestamp_s`` (before or after it) that hold ``min_points`` points or more (every view of a
+        side with fewer such views stays)."""
+        views, counts = np.unique(points.view_of, return_counts=True)
+        distance = np.linalg.norm(self.db_east_north_m[views] - np.asarray(east_north_m, float), axis=1)
+        keep = np.zeros(len(views), bool)
+        for before in (True, False):
+            side = np.flatnonzero((self.db_timestamps_s[views] < timestamp_s) == before)
+            side = side[np.argsort(distance[side], kind="stable")]
+            held = side[counts[side] >= min_points]
+            reach_m = distance[held[per_side - 1]] if len(held) >= per_side else np.inf
+            keep[side[distance[side] <= reach_m]] = True
+        return points if keep.all() else points.subset(np.isin(points.view_of, views[keep]))
