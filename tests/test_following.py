@@ -172,6 +172,27 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
     np.testing.assert_allclose(kept.east_north_m, [20.0, 0.5])  # every point kept at the frame's pose
 
 
+def test_a_view_the_points_left_comes_back_in_the_variant_it_returns_with():
+    """View 13 was ahead of the vehicle, its structure triangulated with the images after it (14); its points left
+    with it. Back as a view behind the vehicle, triangulated with the images before it (11), its points are judged by
+    those: a frame at 2.4 s may use them (the stale variant's neighbour 14 lies inside its window). A view the points
+    still hold in one variant does not take another's points."""
+    from visloc.pose.flowtrack import appended
+
+    t = np.arange(40) * 0.1
+    en = np.c_[np.arange(40, dtype=float), np.zeros(40)]
+    ahead = _points(np.zeros((3, 2)), [0, 1, 2], [13, 13, 36], [0, 1, 2], np.zeros((3, 3)),
+                    neighbours={13: (14,), 36: (37,)})
+    left = ahead.subset(ahead.view_of == 36)
+    assert left.neighbours == {36: (37,)}
+    behind = _points(np.zeros((2, 2)), [5, 6], [13, 13], [3, 4], np.zeros((2, 3)), neighbours={13: (11,)})
+    back = appended(left, behind)
+    assert back.neighbours == {36: (37,), 13: (11,)}
+    assert ViewWindow(en, t, 1.0, None).allowed(back, 2.4).view_of.tolist() == [36, 13, 13]
+    held = appended(ahead, behind)  # view 13 still held in its first variant: the other's points stay out
+    assert held.neighbours[13] == (14,) and len(held) == len(ahead)
+
+
 def test_points_merged_keep_the_current_ones_and_add_the_fresh_ones_they_lack():
     current = _points([[1, 1], [2, 2]], [0, 1], [0, 0], [0, 1], np.ones((2, 3)), neighbours={0: (3,)})
     fresh = _points([[9, 9], [5, 5]], [7, 8], [0, 1], [1, 5], np.zeros((2, 3)), neighbours={0: (4,), 1: (2,)},

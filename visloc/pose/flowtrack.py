@@ -65,9 +65,18 @@ class TrackedPoints:
     def subset(self, keep: np.ndarray, pixels_px: np.ndarray | None = None) -> "TrackedPoints":
         """The points ``keep`` (bool or index), optionally at new pixels (already subset)."""
         px = self.pixels_px[keep] if pixels_px is None else pixels_px
-        return TrackedPoints(px, self.track_of[keep], self.view_of[keep], self.view_rows[keep],
-                             self.points_world[keep], self.points_cov[keep], self.neighbours, self.T_world_camera,
+        view_of = self.view_of[keep]
+        return TrackedPoints(px, self.track_of[keep], view_of, self.view_rows[keep], self.points_world[keep],
+                             self.points_cov[keep], _present(self.neighbours, view_of), self.T_world_camera,
                              self.east_north_m)
+
+
+def _present(neighbours: dict, view_of: np.ndarray) -> dict:
+    """``neighbours`` of the views in ``view_of`` only: a view the points no longer hold may come back later in
+    another variant of its structure (a view ahead of the vehicle, triangulated with the images after it, is
+    later a view behind it, triangulated with those before)."""
+    views = set(np.unique(view_of).tolist())
+    return {v: n for v, n in neighbours.items() if v in views}
 
 
 def points_of(inliers: MapCorrespondences, raw_pixels_px: np.ndarray, east_north_m: np.ndarray,
@@ -379,12 +388,18 @@ def linked(points: TrackedPoints, view_points: dict, db_descriptors_u8, *, neigh
 
 
 def appended(points: TrackedPoints, more: TrackedPoints) -> TrackedPoints:
-    """``points`` and then ``more`` (points it lacks), at ``points``' pose."""
+    """``points`` and then ``more`` (points it lacks), at ``points``' pose; ``more``'s points of a view that
+    ``points`` holds in another variant of its structure (other neighbours: other 3D points) are left out."""
+    own = _present(points.neighbours, points.view_of)
+    clash = [v for v, n in more.neighbours.items() if v in own and tuple(own[v]) != tuple(n)]
+    if clash:
+        more = more.subset(~np.isin(more.view_of, clash))
     cat = np.concatenate
     return TrackedPoints(cat([points.pixels_px, more.pixels_px]), cat([points.track_of, more.track_of]),
                          cat([points.view_of, more.view_of]), cat([points.view_rows, more.view_rows]),
                          cat([points.points_world, more.points_world]), cat([points.points_cov, more.points_cov]),
-                         {**more.neighbours, **points.neighbours}, points.T_world_camera, points.east_north_m)
+                         {**_present(more.neighbours, more.view_of), **own}, points.T_world_camera,
+                         points.east_north_m)
 
 
 def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,
