@@ -337,7 +337,7 @@ def test_a_late_measurement_fused_in_its_place_equals_having_had_it_in_time():
 
 def test_frames_posed_on_the_same_points_count_the_map_error_once():
     from visloc.pose.measurement import Measurement
-    from visloc.pose.flowtrack import shared_map_error
+    from visloc.pose.trackedcov import shared_map_error
 
     terms = {"pnp": np.eye(2) * 0.01, "views": np.eye(2) * 0.02, "lever": np.eye(2) * 0.03}
     m = Measurement(np.zeros(2), np.eye(2) * 0.06, "geometry", cov_terms_m2=terms)
@@ -360,7 +360,7 @@ def _posed_apart(east_north_m, views_m, lever_m):
 
 
 def test_a_followed_frame_states_the_scatter_of_its_views_that_the_runs_poses_show():
-    from visloc.pose.flowtrack import ViewScatter
+    from visloc.pose.trackedcov import ViewScatter
     from visloc.pose.measurement import Measurement
 
     # one view's pose strays 1 cm per metre of lever, per axis; the run's poses average three views posed apart

@@ -189,9 +189,10 @@ class TrackParams(Params):
     stride: int = param(1, "localize every stride-th frame (1: every frame); the filter's time step follows",
                         kind="integer", low=1, methods=TRACK_ONLY)
     follow_points: bool = param(False, "between full localizations, follow the last posed frame's map points by "
-                                       "optical flow and pose each frame against them: several times the frame "
-                                       "rate, but on the shared drives not yet as accurate as localizing every "
-                                       "frame in full (the default)",
+                                       "optical flow and pose each frame against them: at the camera's 10 Hz, a "
+                                       "third of the processor of localizing every frame in full (the default) "
+                                       "and on two of the three shared drives as accurate; read as fast as "
+                                       "possible, far less accurate",
                                 kind="bool", methods=TRACK_ONLY)
     relocalize_every: int = param(4, "following points: localize in full at least every this many frames, to "
                                      "find new map points on the nearest views (0: only when the followed ones no "

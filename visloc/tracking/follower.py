@@ -7,7 +7,7 @@
   measurement's own PnP, checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in
   several views' structure counts once). No SIFT, no retrieval. How far one view's pose strays, which the spread of the one or two views a
   followed frame rests on hardly says, comes from the run's poses on several views posed apart as well
-  (``visloc.pose.flowtrack.ViewScatter``). Points whose view (or the views it was triangulated
+  (``visloc.pose.trackedcov.ViewScatter``). Points whose view (or the views it was triangulated
   with) lies inside the exclusion window of this frame are dropped, as the full path would not use them. The
   points of a few farther views are carried on unposed: with the window on, the nearest view ahead leaves it
   every frame or two, and its points would leave with it (half of them from one frame to the next), where the
@@ -45,10 +45,11 @@ import numpy as np
 from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams, TrackParams
-from visloc.pose.flowtrack import (TrackedPoints, ViewScatter, appended, disagree, follow, grid_cells_occupied,
+from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied,
                                    guided_matches, linked, merged, needs_relocalization, points_of, pose_tracked,
-                                   predicted_camera, shared_map_error)
+                                   predicted_camera)
 from visloc.pose.measurement import GEOMETRY, Measurement
+from visloc.pose.trackedcov import ViewScatter, shared_map_error
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
