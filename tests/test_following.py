@@ -165,7 +165,7 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
     follower.window = ViewWindow(en, t, 1.0, None)
     follower.distortion, follower.geometry, follower.pose = None, None, None
     follower.camera = type("Camera", (), {"K": np.eye(3)})()
-    m, kept = PointFollower._pose(follower, points, en[20], 2.0)
+    m, kept = PointFollower._pose(follower, points, 2.0, en[20])  # the points posed at 0; moved 20 m
     assert posed_on == [[10, 11, 29, 30]]
     assert sorted(set(kept.view_of.tolist())) == [10, 11, 29, 30, 33]
     assert 5 not in kept.track_of.tolist() and len(kept) == n - 5

@@ -10,8 +10,8 @@
   (``visloc.pose.trackedcov.ViewScatter``). Points whose view (or the views it was triangulated
   with) lies inside the exclusion window of this frame are dropped, as the full path would not use them. The
   points of a few farther views are carried on unposed: with the window on, the nearest view ahead leaves it
-  every frame or two, and its points would leave with it (half of them from one frame to the next), where the
-  carried ones take over without a full localization.
+  every frame or two, and its points would leave with it, where the carried ones take over without a full
+  localization.
 * **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
   serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
   thread beside the tracker on the frame that asked, and its points are followed from that frame into the
@@ -120,6 +120,11 @@ class _Full:
         return self.query.sift_ms + self.retrieval_ms + self.measurement.query_side_ms
 
 
+def _moved_to(points: TrackedPoints, displacement_m: np.ndarray | None) -> np.ndarray:
+    """Where the vehicle is: the points' pose moved by ``displacement_m`` (None: not moved), east, north m."""
+    return points.east_north_m + (0.0 if displacement_m is None else np.asarray(displacement_m, float))
+
+
 def _at_pose(points: TrackedPoints, T_world_camera: np.ndarray, east_north_m: np.ndarray) -> TrackedPoints:
     return replace(points, T_world_camera=np.asarray(T_world_camera, float),
                    east_north_m=np.asarray(east_north_m, float))
@@ -219,7 +224,7 @@ class PointFollower:
         points' pose."""
         if not self.stored or not len(points):
             return points
-        east_north_m = points.east_north_m + (0.0 if displacement_m is None else np.asarray(displacement_m, float))
+        east_north_m = _moved_to(points, displacement_m)
         out = points
         for v, st in self.window.nearest_views(east_north_m, timestamp_s, 0.0, LINKED_VIEWS,
                                                EXTRA_VIEW_RADIUS_M).items():
@@ -239,15 +244,16 @@ class PointFollower:
         t = seq.timestamps_s
         return 1.0 if len(t) < 2 or t[-1] >= t[0] else -1.0
 
-    def _pose(self, points: TrackedPoints, east_north_m: np.ndarray,
-              timestamp_s: float) -> tuple[Measurement, TrackedPoints | None]:
+    def _pose(self, points: TrackedPoints, timestamp_s: float,
+              displacement_m: np.ndarray | None) -> tuple[Measurement, TrackedPoints | None]:
         """A frame posed on the followed points of its nearest views (``POSED_VIEWS`` on each side: the error grows
         with the distance to the views), and the points it keeps (None: no pose): its inliers at its pose, and the
         points of the farther views it carries on (``CARRIED_VIEWS``), but for the image tracks its pose found wrong.
-        The carried views are the ones that serve once the exclusion window has taken the nearest away."""
+        The carried views are the ones that serve once the exclusion window has taken the nearest away.
+        ``displacement_m``: how far the vehicle moved since the points' pose."""
         t1 = time.perf_counter()
-        posed = (self.window.nearest_views_only(points, east_north_m, timestamp_s, POSED_VIEWS, POSED_VIEW_MIN_POINTS)
-                 if self.stored else points)
+        posed = (self.window.nearest_views_only(points, _moved_to(points, displacement_m), timestamp_s, POSED_VIEWS,
+                                                POSED_VIEW_MIN_POINTS) if self.stored else points)
         m, inliers = pose_tracked(posed, self._undistort(posed.pixels_px)[:, :2], self.db_east_north_m,
                                   self.geometry, self.camera, self.pose)
         m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)
@@ -348,8 +354,7 @@ class PointFollower:
                     n_followed, n_tracks = len(followed), followed.n_tracks  # a keypoint in several views: one track
                     flow_ms = (time.perf_counter() - t0) * 1000.0
                     if n_tracks >= min_points:
-                        moved = moved_m(points_t_s)
-                        tracked, kept = self._pose(followed, followed.east_north_m + (0.0 if moved is None else moved), t_s)
+                        tracked, kept = self._pose(followed, t_s, moved_m(points_t_s))
                         reason = None if kept is not None else tracked.fallback_reason
                     else:
                         reason = f"{n_tracks} image tracks followed"
