@@ -95,7 +95,7 @@ def measure(a) -> dict:
             drive = folder.name.removesuffix("_sync")
             out = Path(tmp) / f"{drive}.pkl"
             args = ["track", str(a.root), "--drive", drive, "--camera", "image_00", "--db-camera", "image_00",
-                    "--db", str(a.db), "--exclusion-s", "1", "--follow-points", "--no-background-relocalization",
+                    "--db", str(a.db), "--exclusion-s", "1", "--follow-points", "--no-background-relocalization", "--pace-hz", "0",
                     "--json", str(Path(tmp) / f"{drive}.json")]
             done = subprocess.run([sys.executable, __file__, "--record", str(out), *args], cwd=REPO,
                                   stdin=subprocess.DEVNULL, capture_output=True, text=True)

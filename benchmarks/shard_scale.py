@@ -224,8 +224,8 @@ def measure_reads(root: Path) -> list[dict]:
             made = _ingest(root, drive, n, city, ["--tile-m", str(READ_TILE_M), "--workers", "2"])
             where = [str(root), "--drive", drive, "--db", str(city)]
             localize = _tiles_read(["localize", *where, "--start-frame", str(n // 2)])
-            track = _tiles_read(["track", *where])
-            track_third = _tiles_read(["track", *where, "--frames", str(n // 3)])
+            track = _tiles_read(["track", *where, "--no-follow-points"])
+            track_third = _tiles_read(["track", *where, "--no-follow-points", "--frames", str(n // 3)])
             tiles_mb = sum(f.stat().st_size for f in (city / "tiles").glob("*.sqlite")) / 1e6
             catalogue = merged_store(city, features=False)
             catalogue_mb = catalogue.stat().st_size / 1e6

@@ -1,4 +1,4 @@
-"""Following map points between full localizations (``visloc track --follow-points``), measured against the full path.
+"""Following map points between full localizations (``visloc track``'s default), measured against the full path.
 
     python benchmarks/track_following.py [--root ../shared/data/kitti] [--db out/results/visloc.sqlite]
     python benchmarks/track_following.py --page   # its section of docs/performance.md from the JSON
@@ -7,10 +7,11 @@ For every drive of the data root, queries and database from its image_00 with th
 evaluation protocol), four ``visloc track`` configurations on every frame, one after the other on this machine
 (each following one ``--repeats`` times, the run of median error standing for them):
 
-* ``full``: every frame localized in full (SIFT, retrieval, structure, PnP): the default;
-* ``follow``: ``--follow-points``, frames read as fast as possible: latency per frame (all, tracked, predicted,
+* ``full``: ``--no-follow-points``, every frame localized in full (SIFT, retrieval, structure, PnP);
+* ``follow``: ``--follow-points --pace-hz 0``, frames read as fast as possible: latency per frame (all, tracked, predicted,
   relocalized), the share of each kind and the sustained frames per second;
-* ``follow_paced``: ``--follow-points --pace-hz 10``, frames delivered at the camera's 10 Hz: latency and the
+* ``follow_paced``: ``--follow-points --pace-hz 10``, frames delivered at the camera's 10 Hz (what ``visloc
+  track`` does by default, at the frames' own rate): latency and the
   processor time the process used per second of wall time (every thread; what is left of the machine is
   the vehicle's);
 * ``follow_paced_loaded``: the same with another process spinning on one core beside it the whole run (a
@@ -37,7 +38,8 @@ SECTION = Section("track-following", "track_following", REPO / "docs" / "perform
 OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
 
 PACED = ["--follow-points", "--pace-hz", "10"]
-RUNS = {"full": [], "follow": ["--follow-points"], "follow_paced": PACED, "follow_paced_loaded": PACED}
+RUNS = {"full": ["--no-follow-points"], "follow": ["--follow-points", "--pace-hz", "0"], "follow_paced": PACED,
+        "follow_paced_loaded": PACED}
 LOADED = {"follow_paced_loaded"}  # runs made beside a process that keeps one core busy
 # following is not reproducible run to run (the background thread's timing decides which frames relocalize): these
 # runs are made --repeats times and the one of median error stands for them, with the range of their errors
@@ -102,7 +104,8 @@ def _ms(x: dict | None, key: str) -> str:
 
 
 def render(result: dict) -> str:
-    lines = [BEGIN, "`visloc track --follow-points` against localizing every frame in full, measured by "
+    lines = [BEGIN, "`visloc track` following map points between full localizations (its default, at the frames' "
+             "own rate) against localizing every frame in full (`--no-follow-points`), measured by "
              "`python benchmarks/track_following.py` (every frame of each drive, queries and database from image_00, "
              "1 s exclusion window; targets: p95 ≤ 50 ms, ≥ 30 frames/s as fast as possible, ≤ 50 % of one core "
              "at 10 Hz, mean error within 10 % or 0.02 m of the full path's, estimate NEES 1-4 with 85-99 % inside "

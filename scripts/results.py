@@ -105,7 +105,7 @@ def run(data: Path, speed_only: bool = False, suite_only: bool = False) -> int:
         for p in drive_protocols(folder):
             name = f"track_{drive}_{p.key}"
             command(name, ["track", root, "--drive", drive, "--camera", p.query_camera, "--db-camera", p.db_camera,
-                           "--db", str(store), "--exclusion-s", "1", "--json", str(out / f"{name}.json")],
+                           "--db", str(store), "--exclusion-s", "1", "--no-follow-points", "--json", str(out / f"{name}.json")],
                     kind="track", drive=drive, setup=p.key, setup_label=p.label)
     if speed_only:
         manifest["speed"].update(finished=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),

@@ -244,7 +244,7 @@ def test_an_interrupted_structure_build_resumes_where_it_stopped(store, tmp_path
 def test_track_localizes_every_frame_and_writes_its_json(store, kitti_root, tmp_path):
     out = tmp_path / "track.json"
     result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
-                     "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "30", "--json", out,
+                     "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "30", "--no-follow-points", "--json", out,
                      "--mcap", tmp_path / "track.mcap")
     assert result.returncode == 0, result.stderr
     exported = mcap_topics(tmp_path / "track.mcap")  # every frame, for Foxglove
@@ -290,6 +290,24 @@ def test_track_exact_path_runs_too(store, kitti_root, tmp_path):
     assert run["path"] == "exact" and [f["frame"] for f in run["per_frame"]] == [0, 10]
     frame_interval_s = float(np.median(np.diff(open_source(kitti_root, drive=DRIVE, camera="image_00").timestamps_s)))
     assert run["params"]["filter"]["dt_s"] == pytest.approx(10 * frame_interval_s)
+    assert run["params"]["track"]["follow_points"] is False and run["pace_hz"] == 0  # every frame in full, at once
+
+
+@pytest.mark.slow
+def test_track_follows_points_by_default_reading_frames_at_their_own_rate(store, kitti_root, tmp_path):
+    out = tmp_path / "default.json"
+    result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
+                     "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "12", "--json", out)
+    assert result.returncode == 0, result.stderr
+    run = json.loads(out.read_text())
+    times_s = open_source(kitti_root, drive=DRIVE, camera="image_00").timestamps_s[:12]
+    frame_interval_s = float(np.median(np.diff(times_s)))  # of the frames read
+    assert run["params"]["track"]["follow_points"] is True
+    assert run["pace_hz"] == pytest.approx(1 / frame_interval_s) == run["params"]["track"]["pace_hz"]
+    assert "following points: frames tracked" in result.stdout and "as a camera delivers them" in result.stdout
+    assert {f["kind"] for f in run["per_frame"]} >= {"relocalized", "tracked"}
+    # the n-th frame is not read before n frame intervals from the first: never faster than the camera
+    assert run["sustained_hz"] <= run["pace_hz"] * 12 / 11 + 1e-9
 
 
 def test_track_refuses_bad_input_in_one_line_before_any_work(store, kitti_root, tmp_path):

@@ -188,12 +188,14 @@ class TrackParams(Params):
                                unit="s", low=0, high=MAX_SECONDS, methods=TRACK_ONLY)
     stride: int = param(1, "localize every stride-th frame (1: every frame); the filter's time step follows",
                         kind="integer", low=1, methods=TRACK_ONLY)
-    follow_points: bool = param(False, "between full localizations, follow the last posed frame's map points by "
-                                       "optical flow and pose each frame against them: at the camera's 10 Hz, a "
-                                       "third of the processor of localizing every frame in full (the default) "
-                                       "and on two of the three shared drives as accurate; read as fast as "
-                                       "possible, far less accurate",
-                                kind="bool", methods=TRACK_ONLY)
+    follow_points: bool | None = param(None, "between full localizations, follow the last posed frame's map "
+                                             "points by optical flow and pose each frame against them: at the "
+                                             "camera's 10 Hz, a third of the processor of localizing every frame "
+                                             "in full (--no-follow-points) and about as accurate "
+                                             "(docs/performance.md); read as fast as possible (--pace-hz 0), far "
+                                             "less accurate, as the full localizations fall behind",
+                                       kind="bool", methods=TRACK_ONLY,
+                                       when_unset="on the camera-rate path, off on the exact one (--exact)")
     relocalize_every: int = param(4, "following points: localize in full at least every this many frames, to "
                                      "find new map points on the nearest views (0: only when the followed ones no "
                                      "longer serve)",
@@ -220,9 +222,11 @@ class TrackParams(Params):
                                           "whose points give no pose waits at most this long for the one under "
                                           "way, then the filter predicts it (0: never waits)", unit="ms", low=0,
                                     high=10000, methods=TRACK_ONLY)
-    pace_hz: float = param(0.0, "read frames at this rate, as a live camera delivers them, to measure the share "
-                                "of the processor a live run takes (0: as fast as possible)", unit="Hz", low=0,
-                           high=1000, methods=TRACK_ONLY)
+    pace_hz: float | None = param(None, "read frames at this rate, as a live camera delivers them (0: as fast as "
+                                        "possible)", unit="Hz", low=0, high=1000, methods=TRACK_ONLY,
+                                  when_unset="the frames' own rate (their median interval) when following "
+                                             "points with the full localizations beside the tracker, so that they "
+                                             "keep up as on the vehicle; else as fast as possible")
 
 
 TRACK = TrackParams()

@@ -328,7 +328,7 @@ class PointFollower:
 
         try:
             for n, i in enumerate(indices):
-                if p.pace_hz > 0:
+                if p.pace_hz:  # None: as fast as possible (run_track chooses the rate)
                     time.sleep(max(0.0, started + n / p.pace_hz - time.perf_counter()))
                 frame = seq.frames[i]
                 gray = load_gray(frame.image_path)
