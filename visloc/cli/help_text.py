@@ -77,10 +77,11 @@ examples:
       --geojson out/track.geojson
   # left frames against the right camera's database, first 50 frames, the exact (slow) path
   visloc track {KITTI} --drive 2011_09_26_drive_0001 --camera image_00 --db-camera image_01 --frames 50 --exact
-  # following the map's points between full localizations, frames delivered at the camera's 10 Hz: the JSON
-  # splits latency by tracked and relocalized frames and gives the processor share used
-  visloc track {KITTI} --drive 2011_09_26_drive_0001 --camera image_00 --follow-points --pace-hz 10 \\
-      --json out/track_follow.json
+  # by default the map's points are followed between full localizations and the frames read at their own
+  # rate (the JSON splits latency by tracked and relocalized frames and gives the processor share used);
+  # every frame localized in full instead, read as fast as possible:
+  visloc track {KITTI} --drive 2011_09_26_drive_0001 --camera image_00 --no-follow-points \\
+      --json out/track_full.json
 
 The refined measurement needs a calibrated camera: a KITTI drive, or a CSV drive with a
 calibration.json beside its CSV.""",
