@@ -607,3 +607,9 @@ def test_a_tracked_frame_asks_for_new_points_when_nearer_views_serve():
                           ({"lever_m": 15.5}, "more than 15 m"), ({"estimate_sigma_m": 1.5}, "estimate sigma"),
                           ({"frames_since_full": 10}, "10 frames since")):
         assert words in needs_relocalization(**{**serving, **change}, **limits, nearest_view_m=5.5)
+    # posed on views behind it only: it asks once enough frames have passed, and not before, nor when told never
+    behind = dict(serving, views_ahead=False)
+    assert "views behind it only, 3 frames since" in needs_relocalization(**behind, **limits, behind_only_every_frames=2)
+    assert needs_relocalization(**behind, **limits, behind_only_every_frames=4) is None
+    assert needs_relocalization(**behind, **limits, behind_only_every_frames=0) is None
+    assert needs_relocalization(**serving, **limits, behind_only_every_frames=2) is None  # a view ahead: it serves

@@ -154,6 +154,7 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
         posed_on.append(sorted(set(posed.view_of.tolist())))
         inliers = np.flatnonzero(posed.track_of != 5)  # track 5 followed wrongly
         T = np.eye(4)
+        T[:3, :3] = [[0, 0, 1], [-1, 0, 0], [0, -1, 0]]  # looking east, along the road
         T[:2, 3] = [20.0, 0.5]
         corr = MapCorrespondences(inliers, posed.view_of[inliers], posed.view_rows[inliers],
                                   posed.points_world[inliers], posed.points_cov[inliers], T)
@@ -165,11 +166,15 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
     follower.window = ViewWindow(en, t, 1.0, None)
     follower.distortion, follower.geometry, follower.pose = None, None, None
     follower.camera = type("Camera", (), {"K": np.eye(3)})()
-    m, kept = PointFollower._pose(follower, points, 2.0, en[20])  # the points posed at 0; moved 20 m
-    assert posed_on == [[10, 11, 29, 30]]
+    m, kept, views_ahead = PointFollower._pose(follower, points, 2.0, en[20])  # the points posed at 0; moved 20 m
+    assert posed_on == [[10, 11, 29, 30]] and views_ahead  # views 29 and 30 lie ahead, along the camera's axis
     assert sorted(set(kept.view_of.tolist())) == [10, 11, 29, 30, 33]
     assert 5 not in kept.track_of.tolist() and len(kept) == n - 5
     np.testing.assert_allclose(kept.east_north_m, [20.0, 0.5])  # every point kept at the frame's pose
+    looking_east = kept.T_world_camera
+    assert not follower.window.any_ahead(np.array([10, 11]), np.array([20.0, 0.5]), looking_east)
+    looking_west = looking_east @ np.diag([-1.0, 1.0, -1.0, 1.0])  # turned about its vertical (y) axis
+    assert follower.window.any_ahead(np.array([10, 11]), np.array([20.0, 0.5]), looking_west)
 
 
 def test_a_view_the_points_left_comes_back_in_the_variant_it_returns_with():

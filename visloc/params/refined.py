@@ -200,6 +200,13 @@ class TrackParams(Params):
                                      "find new map points on the nearest views (0: only when the followed ones no "
                                      "longer serve)",
                                   kind="integer", low=0, high=MAX_C_INT, methods=TRACK_ONLY)
+    relocalize_behind_only_every: int = param(2, "following points: a frame posed on views behind it only (none "
+                                                 "ahead along the camera's axis) localizes in full once this many "
+                                                 "frames have passed since the last full localization: the views "
+                                                 "ahead leave the exclusion window a frame or two after they are "
+                                                 "handed on, and a pose on one side's views repeats that side's "
+                                                 "bias frame after frame (0: only as --relocalize-every says)",
+                                              kind="integer", low=0, high=MAX_C_INT, methods=TRACK_ONLY)
     min_followed_points: int = param(40, "following points: a frame posed on fewer image tracks (followed keypoints, "
                                          "each once however many views' structure holds its map point) than this: "
                                          "localize in full", kind="integer", low=6, high=MAX_C_INT, methods=TRACK_ONLY)

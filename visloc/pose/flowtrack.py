@@ -208,11 +208,13 @@ def disagree(a: Measurement, b: Measurement) -> bool:
 def needs_relocalization(n_points: int, cells_occupied: int, lever_m: float | None, estimate_sigma_m: float,
                          frames_since_full: int, *, min_points: int, min_cells: int, max_lever_m: float,
                          max_sigma_m: float, every_frames: int, nearest_view_m: float = np.inf,
-                         max_lever_excess_m: float = np.inf) -> str | None:
+                         max_lever_excess_m: float = np.inf, views_ahead: bool = True,
+                         behind_only_every_frames: int = 0) -> str | None:
     """Why the full path should find new points now (None: the tracked points still serve). ``nearest_view_m``:
     how far the nearest database view the frame may use is; a frame whose points' nearest view (``lever_m``) lies
     more than ``max_lever_excess_m`` farther asks for the nearer views' points (the error grows with the
-    distance to the views)."""
+    distance to the views). ``views_ahead``: whether a view the frame was posed on lies ahead of it; posed on
+    views behind it only, it asks once ``behind_only_every_frames`` frames have passed (0: never)."""
     if n_points < min_points:
         return f"{n_points} points followed (fewer than {min_points})"
     if cells_occupied < min_cells:
@@ -224,6 +226,8 @@ def needs_relocalization(n_points: int, cells_occupied: int, lever_m: float | No
                 f"(more than {max_lever_excess_m:g} m nearer)")
     if estimate_sigma_m > max_sigma_m:
         return f"estimate sigma {estimate_sigma_m:.2f} m (more than {max_sigma_m:g} m)"
+    if not views_ahead and 0 < behind_only_every_frames <= frames_since_full:
+        return f"posed on views behind it only, {frames_since_full} frames since the last full localization"
     if every_frames > 0 and frames_since_full >= every_frames:
         return f"{frames_since_full} frames since the last full localization"
     return None

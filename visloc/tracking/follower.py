@@ -245,11 +245,12 @@ class PointFollower:
         return 1.0 if len(t) < 2 or t[-1] >= t[0] else -1.0
 
     def _pose(self, points: TrackedPoints, timestamp_s: float,
-              displacement_m: np.ndarray | None) -> tuple[Measurement, TrackedPoints | None]:
+              displacement_m: np.ndarray | None) -> tuple[Measurement, TrackedPoints | None, bool]:
         """A frame posed on the followed points of its nearest views (``POSED_VIEWS`` on each side: the error grows
-        with the distance to the views), and the points it keeps (None: no pose): its inliers at its pose, and the
-        points of the farther views it carries on (``CARRIED_VIEWS``), but for the image tracks its pose found wrong.
-        The carried views are the ones that serve once the exclusion window has taken the nearest away.
+        with the distance to the views), the points it keeps (None: no pose): its inliers at its pose, and the
+        points of the farther views it carries on (``CARRIED_VIEWS``), but for the image tracks its pose found wrong,
+        and whether a view its pose rests on lies ahead of it (along the camera's axis). The carried views are the
+        ones that serve once the exclusion window has taken the nearest away.
         ``displacement_m``: how far the vehicle moved since the points' pose."""
         t1 = time.perf_counter()
         posed = (self.window.nearest_views_only(points, _moved_to(points, displacement_m), timestamp_s, POSED_VIEWS,
@@ -258,14 +259,15 @@ class PointFollower:
                                   self.geometry, self.camera, self.pose)
         m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)
         if inliers is None:
-            return m, None
+            return m, None, False
         kept = posed.subset(inliers.query_rows)
+        views_ahead = self.window.any_ahead(kept.view_of, m.east_north_m, inliers.T_world_camera)
         outliers = np.setdiff1d(posed.track_of, kept.track_of)
         carried = points.subset(~np.isin(points.view_of, np.unique(posed.view_of))
                                 & ~np.isin(points.track_of, outliers))
         if len(carried):
             kept = appended(kept, carried)
-        return m, _at_pose(kept, inliers.T_world_camera, m.east_north_m)
+        return m, _at_pose(kept, inliers.T_world_camera, m.east_north_m), views_ahead
 
     def steps(self, seq: Drive, indices: Iterable[int],
               cancelled: Callable[[], bool] | None = None) -> Iterator[FollowedStep]:
@@ -285,6 +287,7 @@ class PointFollower:
         on_points = 0  # frames posed on the points since fresh ones last came
         min_points = max(6, self.pose.min_pnp_inliers)
         scatter = ViewScatter()  # one view's scatter, from this run's poses on several views posed apart
+        full_ahead = [False]  # whether the last full localization was posed on a view ahead of the vehicle
         started = time.perf_counter()
 
         def moved_m(since_s: float) -> np.ndarray | None:
@@ -316,6 +319,7 @@ class PointFollower:
             """The points a relocalization brings, followed into this frame and joined to ``current``; its
             measurement takes the place of the tracked one of its frame in the filter."""
             scatter.add(done.full.measurement)
+            full_ahead[0] = self.window.posed_ahead(done.full.measurement)
             refuse_from(n_then, done.full.measurement)
             used[0] = done
             if done.points is None:
@@ -354,7 +358,7 @@ class PointFollower:
                     n_followed, n_tracks = len(followed), followed.n_tracks  # a keypoint in several views: one track
                     flow_ms = (time.perf_counter() - t0) * 1000.0
                     if n_tracks >= min_points:
-                        tracked, kept = self._pose(followed, t_s, moved_m(points_t_s))
+                        tracked, kept, views_ahead = self._pose(followed, t_s, moved_m(points_t_s))
                         reason = None if kept is not None else tracked.fallback_reason
                     else:
                         reason = f"{n_tracks} image tracks followed"
@@ -372,7 +376,9 @@ class PointFollower:
                         points.n_tracks, grid_cells_occupied(points.pixels_px, gray.shape), tracked.lever_m, sigma_m,
                         since_full, min_points=p.min_followed_points, min_cells=p.min_followed_cells,
                         max_lever_m=p.max_followed_lever_m, max_sigma_m=p.max_followed_sigma_m,
-                        every_frames=p.relocalize_every,
+                        every_frames=p.relocalize_every, views_ahead=views_ahead,
+                        # posed on views behind only where the last full localization found one ahead
+                        behind_only_every_frames=p.relocalize_behind_only_every if full_ahead[0] else 0,
                         nearest_view_m=self.window.nearest_view_m(tracked.east_north_m, t_s),
                         max_lever_excess_m=p.max_followed_lever_excess_m)
                     if reason is not None and pending is None:
@@ -385,6 +391,7 @@ class PointFollower:
                                                     str(frame.image_path))
                             used[0] = done
                             scatter.add(done.full.measurement)
+                            full_ahead[0] = self.window.posed_ahead(done.full.measurement)
                             if done.points is not None:
                                 replaced = disagree(done.full.measurement, tracked)
                                 points = done.points if replaced else merged(points, done.points)
@@ -414,6 +421,7 @@ class PointFollower:
                     used[0] = done
                     m = done.full.measurement
                     scatter.add(m)
+                    full_ahead[0] = self.window.posed_ahead(m)
                     if not self.localizer.started:
                         m = first_fix(m, done.full.retrieval, self.db_east_north_m)
                     result = fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,
