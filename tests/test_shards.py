@@ -378,7 +378,9 @@ def test_structure_is_read_from_the_tile_that_owns_each_view(city_0001, kitti_ro
                          "--db-camera", "image_01", "--frames", "25", "--no-background-relocalization", "--json", out,
                          timeout=1800)
         assert result.returncode == 0, result.stderr
-        runs.append([f["estimate_m"] for f in json.loads(out.read_text())["per_frame"]])
+        run = json.loads(out.read_text())
+        assert run["params"]["track"]["follow_points"] and "tracked" in run["kinds"]  # following, on either store
+        runs.append([f["estimate_m"] for f in run["per_frame"]])
     assert len(runs[0]) == 25
     assert np.allclose(runs[0], runs[1], rtol=0, atol=1e-6)
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -223,11 +223,11 @@ def _frame_record(seq: Drive, i: int, r: StepResult, latency: float, db: GeoData
         maneuver=bool(r.filter.maneuver), retracted_previous=bool(r.filter.retracted_previous))
 
 
-def _stored_structure(localizer: Localizer) -> dict | None:
+def _stored_structure(localizer: Localizer) -> Mapping | None:
     """The store's structure the camera-rate measurer reads (view -> variant -> structure); None for the exact
     path, whose measurer keeps a cache of structure triangulated as needed instead."""
     stored = getattr(localizer.measurer, "structures", None)
-    return stored if isinstance(stored, dict) else None
+    return stored if isinstance(stored, Mapping) else None  # a sharded store's reads its tiles as asked
 
 
 def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabase, params: TrackParams, *,
