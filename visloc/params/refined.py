@@ -229,11 +229,13 @@ class TrackParams(Params):
                                           "whose points give no pose waits at most this long for the one under "
                                           "way, then the filter predicts it (0: never waits)", unit="ms", low=0,
                                     high=10000, methods=TRACK_ONLY)
-    pace_hz: float | None = param(None, "read frames at this rate, as a live camera delivers them (0: as fast as "
-                                        "possible)", unit="Hz", low=0, high=1000, methods=TRACK_ONLY,
-                                  when_unset="the frames' own rate (their median interval) when following "
-                                             "points with the full localizations beside the tracker, so that they "
-                                             "keep up as on the vehicle; else as fast as possible")
+    pace_hz: float | None = param(None, "read frames at this rate, as a live camera delivers them, to measure the "
+                                        "share of the processor a live run takes (0: as fast as possible)",
+                                  unit="Hz", low=0, high=1000, methods=TRACK_ONLY,
+                                  when_unset="following points, as fast as the full localizations beside the "
+                                             "tracker keep up: a frame is read once the one asked for before it "
+                                             "has come, as on a vehicle where one takes less than a frame's "
+                                             "interval; else as fast as possible")
 
 
 TRACK = TrackParams()

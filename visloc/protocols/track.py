@@ -242,13 +242,12 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
     if params.follow_points is None:  # the camera-rate path follows, the exact one localizes every frame in full
         params = params.replace(follow_points=params.fast)
     following = params.follow_points and pose is not None
-    if params.pace_hz is None:  # relocalizations beside the tracker: as the camera delivered them; else at once
-        live = following and params.background_relocalization
-        params = params.replace(pace_hz=frames_rate_hz(np.asarray(seq.timestamps_s)[indices]) if live else 0.0)
+    if params.pace_hz is None and not following:  # following, None reads frames as the full localizations keep up
+        params = params.replace(pace_hz=0.0)
     run = TrackRun(seq.name, f"{db.source}/{db.camera}", "fast" if params.fast else "exact",
                    {"track": params.as_dict(), "query_sift": sift.as_dict(), "filter": localizer.filter_params.as_dict(),
                     **(path_params or {})},
-                   frame_origin_deg=(db.frame.origin_lat_deg, db.frame.origin_lon_deg), pace_hz=params.pace_hz)
+                   frame_origin_deg=(db.frame.origin_lat_deg, db.frame.origin_lon_deg), pace_hz=params.pace_hz or 0.0)
     localizer.reset()
     truths = QueryTruth.of_drive(seq, db, (pose or REFINED).geotag_sigma_m)
     start, cpu_start = time.perf_counter(), time.process_time()
@@ -270,13 +269,6 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
             one_opencv_thread() if params.fast and params.follow_points else contextlib.nullcontext():
         _record_steps(run, seq, indices, steps, db, truths, start, cpu_start, progress)
     return run
-
-
-def frames_rate_hz(timestamps_s: np.ndarray) -> float:
-    """The rate frames at these times came at, Hz: one over their median interval (0: fewer than two distinct)."""
-    intervals_s = np.abs(np.diff(np.asarray(timestamps_s, float)))
-    intervals_s = intervals_s[intervals_s > 0]
-    return float(1.0 / np.median(intervals_s)) if len(intervals_s) else 0.0
 
 
 @contextlib.contextmanager

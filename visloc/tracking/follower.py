@@ -332,8 +332,10 @@ class PointFollower:
 
         try:
             for n, i in enumerate(indices):
-                if p.pace_hz:  # None: as fast as possible (run_track chooses the rate)
+                if p.pace_hz:
                     time.sleep(max(0.0, started + n / p.pace_hz - time.perf_counter()))
+                elif p.pace_hz is None and pending is not None:  # as fast as the full localizations keep up
+                    wait([pending[0]])
                 frame = seq.frames[i]
                 gray = load_gray(frame.image_path)
                 t_s = frame.timestamp_s
