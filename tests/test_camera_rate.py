@@ -480,7 +480,8 @@ def test_a_frame_that_loses_its_points_is_predicted_while_the_relocalization_bes
     ws = Workspace(store)
     db = ws.load_database(SOURCE, "image_00")
     seq = open_source(None, drive=DRIVE, camera="image_00")
-    params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=True, max_lost_wait_ms=0.0)
+    params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=True, max_lost_wait_ms=0.0,
+                           pace_hz=0.0)  # as fast as possible: the frames do not wait for the relocalization
     localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
     follower = HeldFollower(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model,
                             localizer.measurer.params, sift, params, stored=localizer.measurer.structures)
@@ -535,7 +536,7 @@ def test_a_frame_left_with_nothing_to_follow_by_a_relocalization_that_found_noth
             return super()._pose(points, *args)
 
     params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=True,
-                           max_lost_wait_ms=10_000.0)
+                           max_lost_wait_ms=10_000.0, pace_hz=0.0)
     localizer, sift = track_localizer(ws, db, seq.camera_model, track_filter(seq, params, PAPER_FILTER), params)
     follower = Blinded(localizer, db.east_north_m, db.timestamps_s, db.geometry(), seq.camera_model,
                        localizer.measurer.params, sift, params, stored=localizer.measurer.structures)

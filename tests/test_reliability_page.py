@@ -84,7 +84,7 @@ def test_the_point_following_figures_are_what_their_json_renders():
     assert track_following.render(result) in (REPO / "docs" / "performance.md").read_text()
     assert len(result["drives"]) == 3
     for runs in result["drives"].values():
-        assert set(runs) == {"full", "follow", "follow_paced", "follow_paced_loaded"}
+        assert set(runs) == {"full", "follow_keeping_up", "follow", "follow_paced", "follow_paced_loaded"}
         assert all(0 < r["estimate_nees"] and 0 <= r["estimate_inside_95"] <= 1 for r in runs.values())
         assert set(runs["full"]["kinds"]) == {"full"}
         assert {"tracked", "relocalized"} <= set(runs["follow"]["kinds"]) <= {"tracked", "relocalized", "predicted"}
