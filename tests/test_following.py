@@ -3,6 +3,8 @@ linked across the database's views, and the exclusion window over a track's view
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import cv2
 import numpy as np
 
@@ -164,7 +166,9 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
     follower = PointFollower.__new__(PointFollower)
     follower.db_east_north_m, follower.stored = en, {"stored": True}
     follower.window = ViewWindow(en, t, 1.0, None)
-    follower.distortion, follower.geometry, follower.pose = None, None, None
+    cameras = np.repeat(np.eye(4)[None], 40, axis=0)
+    cameras[:, :2, 3] = en  # each view's camera where its geotag is
+    follower.distortion, follower.geometry, follower.pose = None, SimpleNamespace(T_world_camera=cameras), None
     follower.camera = type("Camera", (), {"K": np.eye(3)})()
     m, kept, views_ahead = PointFollower._pose(follower, points, 2.0, en[20])  # the points posed at 0; moved 20 m
     assert posed_on == [[10, 11, 29, 30]] and views_ahead  # views 29 and 30 lie ahead, along the camera's axis
@@ -172,9 +176,9 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
     assert 5 not in kept.track_of.tolist() and len(kept) == n - 5
     np.testing.assert_allclose(kept.east_north_m, [20.0, 0.5])  # every point kept at the frame's pose
     looking_east = kept.T_world_camera
-    assert not follower.window.any_ahead(np.array([10, 11]), np.array([20.0, 0.5]), looking_east)
+    assert not follower._rests_ahead(np.array([10, 11]), looking_east)
     looking_west = looking_east @ np.diag([-1.0, 1.0, -1.0, 1.0])  # turned about its vertical (y) axis
-    assert follower.window.any_ahead(np.array([10, 11]), np.array([20.0, 0.5]), looking_west)
+    assert follower._rests_ahead(np.array([10, 11]), looking_west)
 
 
 def test_a_view_the_points_left_comes_back_in_the_variant_it_returns_with():

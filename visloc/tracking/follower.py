@@ -2,21 +2,21 @@
 
 ``PointFollower.steps`` runs a drive's frames in order through a ``Localizer`` (the refined method):
 
-* **Tracked frames.** The map points the last posed frame saw are followed into this frame by optical flow
-  and the frame is posed against those of its nearest views (``visloc.pose.flowtrack``), with the full
-  measurement's own PnP, checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in
-  several views' structure counts once). No SIFT, no retrieval. How far one view's pose strays, which the spread of the one or two views a
+* **Tracked frames.** The map points the last posed frame saw are followed into this frame by optical flow and the
+  frame is posed against those of its nearest views (``visloc.pose.flowtrack``), with the full measurement's own
+  PnP, checks and covariance, on at least ``min_pnp_inliers`` image tracks (a keypoint in several views' structure
+  counts once). No SIFT, no retrieval. How far one view's pose strays, which the spread of the one or two views a
   followed frame rests on hardly says, comes from the run's poses on several views posed apart as well
-  (``visloc.pose.trackedcov.ViewScatter``). Points whose view (or the views it was triangulated
-  with) lies inside the exclusion window of this frame are dropped, as the full path would not use them. The
-  points of a few farther views are carried on unposed: with the window on, the nearest view ahead leaves it
-  every frame or two, and its points would leave with it, where the carried ones take over without a full
-  localization.
+  (``visloc.pose.trackedcov.ViewScatter``). Points whose view (or the views it was triangulated with) lies inside
+  the exclusion window of this frame are dropped, as the full path would not use them. The points of a few farther
+  views are carried on unposed: with the window on, the nearest view ahead leaves it every frame or two, and its
+  points would leave with it, where the carried ones take over without a full localization.
 * **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
   serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
   thread beside the tracker on the frame that asked, and its points are followed from that frame into the
   frame where it arrives and joined to the tracked ones (replacing them if its pose disagrees with the
-  tracked pose of the same frame). Without, the frame that asked waits for it (reproducible runs).
+  tracked pose of the same frame); unpaced (``pace_hz`` None), the next frame is read once it has come.
+  Without, the frame that asked waits for it (reproducible runs).
 * **No frame waits long.** With the relocalization beside the tracker, a frame whose followed points give no pose
   (too few left, or a pose the checks refuse) waits at most ``max_lost_wait_ms`` for the one under way. If it has
   not come, the frame is not posed: the filter predicts it (kind "predicted"), a full localization of it starts
@@ -45,12 +45,11 @@ import numpy as np
 from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams, TrackParams
-from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied,
-                                   guided_matches, linked, merged, needs_relocalization, points_of, pose_tracked,
-                                   predicted_camera)
+from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied, guided_matches,
+                                   linked, merged, needs_relocalization, points_of, pose_tracked, predicted_camera)
 from visloc.pose.measurement import GEOMETRY, Measurement
 from visloc.pose.trackedcov import ViewScatter, shared_map_error
-from visloc.pose.viewpose import DatabaseGeometry
+from visloc.pose.viewpose import DatabaseGeometry, side_of
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.drives import Drive, load_gray
@@ -154,6 +153,10 @@ class PointFollower:
         self._track_lock = threading.Lock()
         self._linked_from: dict[tuple, int] = {}
         self._trees: dict = {}  # each view structure's k-d tree over its points, for linking
+
+    def _rests_ahead(self, views: np.ndarray, T_world_camera: np.ndarray) -> bool:
+        """Whether one of the database ``views`` lies ahead of a camera posed at ``T_world_camera``."""
+        return any(side_of(self.geometry.T_world_camera[v][:3, 3], T_world_camera) > 0 for v in np.unique(views))
 
     def _undistort(self, px: np.ndarray) -> np.ndarray:
         return undistort_keypoints(np.asarray(px, np.float32), self.camera.K, self.distortion)
@@ -261,7 +264,7 @@ class PointFollower:
         if inliers is None:
             return m, None, False
         kept = posed.subset(inliers.query_rows)
-        views_ahead = self.window.any_ahead(kept.view_of, m.east_north_m, inliers.T_world_camera)
+        views_ahead = self._rests_ahead(kept.view_of, inliers.T_world_camera)
         outliers = np.setdiff1d(posed.track_of, kept.track_of)
         carried = points.subset(~np.isin(points.view_of, np.unique(posed.view_of))
                                 & ~np.isin(points.track_of, outliers))
@@ -288,6 +291,11 @@ class PointFollower:
         min_points = max(6, self.pose.min_pnp_inliers)
         scatter = ViewScatter()  # one view's scatter, from this run's poses on several views posed apart
         full_ahead = [False]  # whether the last full localization was posed on a view ahead of the vehicle
+
+        def learn(m: Measurement) -> None:  # from a full localization: the view scatter, whether it found a view ahead
+            scatter.add(m)
+            full_ahead[0] = (m.source == GEOMETRY and m.inliers is not None
+                             and self._rests_ahead(m.inliers.view_of, m.inliers.T_world_camera))
         started = time.perf_counter()
 
         def moved_m(since_s: float) -> np.ndarray | None:
@@ -318,8 +326,7 @@ class PointFollower:
                  n_then: int):
             """The points a relocalization brings, followed into this frame and joined to ``current``; its
             measurement takes the place of the tracked one of its frame in the filter."""
-            scatter.add(done.full.measurement)
-            full_ahead[0] = self.window.posed_ahead(done.full.measurement)
+            learn(done.full.measurement)
             refuse_from(n_then, done.full.measurement)
             used[0] = done
             if done.points is None:
@@ -392,8 +399,7 @@ class PointFollower:
                             done = self._relocalize(gray, t_s, self.localizer.prediction(), engine,
                                                     str(frame.image_path))
                             used[0] = done
-                            scatter.add(done.full.measurement)
-                            full_ahead[0] = self.window.posed_ahead(done.full.measurement)
+                            learn(done.full.measurement)
                             if done.points is not None:
                                 replaced = disagree(done.full.measurement, tracked)
                                 points = done.points if replaced else merged(points, done.points)
@@ -422,8 +428,7 @@ class PointFollower:
                     done = self._relocalize(gray, t_s, self.localizer.prediction(), engine, str(frame.image_path))
                     used[0] = done
                     m = done.full.measurement
-                    scatter.add(m)
-                    full_ahead[0] = self.window.posed_ahead(m)
+                    learn(m)
                     if not self.localizer.started:
                         m = first_fix(m, done.full.retrieval, self.db_east_north_m)
                     result = fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,

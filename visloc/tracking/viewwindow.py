@@ -15,7 +15,6 @@ from __future__ import annotations
 import numpy as np
 
 from visloc.pose.flowtrack import TrackedPoints
-from visloc.pose.measurement import GEOMETRY, Measurement
 from visloc.pose.structure import ViewStructure, choose_variant
 
 
@@ -93,13 +92,3 @@ class ViewWindow:
             keep[side[distance[side] <= reach_m]] = True
         return points if keep.all() else points.subset(np.isin(points.view_of, views[keep]))
 
-    def any_ahead(self, views: np.ndarray, east_north_m: np.ndarray, T_world_camera: np.ndarray) -> bool:
-        """Whether one of the database ``views`` lies ahead of a camera at ``east_north_m`` (along its optical axis)."""
-        views = np.unique(np.asarray(views, np.int64))
-        offsets_m = self.db_east_north_m[views, :2] - np.asarray(east_north_m, float)[:2]
-        return bool(len(views) and (offsets_m @ np.asarray(T_world_camera, float)[:2, 2] > 0).any())
-
-    def posed_ahead(self, m: Measurement) -> bool:
-        """Whether a measurement was posed on a view ahead of it."""
-        return (m.source == GEOMETRY and m.inliers is not None
-                and self.any_ahead(m.inliers.view_of, m.east_north_m, m.inliers.T_world_camera))
