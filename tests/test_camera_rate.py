@@ -7,12 +7,15 @@ import json
 import sqlite3
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
 import pytest
 
-from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, mcap_topics, run_cli, write_csv_drive
+import visloc
+
+from helpers import DRIVE_0005, DRIVE_0005_FRAMES, KITTI_DRIVE, REPO, copy_store, mcap_topics, run_cli, write_csv_drive
 from helpers import error_lines
 from visloc.pose.fastpose import FastPoseMeasurer, StructureMatcher
 from visloc.params import PAPER_MATCH, REFINED
@@ -294,21 +297,59 @@ def test_track_exact_path_runs_too(store, kitti_root, tmp_path):
 
 
 @pytest.mark.slow
-def test_track_follows_points_by_default_as_fast_as_its_full_localizations_keep_up(store, kitti_root, tmp_path):
+def test_track_follows_points_by_default_the_same_run_every_time_and_the_dashboard_follows_them_alike(
+        store, kitti_root, tmp_path):
     """By default a track follows points and reads each frame once the full localization asked for before it has
-    come: the run is the same every time, however busy the machine."""
-    runs = []
-    for name in ("a", "b"):
-        out = tmp_path / f"{name}.json"
-        result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
-                         "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "12", "--json", out)
-        assert result.returncode == 0, result.stderr
-        assert "following points: frames tracked" in result.stdout and "as the full localizations keep up" in result.stdout
-        runs.append(json.loads(out.read_text()))
-    run = runs[0]
+    come: the run is the same every time, however busy the machine, and the engine's drive run that the dashboard's
+    camera-rate mode plays (``follow_drive``, on the store's query series read again from their images) is that run."""
+    out = tmp_path / "a.json"
+    result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
+                     "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "12", "--json", out)
+    assert result.returncode == 0, result.stderr
+    assert "following points: frames tracked" in result.stdout and "as the full localizations keep up" in result.stdout
+    run = json.loads(out.read_text())
     assert run["params"]["track"]["follow_points"] is True and run["params"]["track"]["pace_hz"] is None
     assert run["pace_hz"] == 0 and {f["kind"] for f in run["per_frame"]} >= {"relocalized", "tracked"}
-    assert [f["estimate_m"] for f in run["per_frame"]] == [f["estimate_m"] for f in runs[1]["per_frame"]]
+
+    ws = Workspace(store, read_only=True)
+    db, queries = ws.load_database(SOURCE, "image_00"), ws.load_queries(SOURCE, "image_00")
+    drive = visloc.open_series(kitti_root, SOURCE, "image_00")
+    method = visloc.REFINED_FAST_METHOD
+    matches = visloc.follow_drive(
+        drive, queries, db, ws.sift_params, visloc.PAPER_RETRIEVAL.replace(exclusion_s=1.0), np.arange(12),
+        filter_params=visloc.track_filter(drive, visloc.TRACK), stored=ws.load_structure(db, method.pose),
+        shortlist_index=ws.global_vectors.load_database_index(db, method.shortlist))
+    assert list(matches.kinds) == [f["kind"] for f in run["per_frame"]]
+    assert [None if m.east_north_m is None else list(m.east_north_m) for m in matches.measurements] == \
+        [f["measurement_m"] for f in run["per_frame"]]
+    records = visloc.track_drive(matches, queries, db, visloc.track_filter(drive, visloc.TRACK))
+    assert np.median([r.estimate_error_m for r in records]) < 0.5  # the filter re-run over them, as R and Q change
+
+
+def test_a_series_is_read_again_only_from_its_own_images(kitti_root, tmp_path):
+    """The dashboard follows points only on the images the store's series was made from: another drive, another
+    camera or a missing root is refused in one line naming it."""
+    with pytest.raises(visloc.InputError, match="not found"):
+        visloc.open_series(tmp_path / "nowhere", SOURCE, "image_00")
+    with pytest.raises(visloc.InputError, match="image_07"):
+        visloc.open_series(kitti_root, SOURCE, "image_07")
+    drive = visloc.open_series(kitti_root, SOURCE, "image_00")
+    other = visloc.open_series(kitti_root, KITTI_DRIVE + "_sync", "image_00")
+    assert drive.name == f"{SOURCE}/image_00"
+    queries = SimpleNamespace(frames=np.array([f.frame for f in drive.frames[:5]]), name=f"{SOURCE}/image_00",
+                              timestamps_s=drive.timestamps_s[:5])
+    assert list(visloc.drive_indices(drive, queries)) == [0, 1, 2, 3, 4]
+    with pytest.raises(visloc.InputError, match="not the ones stored"):
+        visloc.drive_indices(other, queries)
+
+
+def test_points_are_followed_at_the_camera_rate_only():
+    """Points are followed from one frame to the next: a run over every frame follows them, one below the camera's
+    rate (a query a second) or of another method localizes each query in full."""
+    fast, exact = visloc.REFINED_FAST_METHOD, visloc.REFINED_METHOD
+    assert visloc.follows_points(fast, [3, 4, 5, 6])
+    assert not visloc.follows_points(fast, [0, 10, 20]) and not visloc.follows_points(fast, [])
+    assert not visloc.follows_points(exact, [3, 4, 5, 6])
 
 
 def test_track_refuses_bad_input_in_one_line_before_any_work(store, kitti_root, tmp_path):

@@ -38,6 +38,7 @@ _EXPORTS = {
     "visloc.protocols.drive": ("DriveMatches", "drive_query_indices", "drive_summary", "match_drive", "track_drive"),
     "visloc.protocols.evaluation": ("evaluate",),
     "visloc.protocols.records": ("RecordGeotags", "StepRecord", "record_geotags"),
+    "visloc.protocols.following": ("drive_indices", "follow_drive", "follows_points", "open_series"),
     "visloc.protocols.track": ("TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer"),
     "visloc.results.export": ("trajectory_csv", "trajectory_geojson", "trajectory_text", "write_trajectory"),
     "visloc.results.figures": ("correspondence_figure",),
@@ -90,6 +91,7 @@ __all__ = [
     "run_filter", "Localizer", "StepResult", "build_localizer", "run_queries",
     # runs and results
     "DriveMatches", "RecordGeotags", "StepRecord", "drive_query_indices", "drive_summary", "evaluate", "match_drive",
+    "follow_drive", "follows_points", "open_series", "drive_indices",
     "record_geotags", "write_run_mcap", "track_drive", "TrackFrame", "TrackRun", "run_track", "track_filter", "track_localizer",
     "trajectory_csv", "trajectory_geojson", "trajectory_text", "write_trajectory", "correspondence_figure",
     # saved runs, read back

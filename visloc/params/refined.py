@@ -195,7 +195,8 @@ class TrackParams(Params):
                                              "(docs/performance.md); read as fast as possible (--pace-hz 0), far "
                                              "less accurate, as the full localizations fall behind",
                                        kind="bool", methods=TRACK_ONLY,
-                                       when_unset="on the camera-rate path, off on the exact one (--exact)")
+                                       when_unset="on the camera-rate path at every frame (--stride 1), off on the exact "
+                                                  "one (--exact): points are followed from one frame to the next")
     relocalize_every: int = param(4, "following points: localize in full at least every this many frames, to "
                                      "find new map points on the nearest views (0: only when the followed ones no "
                                      "longer serve)",

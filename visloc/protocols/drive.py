@@ -66,6 +66,13 @@ class DriveMatches:
     retrieval_params: RetrievalParams
     method: Method
     latency_ms: np.ndarray  # (K,) see visloc.tracking.runs.latency_ms
+    # how each step was measured when the run followed points (visloc.protocols.following): "tracked",
+    # "relocalized" or "predicted" (visloc.tracking.follower); empty: every query measured in full
+    kinds: tuple[str, ...] = ()
+
+    @property
+    def follows_points(self) -> bool:
+        return bool(self.kinds)
 
     def __len__(self) -> int:
         return len(self.retrievals)

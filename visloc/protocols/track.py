@@ -239,8 +239,8 @@ def run_track(localizer: Localizer, seq: Drive, sift: SiftParams, db: GeoDatabas
     ``pose``: the refined method's settings; with ``params.follow_points`` the frames between full localizations
     follow the map's points (``visloc.tracking.follower``), else every frame is localized in full."""
     indices = list(range(0, len(seq), params.stride)) if indices is None else list(indices)
-    if params.follow_points is None:  # the camera-rate path follows, the exact one localizes every frame in full
-        params = params.replace(follow_points=params.fast)
+    if params.follow_points is None:  # the camera-rate path follows from frame to frame, the exact one does not
+        params = params.replace(follow_points=params.fast and params.stride == 1)
     following = params.follow_points and pose is not None
     if params.pace_hz is None and not following:  # following, None reads frames as the full localizations keep up
         params = params.replace(pace_hz=0.0)
