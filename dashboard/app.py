@@ -31,7 +31,8 @@ from visloc.dashboard.gui import rate_follows_mode
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionView
-from visloc.dashboard.state import CONTROLLED, Allowed, Controls, Run, Shown, discover_stores, first_choices
+from visloc.dashboard.state import (CONTROLLED, Allowed, Controls, Run, Shown, discover_stores, first_choices,
+                                    measure_drive)
 from visloc.dashboard.viewkit import flat_scene
 
 PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
@@ -41,8 +42,9 @@ class DashboardApp:
     def __init__(self, server: viser.ViserServer, store_path: Path, *, db_camera: str | None = "image_01",
                  query_camera: str | None = "image_00", db_source: str | None = None,
                  query_source: str | None = None, allowed: Allowed | None = None,
-                 tune_from: tuple[Path, visloc.LiveSettings] | None = None, tiles=None):
-        self.server = server
+                 tune_from: tuple[Path, visloc.LiveSettings] | None = None, tiles=None,
+                 query_images: Path | None = None):
+        self.server, self.query_images = server, query_images  # query_images: see visloc.dashboard.state.measure_drive
         # the stores the page may open: by default the start store's folder (``visloc dashboard --allow``)
         self.allowed = allowed or Allowed.of([Path(store_path).parent], store_path)
         self.preferred = ((db_source, db_camera), (query_source, query_camera))  # None: any
@@ -306,7 +308,7 @@ class DashboardApp:
                 s.db, s.queries, s.data_key, s.loading_key = db, queries, data_key, None
                 s.caches, s.structures, s.run, s.matching_key, s.step_key = {}, visloc.StructureCache(), None, None, None
                 s.image_key = None
-                s.stored, s.index = stored, index
+                s.stored, s.index, s.series_images = stored, index, None
                 duration_s = float(queries.timestamps_s[-1] - queries.timestamps_s[0])
                 self.gui.start.max = max(0.1, round(duration_s, 1))
                 if self.gui.start.value > self.gui.start.max:
@@ -333,7 +335,7 @@ class DashboardApp:
             s.run = s.run.previous  # a run superseded while it filled in: back to the complete one it replaced
         if (match.tau1, match.tau2) not in s.caches:  # counts the store keeps for these thresholds
             s.caches[(match.tau1, match.tau2)] = workspace.pair_cache(db, queries, match)
-        cache, structures = s.caches[(match.tau1, match.tau2)], s.structures
+        cache = s.caches[(match.tau1, match.tau2)]
         label = f"Matching {len(indices)} queries ({method.name}, τ1 {match.tau1:g}, τ2 {match.tau2:g})"
         self._show_status(label + "…")
         self.gui.progress.value, self.gui.progress.visible = 0.0, True
@@ -366,12 +368,9 @@ class DashboardApp:
         def match_all(cancelled) -> None:
             started = time.perf_counter()
             try:
-                # the camera-rate path's gate follows the paper's filter at the query rate
-                matches = visloc.match_drive(queries, db, match, retrieval, indices, method=method, cache=cache,
-                                             progress=progress, cancelled=cancelled, structures=structures,
-                                             stored=s.stored, shortlist_index=s.index,
-                                             filter_params=visloc.PAPER_FILTER.replace(dt_s=1.0 / c.rate_hz),
-                                             on_step=partial)
+                matches, not_following = measure_drive(s, queries, db, method, match, retrieval, indices, c.rate_hz,
+                                                       cache, self.query_images, progress=progress,
+                                                       cancelled=cancelled, on_step=partial)
             except visloc.MatchCancelled:
                 return
             except visloc.VislocError as exc:
@@ -391,7 +390,7 @@ class DashboardApp:
                 s.matching_key, s.step_key = None, None
                 self.gui.progress.visible = False
                 self._show_status(panels.ready_text(s.runs_done, matches, queries, db, n_new,
-                                                    time.perf_counter() - started))
+                                                    time.perf_counter() - started, not_following))
             self.request_apply()
 
         self._jobs.submit("matching", match_all)

@@ -149,7 +149,8 @@ class Page:
         g.step_badge.content = g.map_badge.content = panels.stale_badge_html(note)
         g.numbers.content = panels.step_html(rec, len(run.records), visloc.record_geotags(rec, db.frame),
                                              *panels.series_names(queries, db), t0_s, latlon=latlon,
-                                             matched=self.matched(run), stale=bool(note))
+                                             matched=self.matched(run), stale=bool(note),
+                                             kind=run.matches.kinds[k] if run.matches.follows_points else None)
         suffix = " — previous run" if note else ""
         data, scales, title = panels.counts_plot(retrieval, db.timestamps_s, rec.query_timestamp_s, t0_s)
         g.counts_plot.scales, g.counts_plot.data, g.counts_plot.title = scales, data, title + suffix
@@ -168,7 +169,8 @@ class Page:
         best = run.matches.retrievals[k].best_index
         q_gray = panels.read_gray(queries.paths[q_index] if queries.paths else None)
         d_gray = panels.read_gray(db.images[best].path if best is not None else None)
-        figure = panels.step_figure(queries, db, q_index, best, run.match_params_of(k), q_gray, d_gray)
+        figure = panels.step_figure(queries, db, q_index, best, run.match_params_of(k), q_gray, d_gray,
+                                    run.matches.kinds[k] if run.matches.follows_points else None)
 
         def show() -> None:
             self.gui.figure.image, self.pictures_shown = figure, True

@@ -116,12 +116,17 @@ def step_note(view, k: int, matching_key: tuple | None) -> str | None:
     return None
 
 
-def ready_text(number: int, matches, queries, db, n_new_pairs: int, elapsed_s: float) -> str:
-    """The status line once a run is matched."""
+def ready_text(number: int, matches, queries, db, n_new_pairs: int, elapsed_s: float,
+               not_following: str | None = None) -> str:
+    """The status line once a run is matched; ``not_following``: why a camera-rate run could not follow points."""
     names, match = series_names(queries, db), matches.match_params
+    if matches.follows_points:
+        return (f"Ready (run {number}, {matches.method.name}, following points): {len(matches)} queries of "
+                f"{names[0]} against {len(db)} images of {names[1]}, read from the drive's images in {elapsed_s:.1f} s")
     work = f"{n_new_pairs} new image pairs matched in {elapsed_s:.1f} s" if n_new_pairs else "all image pairs cached"
+    why = f"; not following points: {not_following}" if not_following else ""
     return (f"Ready (run {number}, {matches.method.name}, τ1 {match.tau1:g}, τ2 {match.tau2:g}): {len(matches)} "
-            f"queries of {names[0]} against {len(db)} images of {names[1]}; {work}")
+            f"queries of {names[0]} against {len(db)} images of {names[1]}; {work}{why}")
 
 
 def _fmt(value: float | None, fmt: str = ".2f", unit: str = " m") -> str:
@@ -136,8 +141,20 @@ def _position(xy: tuple[float, float] | None, geotag: tuple[float, float] | None
     return local + (f" ({geotag[0]:.7f}°, {geotag[1]:.7f}°)" if latlon and geotag is not None else "")
 
 
-def source_text(rec: visloc.StepRecord) -> str:
-    """What measured the step, in words."""
+FOLLOWED_KINDS = {  # how a step of a run that followed points was measured (visloc.DriveMatches.kinds)
+    "tracked": "followed points (no retrieval, no SIFT: the map points of the last full localization, followed "
+               "into this frame by optical flow), ",
+    "relocalized": "a full localization (SIFT, retrieval and PnP) that fetched new map points to follow, ",
+    "predicted": "nothing of its own (its points lost, a full localization under way): ",
+}
+
+
+def source_text(rec: visloc.StepRecord, kind: str | None = None) -> str:
+    """What measured the step, in words; ``kind``: how, in a run that followed points."""
+    return FOLLOWED_KINDS.get(kind or "", "") + _measured_by(rec)
+
+
+def _measured_by(rec: visloc.StepRecord) -> str:
     if rec.measurement_source == visloc.GEOMETRY:
         return (f"geometry: PnP against frames {', '.join(map(str, rec.view_db_frames))} (database views whose "
                 f"3D points were triangulated with frames {', '.join(map(str, rec.neighbour_db_frames))}); "
@@ -179,11 +196,12 @@ _CELL = "padding:3px 12px 3px 0;border-bottom:1px solid #e9ecef;vertical-align:t
 
 def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotags, query_camera: str,
               db_camera: str, t0_s: float, *, latlon: bool = False, matched: tuple[int, int] | None = None,
-              stale: bool = False) -> str:
+              stale: bool = False, kind: str | None = None) -> str:
     """The current step's table: query, best match, measurement and estimate with their errors.
     Positions in local metres (lat/lon too with ``latlon``); every row explains itself on hover.
     ``matched``: (queries matched so far, queries in the run) while the run is still being matched.
-    ``stale``: the step shown is the previous run's (a new one is being matched): the numbers are dimmed."""
+    ``stale``: the step shown is the previous run's (a new one is being matched): the numbers are dimmed.
+    ``kind``: how the step was measured in a run that followed points (``visloc.DriveMatches.kinds``)."""
     best = ("none" if rec.best_db_frame is None else
             f"{db_camera} frame {rec.best_db_frame} ({rec.best_offset_s:+.2f} s), {rec.best_count} correspondences, "
             f"{rec.n_candidates} candidates")
@@ -191,7 +209,7 @@ def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotag
         ("query", f"{query_camera} frame {rec.query_frame}, t = {rec.query_timestamp_s - t0_s:.2f} s"),
         ("best match", best),
         ("measurement", _position(rec.measurement_m, geotags.measurement, latlon)),
-        ("measured by", source_text(rec)),
+        ("measured by", source_text(rec, kind)),
         ("measurement error", _fmt(rec.measurement_error_m)),
         ("measurement σ", _fmt(rec.measurement_sigma_m) + measurement_sigma_note(rec)),
         ("map's own error", _fmt(rec.absolute_sigma_m) + (" per axis (the database geotags' stated accuracy)"
@@ -238,8 +256,21 @@ def run_summary_markdown(records: list[visloc.StepRecord], matches: visloc.Drive
             f"final estimate error {_fmt(summary['final_estimate_error_m'])}; "
             f"query latency median {np.median(matches.latency_ms):.0f} ms, p95 "
             f"{np.percentile(matches.latency_ms, 95):.0f} ms (SIFT + retrieval + geometry + filter, when first "
-            "computed)." + (" Camera-rate path on the stored query features; `visloc track` describes each frame "
-                            "at three quarters of its size, as a vehicle would." if matches.method.camera_rate else ""))
+            "computed)." + camera_rate_note(matches))
+
+
+def camera_rate_note(matches: visloc.DriveMatches) -> str:
+    """How a camera-rate run was made: following points on the drive's images, or on the stored features."""
+    if not matches.method.camera_rate:
+        return ""
+    if matches.follows_points:
+        tracked = sum(1 for k in matches.kinds if k == "tracked")
+        return (f" Camera-rate path as `visloc track` runs it: each frame read from the drive's images and described "
+                f"at three quarters of its size; {tracked} of {len(matches)} frames posed on followed map points "
+                "between full localizations, each frame read once the full localization asked for before it had "
+                "come (so the run is the same every time). R, Q and P0 re-run the filter over these measurements.")
+    return (" Camera-rate path on the stored query features, every query localized in full, not following points "
+            "as `visloc track` does (the status line says why).")
 
 
 def store_html(path: str, datasets: list[visloc.StoredDrive], sift: visloc.SiftParams | None) -> str:
@@ -317,8 +348,14 @@ def read_gray(path: str | None) -> np.ndarray | None:
 
 
 def step_figure(queries: visloc.QuerySet, db: visloc.GeoDatabase, q_index: int, best: int | None,
-                match: visloc.MatchParams, q_gray: np.ndarray | None, d_gray: np.ndarray | None) -> np.ndarray:
-    """The paper's Figure 3 for one step: the query above its best match, correspondences joined."""
+                match: visloc.MatchParams, q_gray: np.ndarray | None, d_gray: np.ndarray | None,
+                kind: str | None = None) -> np.ndarray:
+    """The paper's Figure 3 for one step: the query above its best match, correspondences joined. ``kind``: how
+    the step was measured in a run that followed points (a followed or predicted step made no retrieval)."""
+    if kind in ("tracked", "predicted"):
+        return placeholder(f"Query frame {queries.frames[q_index]}: no retrieval at this step, "
+                           + ("posed on the map points followed into it" if kind == "tracked" else
+                              "predicted by the filter"))
     if best is None:
         return placeholder(f"Query frame {queries.frames[q_index]}: no database image has a correspondence")
     if q_gray is None or d_gray is None:

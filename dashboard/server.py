@@ -62,20 +62,21 @@ def serve(store_path: Path, *, host: str = "127.0.0.1", port: int = 8080, db_cam
           query_camera: str | None = "image_00", db_source: str | None = None, query_source: str | None = None,
           allow: list[Path] | None = None, tune_from: tuple[Path, visloc.LiveSettings] | None = None,
           ready: threading.Event | None = None, stop: threading.Event | None = None, announce=print,
-          tiles=None) -> None:
+          tiles=None, query_images: Path | None = None) -> None:
     """Serve the dashboard until ``stop`` is set (or forever). viser moves to the next free
     port when ``port`` is taken, so the URL announced is the one actually served. The page opens
     only stores inside the folders ``allow`` (default: the store's folder) and ``store_path`` itself;
     a host other than this machine's loopback is warned of on stderr. ``tune_from``: (a saved run's file, its
     settings) to start the controls from (``visloc dashboard --tune-from``). ``tiles``: a web map's tiles under
-    the top-down map (``visloc.dashboard.tiles.TileSource``), None for none."""
+    the top-down map (``visloc.dashboard.tiles.TileSource``), None for none. ``query_images``: where the camera-rate
+    mode reads the query series' images to follow points (``visloc.open_series``; None: the data root)."""
     allowed = allowed_stores(store_path, allow)  # before anything is served
     server = viser.ViserServer(host=host, port=port, label="visloc", verbose=False)
     name_the_tab(server)
     try:  # Ctrl-C or kill -INT at any moment from here on stops every thread, so the process can end
         app = DashboardApp(server, store_path, db_camera=db_camera, query_camera=query_camera,
                            db_source=db_source, query_source=query_source, allowed=allowed, tune_from=tune_from,
-                           tiles=tiles)
+                           tiles=tiles, query_images=query_images)
         try:
             if not is_loopback(host):
                 print(public_warning(host, server.get_port(), allowed), file=sys.stderr, flush=True)

@@ -136,6 +136,8 @@ class Shown:
     structures: visloc.StructureCache = field(default_factory=visloc.StructureCache)
     stored: dict = field(default_factory=dict)  # the database's stored structure (the camera-rate path)
     index: visloc.GlobalIndex | None = None  # its stored global vectors
+    # (queries' name, their images read again as a drive or None, why not): what the camera-rate mode follows
+    series_images: tuple | None = None
     run: Run | None = None
     matching_key: tuple | None = None  # a match running in the background for these controls
     failed_key: tuple | None = None  # controls whose match failed: not tried again until they change
@@ -202,3 +204,40 @@ def first_choices(datasets, db: tuple[str | None, str | None],
         q_choice = next((n for n in names if n != db_choice), db_choice)
     return db_choice, q_choice
 
+
+
+def series_images(s: Shown, queries: visloc.QuerySet, query_images: Path | None) -> tuple[visloc.Drive | None,
+                                                                                          str | None]:
+    """The query series' images, read again to follow points (``visloc.open_series`` from ``query_images``, None:
+    the data root), or None and why not; looked for once per series loaded."""
+    if s.series_images is None or s.series_images[0] != queries.name:
+        try:
+            drive = visloc.open_series(query_images, queries.source, queries.camera)
+            visloc.drive_indices(drive, queries)
+            s.series_images = (queries.name, drive, None)
+        except visloc.VislocError as exc:
+            s.series_images = (queries.name, None, str(exc))
+    return s.series_images[1], s.series_images[2]
+
+
+def measure_drive(s: Shown, queries: visloc.QuerySet, db: visloc.GeoDatabase, method: visloc.Method, match: visloc.MatchParams, retrieval: visloc.RetrievalParams,
+                  indices: np.ndarray, rate_hz: float, cache: visloc.PairCountCache, query_images: Path | None,
+                  **callbacks) -> tuple[visloc.DriveMatches, str | None]:
+    """A live run's measurements of ``queries`` against ``db`` (the loaded data), and why a camera-rate run does not follow points (None when
+    it does, or is no camera-rate run): at the camera's rate the camera-rate method follows points on the series'
+    images as ``visloc track`` does (``visloc.follow_drive``); otherwise every query is measured in full
+    (``visloc.match_drive``). ``callbacks``: ``progress``, ``cancelled`` and ``on_step``, as both take them."""
+    # the camera-rate path's gate follows the paper's filter at the query rate
+    filter_params = visloc.PAPER_FILTER.replace(dt_s=1.0 / rate_hz)
+    drive, not_following = None, None
+    if visloc.follows_points(method, indices):
+        drive, not_following = series_images(s, queries, query_images)
+    elif method.camera_rate:
+        not_following = f"at {rate_hz:g} Hz, below the camera's rate, each query is localized in full"
+    if drive is not None:
+        return visloc.follow_drive(drive, queries, db, s.workspace.sift_params, retrieval, indices, method=method,
+                                   match_params=match, filter_params=filter_params, stored=s.stored,
+                                   shortlist_index=s.index, **callbacks), None
+    return visloc.match_drive(queries, db, match, retrieval, indices, method=method, cache=cache,
+                              structures=s.structures, stored=s.stored, shortlist_index=s.index,
+                              filter_params=filter_params, **callbacks), not_following

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import visloc
-from helpers import KITTI_DRIVE, run_cli
+from helpers import KITTI_DRIVE, one_line_error, run_cli
 from helpers import (
     RUN_S,
     SERVER_WORK_S,
@@ -299,6 +299,13 @@ def test_bad_port_is_a_one_line_error():
     assert result.stderr.strip() == "visloc: error: --port: port=70000: must be an integer in [1, 65535]"
 
 
+def test_query_images_that_are_not_there_or_not_needed_are_a_one_line_error(tmp_path):
+    missing = tmp_path / "no_such_root"
+    one_line_error(run_cli("dashboard", "--query-images", missing), f"--query-images {missing}: not found")
+    one_line_error(run_cli("dashboard", "--query-images", tmp_path, "--run", tmp_path / "run.json"),
+                   "--query-images: for a store's live page")
+
+
 @pytest.mark.slow
 def test_switching_to_the_refined_mode_measures_metric_poses(dashboard, browser):
     page = open_page(browser, dashboard.url)
@@ -360,12 +367,20 @@ def test_the_camera_rate_path_plays_every_frame_at_the_camera_rate(dashboard, br
         wait_for(lambda: run_number(page) > runs and "refined-fast" in status_text(page)
                  and f"{n_frames} queries" in status_text(page), RUN_S, "the camera-rate run over every frame")
         assert control(page, "Query rate (Hz)").locator("input").first.input_value() == "10"
+        # as visloc track runs it: the frames read from the drive's images, following points between full
+        # localizations, and said so
+        assert "following points" in status_text(page)
         summary = page.get_by_text(re.compile(rf"refined-fast mode, {n_frames} queries")).first
-        assert "Camera-rate path" in summary.locator("xpath=..").first.inner_text()
+        assert "Camera-rate path as visloc track runs it" in summary.locator("xpath=..").first.inner_text()
         page.get_by_text(f"Step 1 of {n_frames}", exact=True).wait_for()
         assert row(page, "query").startswith(f"image_00 frame {first_frame},")  # the first frame from the start on
-        go_to_step(page, 15)
-        assert row(page, "measured by").startswith("geometry: PnP against frames")
+        assert row(page, "measured by").startswith("a full localization (SIFT, retrieval and PnP)")
+        kinds = set()
+        for step in (2, 3, 15):
+            go_to_step(page, step)
+            kinds.add(row(page, "measured by").split(" (")[0])
+            assert "geometry: PnP against frames" in row(page, "measured by")
+        assert "followed points" in kinds  # a frame posed on the points followed from a full localization
         assert float(row(page, "measurement error").split()[0]) < 1.0
         control(page, "Play").locator("input").first.check()
         wait_for(lambda: current_step(page) >= 21, SERVER_WORK_S, "playback to move on")  # the page advances by itself

@@ -315,6 +315,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--tiles-attribution", default=None, metavar="TEXT",
                    help="the tiles' attribution, drawn on the map (default: OpenStreetMap's for 'osm', else the "
                         "server's name)")
+    p.add_argument("--query-images", type=Path, default=None, metavar="PATH",
+                   help="where the camera-rate mode reads the query series' images to follow points as 'visloc "
+                        "track' does: a KITTI raw root that holds the drive, or the CSV or log it was stored from "
+                        "(default: the data root, $VISLOC_DATA or ../shared/data/kitti); where they cannot be read, "
+                        "every frame is localized in full on its stored features and the page says why")
 
     p = _command(sub, "bench", help="time the paper's brute-force path against the fast path",
                        description="Run the paper's path and the fast path (filter gate, VLAD shortlist, faiss, "

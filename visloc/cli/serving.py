@@ -14,6 +14,10 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
 
     if a.run and a.tune_from:
         raise InputError("--run and --tune-from: give one (--run shows saved runs, --tune-from tunes one live)")
+    if a.query_images is not None and a.run:
+        raise InputError("--query-images: for a store's live page; --run shows saved runs, which need no images")
+    if a.query_images is not None and not a.query_images.exists():
+        raise InputError(f"--query-images {a.query_images}: not found (a KITTI raw root, a CSV or a log)")
     if a.run:  # saved runs: no store is opened
         serve_runs(a.run, host=a.host, port=a.port, announce=lambda text: print(text, flush=True))
         return 0
@@ -36,7 +40,7 @@ def cmd_dashboard(a: argparse.Namespace) -> int:
     serve(a.db, host=a.host, port=a.port, db_camera=a.db_camera or db_camera or only or "image_01",
           query_camera=a.query_camera or q_camera or only or "image_00", db_source=a.db_source or db_source,
           query_source=a.query_source or q_source, allow=a.allow, tune_from=tune,
-          announce=lambda text: print(text, flush=True), tiles=tiles)
+          announce=lambda text: print(text, flush=True), tiles=tiles, query_images=a.query_images)
     return 0
 
 
