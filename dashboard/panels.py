@@ -202,7 +202,8 @@ def step_html(rec: visloc.StepRecord, n_steps: int, geotags: visloc.RecordGeotag
     ``matched``: (queries matched so far, queries in the run) while the run is still being matched.
     ``stale``: the step shown is the previous run's (a new one is being matched): the numbers are dimmed.
     ``kind``: how the step was measured in a run that followed points (``visloc.DriveMatches.kinds``)."""
-    best = ("none" if rec.best_db_frame is None else
+    best = (("none: no retrieval at this step" if kind in ("tracked", "predicted") else "none")
+            if rec.best_db_frame is None else
             f"{db_camera} frame {rec.best_db_frame} ({rec.best_offset_s:+.2f} s), {rec.best_count} correspondences, "
             f"{rec.n_candidates} candidates")
     rows = [

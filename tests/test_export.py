@@ -120,3 +120,14 @@ def test_the_step_panel_says_when_a_pose_stands_on_thin_support():
     posed = replace(record(0, source="geometry"), view_db_frames=[3, 9], neighbour_db_frames=[1, 5], n_pnp_inliers=12)
     assert "12 inliers" in source_text(posed) and "thin support" not in source_text(posed)
     assert source_text(replace(posed, thin_support=True)).endswith("posed again at the looser one")
+
+
+def test_the_step_panel_says_how_a_step_of_a_followed_run_was_measured():
+    from dataclasses import replace
+
+    from visloc.dashboard.panels import source_text
+
+    posed = replace(record(0, source="geometry"), view_db_frames=[3, 9], neighbour_db_frames=[1, 5], n_pnp_inliers=40)
+    assert source_text(posed, "tracked").startswith("followed points (no retrieval, no SIFT")
+    assert source_text(posed, "relocalized").startswith("a full localization (SIFT, retrieval and PnP)")
+    assert source_text(posed, "tracked").endswith(source_text(posed)) and source_text(posed, None) == source_text(posed)
