@@ -223,6 +223,31 @@ def test_the_structure_density_is_what_its_json_renders():
             assert c["error_m"]["n"] == len(d["frames"]) > 0 and c["structures_built"] > 0
 
 
+def test_the_feature_density_is_what_its_json_renders():
+    """The denser-SIFT section of docs/performance.md is rendered from docs/results/feature_density.json (written
+    by benchmarks/feature_density.py): every drive the peer measured at every contrast, the default first, on the
+    peer's frames, with what each store cost; the default's features were all found among the denser ones."""
+    import json
+
+    import feature_density
+
+    from visloc.params import SiftParams
+
+    result = json.loads(feature_density.SECTION.out.read_text())
+    assert feature_density.SECTION.updated_page(feature_density.render(result)) == \
+        (REPO / "docs" / "performance.md").read_text()
+    contrasts = list(result["contrasts"])
+    assert float(contrasts[0]) == SiftParams().contrast_threshold and len(contrasts) >= 2
+    assert len(result["subset"]) == 3
+    for contrast, c in result["contrasts"].items():
+        assert set(c["drives"]) == set(result["subset"]) and c["store_bytes_per_image"] > 0
+        for d in c["drives"].values():
+            assert d["peer_error_m"]["n"] == d["visloc_error_m"]["n"] == len(d["frames"]) > 0
+            assert d["ingest_s_per_image"] > 0 and d["measurement_ms_median"] > 0
+    for s in result["subset"].values():
+        assert all(n["found"] == n["default"] > 0 for n in s["default_in_lower"].values())
+
+
 def test_the_shared_error_figures_are_what_their_json_renders_and_the_parameters_are_their_fit():
     """docs/performance.md's table of the error consecutive measurements share is rendered from
     docs/results/measurement_correlation.json (written by benchmarks/measurement_correlation.py), every drive at
