@@ -39,7 +39,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from measuring import REPO, Section, load_1min
+from measuring import REPO, Section, commit, load_1min, run_once
 from thinning_stress import PEER_RUNS, peer_runs
 
 sys.path.insert(0, str(REPO / "scripts"))
@@ -93,11 +93,7 @@ def evaluate(folder: Path, drive_folder: Path, protocol, frames: list[int], cont
                "--db-camera", protocol.db_camera, "--db", str(out / "visloc.sqlite"), "--sift-contrast", contrast,
                "--mode", "refined", "--steps", "1", "--exclusion-s", "1",
                "--start-frames", ",".join(map(str, frames)), "--json", str(path)]
-    if not path.is_file():
-        print("feature density:", " ".join(command), flush=True)
-        with (out / "log.txt").open("a") as log:
-            subprocess.run([sys.executable, *command], cwd=REPO, check=True, stdout=log, stderr=subprocess.STDOUT,
-                           stdin=subprocess.DEVNULL)
+    run_once([sys.executable, *command], out / "log.txt", path, "feature density")
     return "python " + " ".join(command)
 
 
@@ -137,9 +133,7 @@ def measure(a) -> dict:
     contrasts = a.contrasts.split(",")
     peer = peer_runs()
     drives = [(f, drive_protocols(f)[0]) for f in drives_of(folder) if f.name.removesuffix("_sync") in peer]
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
-    result = {"commit": commit, "cores": os.cpu_count(), "load_before": load_1min(), "contrasts": {},
+    result = {"commit": commit(), "cores": os.cpu_count(), "load_before": load_1min(), "contrasts": {},
               "subset": {f.name.removesuffix("_sync"): subset_check(f, p.query_camera, contrasts) for f, p in drives}}
     for contrast in contrasts:
         out = WORK / f"contrast_{contrast}"

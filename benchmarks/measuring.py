@@ -27,6 +27,29 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))  # the engine of this checkout, whatever is installed
 
 
+def commit() -> str:
+    """The checkout's commit, short: what a result was measured at."""
+    import subprocess
+
+    return subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
+                          text=True).stdout.strip()
+
+
+def run_once(args: list, log: Path, made: Path, label: str) -> None:
+    """Run ``args`` in the repository, its output appended to ``log``, unless ``made`` (what it writes) exists:
+    an interrupted measurement goes on where it stopped."""
+    import subprocess
+
+    if made.is_file():
+        print(f"{label}: already measured:", made.relative_to(REPO) if made.is_relative_to(REPO) else made,
+              flush=True)
+        return
+    print(f"{label}:", " ".join(map(str, args)), flush=True)
+    with log.open("a") as f:
+        subprocess.run(list(map(str, args)), cwd=REPO, check=True, stdout=f, stderr=subprocess.STDOUT,
+                       stdin=subprocess.DEVNULL)
+
+
 def load_1min() -> float:
     """The machine's load average over the last minute (2 cores here: above 2, runs queue)."""
     return os.getloadavg()[0]

@@ -27,11 +27,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
-import subprocess
 import sys
 from pathlib import Path
 
-from measuring import REPO, Section, load_1min
+from measuring import REPO, Section, commit, load_1min, run_once
 
 sys.path.insert(0, str(REPO / "scripts"))
 from results_peer import PEER_THRESHOLD, PEER_VARIANT, digest_peer  # noqa: E402
@@ -55,16 +54,6 @@ def peer_runs() -> dict[str, Path]:
         for path in sorted(folder.glob("peer_*.json")) if folder.is_dir() else []:
             runs.setdefault(json.loads(path.read_text())["params"]["drive"], path)
     return runs
-
-
-def run(args: list[str], log: Path, made: Path) -> None:
-    """Run ``args`` unless ``made`` (what it writes) exists: an interrupted measurement goes on where it stopped."""
-    if made.is_file():
-        print("thinning: already measured:", made.relative_to(REPO), flush=True)
-        return
-    print("thinning:", " ".join(map(str, args)), flush=True)
-    with log.open("a") as f:
-        subprocess.run(list(map(str, args)), cwd=REPO, check=True, stdout=f, stderr=subprocess.STDOUT)
 
 
 def reuse_peer(earlier: dict, cap: str, drive: str, protocol, path: Path) -> bool:
@@ -104,14 +93,14 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
                 "--mode", "refined", "--steps", "1", "--exclusion-s", "1",
                 "--start-frames", ",".join(map(str, frames)),
                 "--json", out / f"{drive}_{protocol.key}_refined.json"]
-        run([sys.executable, *ours], log, out / f"{drive}_{protocol.key}_refined.json")
+        run_once([sys.executable, *ours], log, out / f"{drive}_{protocol.key}_refined.json", "thinning")
         commands.append("python " + " ".join(map(str, ours)))
         if cap == DEFAULT:  # the peer's own run at its defaults; with every keypoint no query needs the thin pose
             shutil.copy(peer[drive], out / peer[drive].name)
             continue
         without = [*ours[:-2], *STRICT, "--json", out / "strict" / f"{drive}_{protocol.key}_refined.json"]
         (out / "strict").mkdir(exist_ok=True)  # the same without the thin-support pose
-        run([sys.executable, *without], log, without[-1])
+        run_once([sys.executable, *without], log, without[-1], "thinning")
         commands.append("python " + " ".join(map(str, without)))
         if a.earlier is not None and not (out / f"peer_{drive}.json").is_file():
             if reuse_peer(a.earlier, cap, drive, protocol, out / f"peer_{drive}.json"):
@@ -120,7 +109,7 @@ def measure_cap(a, cap: str, folder: Path, peer: dict[str, Path]) -> dict:
                   "--query-camera", protocol.query_camera, "--query-frames", ",".join(map(str, frames)),
                   "--variants", "counts", "--vlad-words", "0", "--max-features", cap,
                   "--work", out / f"peer_work_{drive}", "--json", out / f"peer_{drive}.json", "--resume"]
-        run([a.peer_python, *theirs], log, out / f"peer_{drive}.json")
+        run_once([a.peer_python, *theirs], log, out / f"peer_{drive}.json", "thinning")
         for partial in out.glob("peer_*.partial.json"):  # the peer's progress file, not a run
             partial.unlink()
         commands.append(f"{a.peer_python} " + " ".join(map(str, theirs)))
@@ -142,9 +131,7 @@ def measure(a) -> dict:
     folder = Path(a.data)
     peer = peer_runs()
     a.earlier = json.loads(Path(a.peer_from).read_text()) if a.peer_from else None
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=REPO, capture_output=True,
-                            text=True).stdout.strip()
-    result = {"commit": commit, "cores": os.cpu_count(), "load_before": load_1min(), "caps": {}}
+    result = {"commit": commit(), "cores": os.cpu_count(), "load_before": load_1min(), "caps": {}}
     for cap in [DEFAULT, *a.caps.split(",")]:
         result["caps"][cap] = measure_cap(a, cap, folder, peer)
     result["load_after"] = load_1min()
