@@ -32,7 +32,7 @@ _EXPORTS = {
                       "REFINED", "TRACK", "FastParams", "FilterParams", "MatchParams", "RefinedParams",
                       "RetrievalParams", "SiftParams", "TrackParams", "dashboard_controls"),
     "visloc.params.methods": ("METHODS", "PAPER_METHOD", "REFINED_FAST_METHOD", "REFINED_METHOD", "Method",
-                              "method_named"),
+                              "features_for", "method_named"),
     "visloc.pose.measurement": ("GEOMETRY", "GEOTAG"),
     "visloc.pose.refined": ("StructureCache", "pose_measurement"),
     "visloc.protocols.drive": ("DriveMatches", "drive_query_indices", "drive_summary", "match_drive", "track_drive"),
@@ -84,7 +84,7 @@ __all__ = [
     "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",
     "PAPER_SIFT", "REFINED", "REFINED_FAST_METHOD", "REFINED_METHOD", "TRACK", "FastParams", "FilterParams",
     "MatchParams", "Method", "RefinedParams", "RetrievalParams", "SiftParams", "TrackParams", "dashboard_controls",
-    "method_named",
+    "features_for", "method_named",
     # the pipeline's parts
     "Query", "extract_queries", "MatchCancelled", "PairCountCache", "correspondences", "nearest_two", "GlobalIndex",
     "Retrieval", "retrieve", "GEOMETRY", "GEOTAG", "StructureCache", "pose_measurement", "covariance_ellipse_m",

@@ -15,7 +15,7 @@ from visloc.cli.choices import (PAPER_DATABASE_CAMERA, log_options, require_expo
                             make_folder_of, refuse_camera_for_csv, require_output, start_indices, store_for_writing)
 from visloc.errors import InputError, ParameterError
 from visloc.protocols.evaluation import evaluate, series_schedule
-from visloc.params.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, method_named
+from visloc.params.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, Method, features_for, method_named
 from visloc.tracking.methods import build_localizer
 from visloc.cli.outputs import require_output_folder, require_writable_output
 from visloc.cli.param_flags import params_from_flags
@@ -31,20 +31,23 @@ from visloc.sources.drives import Drive, default_data_root
 from visloc.sources.opening import open_source
 from visloc.protocols.suite import database_row, drive_protocols, drives_of, pooled_rows, protocol_row, table_text
 from visloc.protocols.track import run_track, track_filter, track_localizer
-from visloc.store.workspace import STORE_SCHEMA_VERSION, Workspace
+from visloc.store.workspace import Workspace
 from visloc.store.build import ingest_sequence
 from visloc.cli.sharding import ingest_sharded, print_tiles_read, require_stored
-from visloc.store.sharded import sharded_summary
-from visloc.db.shards import is_sharded
-from visloc.store.check import check_sharded, check_store
 from visloc.cli.stopping import interrupted_status, interrupted_text
-from visloc.cli.describing import describe_drive
+from visloc.db.shards import is_sharded
 
 
 # -- arguments -> parameters ------------------------------------------------------------------
 
-def sift_params(a: argparse.Namespace) -> SiftParams:
-    return params_from_flags(a, PAPER_SIFT)
+def sift_params(a: argparse.Namespace, store: SiftParams | None = None, method: Method | None = None) -> SiftParams:
+    """The SIFT settings from the flags. Without ``--sift-contrast``, the contrast threshold is the store's
+    (``store``; the paper's for a new store), as ``method`` reads it (``features_for``)."""
+    sift = params_from_flags(a, PAPER_SIFT)
+    if getattr(a, "sift_contrast", None) is not None or store is None:
+        return sift
+    sift = sift.replace(contrast_threshold=store.contrast_threshold)
+    return sift if method is None else features_for(method, sift)
 
 
 def method_params(a: argparse.Namespace) -> tuple[MatchParams, RetrievalParams, FilterParams]:
@@ -142,6 +145,7 @@ def cmd_ingest(a: argparse.Namespace) -> int:
         # created is removed again if it fails before storing any image
         with store_for_writing(a.db):
             ws = Workspace(a.db, create=True)
+            sift = sift_params(a, ws.sift_params)  # the store's contrast unless the flag says otherwise
             for seq in sequences:
                 _print_ingest(a, seq, _ingest(ws, seq, sift, a, a.limit, structure=not a.features_only, repair=True))
     except KeyboardInterrupt as exc:
@@ -170,7 +174,6 @@ def _print_ingest(a: argparse.Namespace, seq: Drive, report) -> None:
 
 
 def cmd_localize(a: argparse.Namespace) -> int:
-    sift = sift_params(a)
     match, retrieval, filt = method_params(a)
     method = method_of(a)
     require_writable_output(a.json, "--json")
@@ -178,6 +181,7 @@ def cmd_localize(a: argparse.Namespace) -> int:
     seq = _open_source(a.source, drive=a.drive, camera=kitti_only_camera(a.source, "--camera", a.camera, "image_00"),
                        **log_options(a))
     ws = Workspace(a.db, tile_cache_mb=a.tile_cache_mb)  # reading: a missing store is an error, never created
+    sift = sift_params(a, ws.sift_params, method)
     db = ws.load_database(*choose_database(ws, seq.source, db_source=a.db_source, db_camera=a.db_camera,
                                            prefer=PAPER_DATABASE_CAMERA.get(seq.camera, ())), sift)
     times = seq.timestamps_s
@@ -219,28 +223,34 @@ def cmd_localize(a: argparse.Namespace) -> int:
 
 
 def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Drive | None, query_seq: Drive,
-                      methods: list[Method], sift: SiftParams, *, wanted: set[int] | None = None, label: str = "",
+                      methods: list[Method], *, wanted: set[int] | None = None, label: str = "",
                       db_key: tuple[str, str] | None = None):
     """Ingest both sources (skipping what is stored), evaluate each method on them, keep the counts.
 
-    Returns ([evaluation per method], database, queries). Counts are saved after every series: a stop
+    Returns ([evaluation per method], [the SIFT settings of the features each read], database, queries). Counts are saved after every series: a stop
     loses one at most. ``wanted``: only series starting at these query frames. ``db_key``: (source,
     camera) of a database the store already holds, in place of ``db_seq``.
     """
     match, retrieval, filt = method_params(a)
     for seq in {s.name: s for s in (db_seq, query_seq) if s is not None}.values():
         # queries need only their SIFT: the structure and self-check are the database's
-        _ingest(ws, seq, sift, a, structure=db_seq is not None and seq.name == db_seq.name)
-    db = ws.load_database(*(db_key or (db_seq.source, db_seq.camera)), sift)
-    queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
-    starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
-    exclusion_for(a.exclusion_s, db, queries.timestamps_s, queries.lat_deg, queries.lon_deg, queries.name)  # warns
-    cache = ws.pair_cache(db, queries, match)  # counts earlier runs computed with the same tau1, tau2
-    results = []
+        _ingest(ws, seq, sift_params(a, ws.sift_params), a, structure=db_seq is not None and seq.name == db_seq.name)
+    loaded: dict[SiftParams, tuple] = {}  # the features each method reads (the paper's may be a selection)
+    results, sifts = [], []
     for method in methods:
+        sift = sift_params(a, ws.sift_params, method)
+        if sift not in loaded:
+            db = ws.load_database(*(db_key or (db_seq.source, db_seq.camera)), sift)
+            queries = ws.load_queries(query_seq.source, query_seq.camera, sift)
+            exclusion_for(a.exclusion_s, db, queries.timestamps_s, queries.lat_deg, queries.lon_deg,
+                          queries.name)  # warns
+            # counts earlier runs computed with the same tau1, tau2
+            loaded[sift] = db, queries, ws.pair_cache(db, queries, match)
+        db, queries, cache = loaded[sift]
+        starts = None if wanted is None else [i for i, f in enumerate(queries.frames) if f in wanted]
         bar = progress_reporter(f"evaluate {label}{method.name}", "series")
 
-        def progress(done: int, total: int, bar=bar) -> None:
+        def progress(done: int, total: int, bar=bar, cache=cache) -> None:
             bar(done, total)
             ws.save_pair_counts(cache)
 
@@ -250,7 +260,8 @@ def _evaluate_sources(a: argparse.Namespace, ws: Workspace, db_seq: Drive | None
                                     smooth=a.smooth, **stored_for(ws, db, method)))
         finally:
             ws.save_pair_counts(cache)
-    return results, db, queries
+        sifts.append(sift)
+    return results, sifts, db, queries
 
 
 def _summary(result, sift: SiftParams) -> dict:
@@ -260,7 +271,6 @@ def _summary(result, sift: SiftParams) -> dict:
 
 
 def cmd_evaluate(a: argparse.Namespace) -> int:
-    sift = sift_params(a)
     match, retrieval, filt = method_params(a)
     method = method_of(a)
     plot = a.plot or (Path(a.json).with_suffix(".png") if a.json else None)
@@ -286,8 +296,8 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
         ws = Workspace(a.db, create=True, tile_cache_mb=a.tile_cache_mb)
         db_key = None if db_seq else choose_database(ws, query_seq.source, db_source=a.db_source,
                                                      db_camera=a.db_camera)
-        [result], db, queries = _evaluate_sources(a, ws, db_seq, query_seq, [method], sift, wanted=wanted,
-                                                  db_key=db_key)
+        [result], [sift], db, queries = _evaluate_sources(a, ws, db_seq, query_seq, [method], wanted=wanted,
+                                                          db_key=db_key)
     summary = _summary(result, sift)
     print(summary_text(summary))
     print_tiles_read(ws)
@@ -306,7 +316,6 @@ def cmd_evaluate(a: argparse.Namespace) -> int:
 
 
 def cmd_evaluate_drives(a: argparse.Namespace) -> int:
-    sift = sift_params(a)
     match, retrieval, filt = method_params(a)
     modes = [m.strip() for m in a.modes.split(",") if m.strip()]
     methods = [method_of(a, m) for m in modes]
@@ -321,6 +330,7 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
     out_dir.mkdir(exist_ok=True)
     make_folder_of(a.db, "--db")
     ws = Workspace(a.db, create=True)
+    sift = sift_params(a, ws.sift_params)  # the store's features; each evaluation's JSON says what it read
     everything, report = [], {"root": str(root), "drives": {}, "params": {
         "match": match.as_dict(), "retrieval": retrieval.as_dict(), "filter": filt.as_dict(), "sift": sift.as_dict(),
         "methods": [m.as_dict() for m in methods], "steps": a.steps, "sampling": a.sampling}}
@@ -330,9 +340,9 @@ def cmd_evaluate_drives(a: argparse.Namespace) -> int:
         for protocol in drive_protocols(folder):
             db_seq = _open_source(root, drive=drive, camera=protocol.db_camera)
             query_seq = _open_source(root, drive=drive, camera=protocol.query_camera)
-            results, db, _ = _evaluate_sources(a, ws, db_seq, query_seq, methods, sift,
-                                               label=f"{drive} {protocol.key} ")
-            for method, result in zip(methods, results):
+            results, sifts, db, _ = _evaluate_sources(a, ws, db_seq, query_seq, methods,
+                                                      label=f"{drive} {protocol.key} ")
+            for method, result, sift in zip(methods, results, sifts):
                 summary = _summary(result, sift)
                 name = f"{drive}_{protocol.key}_{method.name}"
                 write_json(out_dir / f"{name}.json", evaluation_json(result, summary))
@@ -367,7 +377,6 @@ def cmd_bench(a: argparse.Namespace) -> int:
 
 
 def cmd_track(a: argparse.Namespace) -> int:
-    sift = sift_params(a)
     params = params_from_flags(a, TRACK.replace(fast=not a.exact), exclude=("exclusion_s",))
     base = params_from_flags(a, PAPER_FILTER, exclude=("dt_s",))
     method = with_method_flags(a, REFINED_METHOD if a.exact else REFINED_FAST_METHOD, base.init_var)
@@ -381,6 +390,7 @@ def cmd_track(a: argparse.Namespace) -> int:
         indices = indices[: a.frames]
     with store_for_writing(a.db):
         ws = Workspace(a.db, create=True, tile_cache_mb=a.tile_cache_mb)
+        sift = sift_params(a, ws.sift_params, method)
         if a.db_source is None:  # the database is the frames' own drive: store it first if the store lacks it
             db_camera = kitti_only_camera(a.source, "--db-camera", a.db_camera, seq.camera) or seq.camera
             _ingest(ws, _open_source(a.source, drive=a.drive, camera=db_camera, camera_flag="--db-camera",
@@ -403,48 +413,4 @@ def cmd_track(a: argparse.Namespace) -> int:
         write_json(a.json, run.as_json())
         print(f"wrote {a.json}")
     write_exports(a, run.frames, db.frame, f"{seq.name} against {db.source}/{db.camera}, track", queries=seq, db=db)
-    return 0
-
-
-def cmd_upgrade(a: argparse.Namespace) -> int:
-    ws = Workspace(a.db)  # opening for writing migrates in place
-    if ws.migrated_from is None:
-        print(f"{a.db}: already at schema version {STORE_SCHEMA_VERSION}")
-    else:
-        print(f"{a.db}: schema version {ws.migrated_from} -> {STORE_SCHEMA_VERSION}, every image and cached count kept; "
-              "'visloc ingest' on its drives fills in what the new version adds")
-        if ws.checksums_filled:
-            print(f"{a.db}: computed the checksums of its {ws.checksums_filled} stored arrays as they are now (from "
-                  "here on a changed byte is caught; damage from before cannot be told apart); the next 'visloc "
-                  "ingest' of each drive describes its images once more to record which files they were made from")
-    return 0
-
-
-def cmd_check(a: argparse.Namespace) -> int:
-    lines, clean = (check_sharded(a.db, progress=progress_reporter(f"check {a.db}", "tiles")) if is_sharded(a.db)
-                    else check_store(a.db, progress=progress_reporter(f"check {a.db}", "images")).summary())
-    print("\n".join(lines))
-    return 0 if clean else 2
-
-
-def cmd_info(a: argparse.Namespace) -> int:
-    if a.source is not None:
-        return describe_drive(a)
-    ws = Workspace(a.db, read_only=True)  # reading never changes the file
-    sift = ws.sift_params
-    print(f"{a.db}: {ws.image_count()} images")
-    if ws.sharded:
-        print(sharded_summary(a.db))
-    print(f"SIFT settings: {sift.as_dict() if sift else 'none yet'}")
-    for d in ws.drives():
-        calib = "P_rect known" if d.has_calibration else "no calibration"
-        calib += ", extrinsics known" if d.has_extrinsics else ", no extrinsics"
-        calib += f", {d.n_without_attitude} without attitude" if d.n_without_attitude else ", attitudes known"
-        print(f"  {d.name}: {d.n_images} images over {d.duration_s:.1f} s, "
-              f"{d.mean_keypoints:.0f} keypoints per image, {calib}")
-    skipped = ws.skipped_frames()
-    if skipped:
-        print(f"{len(skipped)} frame{'s' if len(skipped) > 1 else ''} skipped at ingest (could not be described):")
-        for f in skipped:
-            print(f"  {f.source}/{f.camera} frame {f.frame} ({f.path}): {f.reason}")
     return 0

@@ -56,8 +56,15 @@ def _runs(module: str, function: str):
 
 # -- argument groups --------------------------------------------------------------
 
+SIFT_CONTRAST_HELP = (f"SIFT's contrast threshold (default: the store's, {PAPER_SIFT.contrast_threshold:g} for a new "
+                      "store; the paper's method reads a store built at a lower one at "
+                      f"{PAPER_SIFT.contrast_threshold:g}, the paper's, with the keypoints SIFT keeps there)")
+
+
 def _add_sift(p: argparse.ArgumentParser) -> None:
-    add_param_flags(p.add_argument_group("SIFT (must equal the store's settings)"), SiftParams, PAPER_SIFT)
+    add_param_flags(p.add_argument_group(
+        "SIFT (the store's settings; a store built keeping every keypoint at a lower --sift-contrast serves a "
+        "higher one)"), SiftParams, PAPER_SIFT, automatic={"contrast_threshold": SIFT_CONTRAST_HELP})
 
 
 EXCLUSION_AUTO_HELP = ("ignore database images closer in time to the query than this, s (default: 1 when the database "
@@ -363,14 +370,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = _command(sub, "upgrade", help="migrate a store of an older schema version in place",
                        description="Bring a store written by an older visloc to this version's schema, keeping every "
                                    "image and cached count. Reading commands (info, dashboard) never migrate; ingest "
-                                   "and the other commands that write do it on their own.")
+                                   "and the other commands that write do it on their own.", module="store_commands")
     _add_db(p)
 
     p = _command(sub, "info", help="what a store holds, or what visloc reads from a drive",
                  description="Images, drives, cameras and SIFT settings of a store. Given a drive (a log, a KITTI "
                              "root or a CSV), what visloc reads from it instead: its frames, geotags, calibration "
                              "and attitudes, and for a log its topics, the ones chosen and the largest gap between "
-                             "the fixes a geotag was interpolated from.")
+                             "the fixes a geotag was interpolated from.", module="store_commands")
     _add_source(p, "camera", "image_01")
     _add_db(p)
 
@@ -379,7 +386,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "this version needs, and every stored array (features, structure, global vectors) "
                              "against the checksum written with it and the size its row states. Prints one line per "
                              "damaged image (drive, camera, frame, what is wrong) and a summary. Re-running 'visloc "
-                             "ingest' of a drive repairs its damaged images.")
+                             "ingest' of a drive repairs its damaged images.", module="store_commands")
     _add_db(p)
     return parser
 

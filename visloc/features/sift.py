@@ -92,6 +92,15 @@ def extract_sift(gray_u8: np.ndarray, params: SiftParams, *, sift: "cv2.SIFT | N
     return Features(keypoints_f32=kp, descriptors_u8=np.ascontiguousarray(descriptors, dtype=np.uint8))
 
 
+def contrast_kept(keypoints_f32: np.ndarray, contrast_threshold: float, n_octave_layers: int) -> np.ndarray:
+    """(N,) bool: which of these keypoints (N, 6), found with a lower contrast threshold, SIFT would have kept
+    at ``contrast_threshold``. OpenCV drops an extremum whose contrast (the keypoint's ``response``) times the
+    layers per octave falls below the threshold; a lower threshold only adds keypoints (a few, out of
+    thousands, whose unrefined extremum the higher one would have skipped before refining it)."""
+    response = np.asarray(keypoints_f32, np.float64)[:, 4]
+    return response * int(n_octave_layers) >= float(contrast_threshold)
+
+
 def undistort_keypoints(keypoints_f32: np.ndarray, K: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:
     """Keypoints (N, 6) with x, y moved from the distorted image to the pinhole camera ``K`` (3x3, pixels)
     by OpenCV's iterative undistortion (``distortion``: OpenCV's coefficients); the other columns are

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass, fields, replace
 
 from visloc.errors import ParameterError
+from visloc.params.paper import PAPER_SIFT, SiftParams
 from visloc.params.refined import FAST, REFINED, FastParams, RefinedParams
 
 
@@ -89,3 +90,12 @@ def method_named(name: str) -> Method:
     if name not in METHODS:
         raise ParameterError(f"mode={name!r}: must be one of {', '.join(METHODS)}")
     return METHODS[name]
+
+
+def features_for(method: Method, store: SiftParams) -> SiftParams:
+    """The SIFT settings ``method`` reads a store built with ``store`` at: the store's own, but the paper's
+    method (no pose) reads a store built at a lower contrast threshold than the paper's at the paper's, with
+    the keypoints SIFT keeps there (``visloc.features.sift.contrast_kept``): its own features."""
+    if method.pose is None and store.contrast_threshold < PAPER_SIFT.contrast_threshold:
+        return store.replace(contrast_threshold=PAPER_SIFT.contrast_threshold)
+    return store

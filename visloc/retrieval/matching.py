@@ -291,14 +291,16 @@ class PairCountCache:
 
     ``db_keys`` names the database images (default: their indices); ``known`` seeds the cache,
     e.g. with counts persisted by an earlier run; ``take_new_entries()`` hands over what was
-    computed since it was last called, to persist.
+    computed since it was last called, to persist; ``persistent`` False: counts not to be kept beyond this
+    run (of features other than the store's as they are).
     """
 
     def __init__(self, db_descriptors: Sequence[np.ndarray], match_params: MatchParams, *,
                  db_keys: Sequence[Hashable] | None = None,
-                 known: dict[tuple[Hashable, Hashable], tuple[int, float]] | None = None):
+                 known: dict[tuple[Hashable, Hashable], tuple[int, float]] | None = None, persistent: bool = True):
         self.db_descriptors = db_descriptors
         self.match_params = match_params
+        self.persistent = persistent
         self.db_keys = list(range(len(db_descriptors))) if db_keys is None else list(db_keys)
         self._entries: dict[tuple[Hashable, Hashable], tuple[int, float]] = dict(known or {})
         self._new: dict[tuple[Hashable, Hashable], tuple[int, float]] = {}

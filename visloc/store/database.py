@@ -44,6 +44,9 @@ class GeoDatabase:
     lever_gain: LeverGain | None = None  # measured by the store's self-check (visloc.pose.uncertainty); None: default
     # the camera-rate path's, measured by its own self-check on the stored structure; None: ``lever_gain``
     camera_rate_lever_gain: LeverGain | None = None
+    # the SIFT contrast threshold the store's features were selected at, higher than the one they were extracted
+    # with (``visloc.features.sift.contrast_kept``); None: the features as stored
+    selected_contrast: float | None = None
 
     def __len__(self) -> int:
         return len(self.images)
@@ -113,6 +116,7 @@ class QuerySet:
     heading_deg: np.ndarray | None = None  # (N,) ground-truth compass heading, NaN if unknown
     calibration: CameraRecord | None = None
     truth_sigma_m: np.ndarray | None = None  # (N,) the ground truth's stated accuracy, sigma per axis, m; NaN if unknown
+    selected_contrast: float | None = None  # as ``GeoDatabase.selected_contrast``
 
     def __len__(self) -> int:
         return len(self.frames)

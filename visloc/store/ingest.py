@@ -69,13 +69,22 @@ def require_sift_settings(store: FeatureStore, params: SiftParams) -> None:
         raise SettingsMismatchError(_sift_difference(store, params)) from None
 
 
-def check_sift_settings(store: FeatureStore, params: SiftParams) -> None:
-    """Refuse to read features extracted with other SIFT settings (read-only check)."""
+def check_sift_settings(store: FeatureStore, params: SiftParams) -> float | None:
+    """Refuse to read features extracted with other SIFT settings (read-only check). A store built with a
+    lower contrast threshold and every other setting the same (keeping every keypoint) serves a higher one:
+    the returned threshold is the one to select its features at (``visloc.features.sift.contrast_kept``);
+    None: read them as they are."""
     stored = store.get_setting(SIFT_SETTINGS_KEY)
     if stored is None:
         raise EmptyStoreError(f"{store.label}: no features yet (build it with 'visloc ingest')")
-    if stored != params.as_dict():
-        raise SettingsMismatchError(_sift_difference(store, params))
+    if stored == params.as_dict():
+        return None
+    theirs = stored_sift_params(store)
+    if (theirs is not None and theirs.n_features == 0
+            and replace(theirs, contrast_threshold=params.contrast_threshold) == params
+            and params.contrast_threshold > theirs.contrast_threshold):
+        return params.contrast_threshold
+    raise SettingsMismatchError(_sift_difference(store, params))
 
 
 def _sift_difference(store: FeatureStore, params: SiftParams) -> str:

@@ -24,6 +24,7 @@ from visloc.db import StoreError
 from visloc.db.connection import sqlite_error_line
 from visloc.db.shards import Manifest, tile_features, tile_structure_points
 from visloc.errors import InputError
+from visloc.features.sift import contrast_kept
 from visloc.pose.structure import ViewStructure
 from visloc.params import COMMAND_OPTIONS
 
@@ -159,6 +160,33 @@ class TileFeatures(Sequence):
     def tiles_of(self, indices) -> list[str]:
         """The distinct tiles the images at ``indices`` are read from, in first-use order."""
         return list(dict.fromkeys(self.tiles[int(k)] for k in indices))
+
+
+class ContrastSelected(Sequence):
+    """``target``'s arrays (a tile-read part: keypoints or descriptors), each only at the rows of its image's
+    ``keypoints`` that SIFT keeps at ``contrast_threshold`` (``visloc.features.sift.contrast_kept``), read when
+    asked for; ``map(fn)`` gives the same sequence through ``fn``."""
+
+    def __init__(self, keypoints: TileFeatures, target: TileFeatures, contrast_threshold: float, n_octave_layers: int,
+                 fn: Callable[[np.ndarray], np.ndarray] | None = None):
+        self.keypoints, self.target, self.fn = keypoints, target, fn
+        self.contrast_threshold, self.n_octave_layers = contrast_threshold, n_octave_layers
+
+    def __len__(self) -> int:
+        return len(self.target)
+
+    def __getitem__(self, index):
+        if isinstance(index, slice):
+            return [self[k] for k in range(*index.indices(len(self)))]
+        kept = contrast_kept(self.keypoints[index], self.contrast_threshold, self.n_octave_layers)
+        array = self.target[index][kept]
+        return array if self.fn is None else self.fn(array)
+
+    def map(self, fn: Callable[[np.ndarray], np.ndarray]) -> "ContrastSelected":
+        return ContrastSelected(self.keypoints, self.target, self.contrast_threshold, self.n_octave_layers, fn)
+
+    def tiles_of(self, indices) -> list[str]:
+        return self.target.tiles_of(indices)
 
 
 class TileStructures(Mapping):

@@ -9,7 +9,7 @@ errors come out as ``InputError`` naming the file.
 from __future__ import annotations
 
 import sqlite3
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -23,12 +23,13 @@ from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecor
                        SkippedFrame,
                        StoredImage, StoreError, StructureRecord, StructureTable)
 from visloc.errors import InputError
+from visloc.features.sift import contrast_kept
 from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.store.sharded import Catalogue, held_datasets, owner_tiles
 from visloc.params import COMMAND_OPTIONS
-from visloc.store.tilecache import TileCache, TileCacheStats, TileStructures
+from visloc.store.tilecache import ContrastSelected, TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
@@ -252,6 +253,10 @@ class Workspace:
         """Stored structure of ``db``'s images (or of the database indices ``views``): database index ->
         variant -> structure, neighbours as database indices. Images without stored structure are absent.
         A sharded store's is a mapping that reads a view's points from its tile when it is asked for."""
+        if db.selected_contrast is not None:
+            raise InputError(f"{self.path}: its structure indexes the features as stored, at SIFT contrast "
+                             f"{self._sift.contrast_threshold:g}, not those selected at {db.selected_contrast:g} "
+                             f"(--sift-contrast {self._sift.contrast_threshold:g} reads them as stored)")
         self._cover(db.source, db.camera)
         index_of = {im.image_id: k for k, im in enumerate(db.images)}
         wanted = range(len(db.images)) if views is None else views
@@ -291,30 +296,41 @@ class Workspace:
         return sift or self._sift
 
     def _images(self, store: FeatureStore, source: str, camera: str, sift: SiftParams
-                ) -> tuple[tuple[StoredImage, ...], tuple[np.ndarray, ...], tuple[np.ndarray, ...]]:
-        """Stored images of (source, camera) in time order with their keypoints and descriptors;
-        refuses features extracted with other SIFT settings than ``sift``."""
-        check_sift_settings(store, sift)
+                ) -> tuple[tuple[StoredImage, ...], Sequence[np.ndarray], Sequence[np.ndarray], float | None]:
+        """Stored images of (source, camera) in time order with their keypoints and descriptors, and the
+        contrast threshold they were selected at (None: as stored); refuses features extracted with other
+        SIFT settings than ``sift``, but for a lower contrast threshold, whose features it selects."""
+        selected = check_sift_settings(store, sift)
         images = tuple(store.images(source, camera))
         if not images:
             have = ", ".join(f"{s}/{c}" for s, c in self.drive_keys()) or "nothing"
             raise EmptyStoreError(f"{store.label}: no images of {source}/{camera} (it holds {have})")
         if self._tiles is not None:
-            return (images, *self._tiles.features([im.image_id for im in images],
-                                                  owner_tiles(self.path, source, camera)))
-        features = store.features(im.image_id for im in images)
-        keypoints = tuple(features[im.image_id][0] for im in images)
-        descriptors = tuple(features[im.image_id][1] for im in images)
-        return images, keypoints, descriptors
+            keypoints, descriptors = self._tiles.features([im.image_id for im in images],
+                                                          owner_tiles(self.path, source, camera))
+        else:
+            features = store.features(im.image_id for im in images)
+            keypoints = tuple(features[im.image_id][0] for im in images)
+            descriptors = tuple(features[im.image_id][1] for im in images)
+        if selected is None:
+            return images, keypoints, descriptors, None
+        layers = sift.n_octave_layers
+        if isinstance(keypoints, tuple):
+            kept = [contrast_kept(k, selected, layers) for k in keypoints]
+            return (images, tuple(k[m] for k, m in zip(keypoints, kept)),
+                    tuple(d[m] for d, m in zip(descriptors, kept)), selected)
+        return (images, ContrastSelected(keypoints, keypoints, selected, layers),
+                ContrastSelected(keypoints, descriptors, selected, layers), selected)
 
     def load_database(self, source: str, camera: str, sift: SiftParams | None = None,
                       frame: LocalFrame | None = None) -> GeoDatabase:
         """(source, camera) as a geotagged database; its local frame is centred on its first image
-        unless ``frame`` is given. ``sift`` (default: the store's) must equal the store's settings."""
+        unless ``frame`` is given. ``sift`` (default: the store's) must equal the store's settings, or differ
+        only by a higher contrast threshold (the store's features selected at it)."""
         sift = self._require_features(sift)
         self._cover(source, camera)
         with self._store() as store:
-            images, keypoints, descriptors = self._images(store, source, camera, sift)
+            images, keypoints, descriptors, selected = self._images(store, source, camera, sift)
             calibration = store.get_camera(source, camera)
         lat = np.array([im.lat_deg for im in images])
         lon = np.array([im.lon_deg for im in images])
@@ -328,7 +344,10 @@ class Workspace:
             lat_deg=lat, lon_deg=lon, east_north_m=frame.to_local(lat, lon),
             keypoints_f32=keypoints, descriptors_u8=descriptors,
             calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy, geotag_sigma_m=_sigmas(images),
+            selected_contrast=selected,
         )
+        if selected is not None:  # the self-checks measured the store's own features, which this is not
+            return db
         return replace(db, lever_gain=self.lever_gain(db),
                        camera_rate_lever_gain=self.lever_gain(db, CAMERA_RATE_PARAMS, camera_rate=True))
 
@@ -337,7 +356,7 @@ class Workspace:
         sift = self._require_features(sift)
         self._cover(source, camera)
         with self._store() as store:
-            images, keypoints, descriptors = self._images(store, source, camera, sift)
+            images, keypoints, descriptors, selected = self._images(store, source, camera, sift)
             calibration = store.get_camera(source, camera)
         return QuerySet(
             source=source, camera=camera, frames=np.array([im.frame for im in images]),
@@ -347,22 +366,27 @@ class Workspace:
             image_ids=tuple(im.image_id for im in images), paths=tuple(im.path for im in images),
             keypoints_f32=keypoints, calibration=calibration,
             heading_deg=np.array([np.nan if im.heading_deg is None else im.heading_deg for im in images]),
-            truth_sigma_m=_sigmas(images),
+            truth_sigma_m=_sigmas(images), selected_contrast=selected,
         )
 
     # -- cached correspondence counts -----------------------------------------------------------
 
     def pair_cache(self, db: GeoDatabase, queries: QuerySet, match_params: MatchParams) -> PairCountCache:
-        """A count cache keyed by store image ids, seeded with the counts the store keeps for these thresholds."""
+        """A count cache keyed by store image ids, seeded with the counts the store keeps for these thresholds.
+        The store keeps the counts of its features as they are: of features selected at a higher contrast
+        threshold the cache holds this run's counts only (``persistent`` False)."""
+        db_keys = [im.image_id for im in db.images]
+        if db.selected_contrast is not None or queries.selected_contrast is not None:
+            return PairCountCache(db.descriptors_u8, match_params, db_keys=db_keys, persistent=False)
         with self._store() as store:
             known = store.pair_counts(queries.image_ids, match_params.tau1, match_params.tau2)
-        return PairCountCache(db.descriptors_u8, match_params, db_keys=[im.image_id for im in db.images], known=known)
+        return PairCountCache(db.descriptors_u8, match_params, db_keys=db_keys, known=known)
 
     def save_pair_counts(self, cache: PairCountCache) -> int:
         """Persist the counts ``cache`` computed since the last save; returns how many. A read-only
         workspace writes nothing: the counts stay in ``cache`` only."""
         new = cache.take_new_entries()
-        if new and not self.read_only:
+        if new and cache.persistent and not self.read_only:
             with self._store() as store:
                 store.add_pair_counts(new, cache.match_params.tau1, cache.match_params.tau2)
         return len(new)
