@@ -24,6 +24,7 @@ from visloc.db.schema import change_name, lacking
 from visloc.db.store import FeatureStore, where_drive
 
 CHUNK_ROWS = 64  # rows whose BLOBs are in memory at a time
+PAIR_COUNT_TABLES = ("pair_counts", "selected_pair_counts")  # cached counts: of the features as stored, selected
 
 
 @dataclass(frozen=True)
@@ -230,8 +231,9 @@ def forget_derived(store: FeatureStore, source: str, camera: str, image_ids: Ite
             _forget_encoder(store, name)
         store.db.execute(f"DELETE FROM self_checks WHERE image_id {in_drive}", [source, camera])
         for chunk, marks in chunks(sorted(ids), 400):
-            store.db.execute(f"DELETE FROM pair_counts WHERE query_image_id IN ({marks}) OR db_image_id IN ({marks})",
-                             [*chunk, *chunk])
+            for table in PAIR_COUNT_TABLES:
+                store.db.execute(f"DELETE FROM {table} WHERE query_image_id IN ({marks}) OR db_image_id IN ({marks})",
+                                 [*chunk, *chunk])
 
 
 def move_geotags(store: FeatureStore, source: str, camera: str, geotags_deg: dict[int, tuple[float, float]]) -> int:
@@ -254,9 +256,11 @@ def move_geotags(store: FeatureStore, source: str, camera: str, geotags_deg: dic
 
 def clear_pair_counts(store: FeatureStore) -> int:
     """Forget every cached image-pair count (a store as ingest leaves it); returns how many there were."""
+    n = 0
     with store.db.atomic():
-        n = store.db.execute("SELECT COUNT(*) FROM pair_counts").fetchone()[0]
-        store.db.execute("DELETE FROM pair_counts")
+        for table in PAIR_COUNT_TABLES:
+            n += store.db.execute(f"SELECT COUNT(*) FROM {table}").fetchone()[0]
+            store.db.execute(f"DELETE FROM {table}")
     return int(n)
 
 

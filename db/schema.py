@@ -17,6 +17,9 @@ step of ``HISTORY`` that brought it, and ``upgrade`` is the one function that ap
    (images: source_sha256, the SHA-256 of the image file, and source_bytes, its size). Upgrading
    a store of version 4 computes the checksums of the BLOBs as they are then (``visloc.db.checksums``);
    the sources stay NULL until ingest has read them again.
+6  the cache of correspondence counts of features selected at a higher SIFT contrast threshold than the
+   store's (``selected_pair_counts``: a store built at a lower threshold serves the paper's method its own
+   features, whose counts are other than those of the features as stored).
 
 A new store is the whole history applied to an empty file. Opening a store for writing applies
 whatever of the history it lacks (a store of an older version: every later step; any store: a
@@ -121,6 +124,12 @@ HISTORY: tuple[tuple[Change, ...], ...] = (
         Column("structures", "cov_crc32", "INTEGER", after="points_crc32"),
         Column("global_vectors", "vector_crc32", "INTEGER", after="image_id"),
         Column("arrays", "data_crc32", "INTEGER", after="shape_json"),
+    ),
+    (  # 5 -> 6
+        Table("selected_pair_counts", (("query_image_id", "INTEGER"), ("db_image_id", "INTEGER"), ("tau1", "REAL"),
+                                       ("tau2", "REAL"), ("contrast_threshold", "REAL"),
+                                       ("n_correspondences", "INTEGER"), ("match_ms", "REAL")),
+              key=("query_image_id", "db_image_id", "tau1", "tau2", "contrast_threshold")),
     ),
 )
 SCHEMA_VERSION = len(HISTORY)

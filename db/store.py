@@ -20,6 +20,8 @@ Tables
                    (uint8, N x 128) as BLOBs.
 ``pair_counts``    a cache: correspondences between a query image and a database
                    image for given (tau1, tau2), and how long computing it took.
+``selected_pair_counts`` (since version 6) the same, of the images' features selected at a
+                   higher SIFT contrast threshold than the store's (``contrast_threshold``).
 ``structures``     (since version 4) each database image's triangulated points: the
                    keypoint rows that carry one, the points and their covariances, the
                    neighbours and settings that made them (``visloc.db.structures``).
@@ -324,25 +326,30 @@ class FeatureStore:
 
     # -- cached correspondence counts ----------------------------------------------
 
-    def pair_counts(self, query_image_ids: Iterable[int], tau1: float, tau2: float
-                    ) -> dict[tuple[int, int], tuple[int, float]]:
-        """(query_image_id, db_image_id) -> (n_correspondences, match_ms) cached for (tau1, tau2)."""
+    def pair_counts(self, query_image_ids: Iterable[int], tau1: float, tau2: float,
+                    contrast_threshold: float | None = None) -> dict[tuple[int, int], tuple[int, float]]:
+        """(query_image_id, db_image_id) -> (n_correspondences, match_ms) cached for (tau1, tau2), of the features
+        as stored, or (``contrast_threshold``) of those selected at that SIFT contrast threshold."""
+        table, where, args = _pair_table(contrast_threshold)
         out = {}
         ids = [int(i) for i in query_image_ids]
         for chunk, marks in chunks(ids):
             for r in self.db.query(
-                "SELECT query_image_id, db_image_id, n_correspondences, match_ms FROM pair_counts "
-                f"WHERE tau1 = ? AND tau2 = ? AND query_image_id IN ({marks})", [tau1, tau2, *chunk]
+                f"SELECT query_image_id, db_image_id, n_correspondences, match_ms FROM {table} "
+                f"WHERE tau1 = ? AND tau2 = ?{where} AND query_image_id IN ({marks})", [tau1, tau2, *args, *chunk]
             ):
                 out[(r["query_image_id"], r["db_image_id"])] = (r["n_correspondences"], r["match_ms"])
         return out
 
-    def add_pair_counts(self, counts: dict[tuple[int, int], tuple[int, float]], tau1: float, tau2: float) -> None:
-        rows = [{"query_image_id": q, "db_image_id": d, "tau1": tau1, "tau2": tau2, "n_correspondences": int(n),
-                 "match_ms": float(ms)} for (q, d), (n, ms) in counts.items()]
+    def add_pair_counts(self, counts: dict[tuple[int, int], tuple[int, float]], tau1: float, tau2: float,
+                        contrast_threshold: float | None = None) -> None:
+        table, _, _ = _pair_table(contrast_threshold)
+        selected = {} if contrast_threshold is None else {"contrast_threshold": float(contrast_threshold)}
+        rows = [{"query_image_id": q, "db_image_id": d, "tau1": tau1, "tau2": tau2, **selected,
+                 "n_correspondences": int(n), "match_ms": float(ms)} for (q, d), (n, ms) in counts.items()]
         if rows:
             with self.db.atomic():
-                self.db["pair_counts"].insert_all(rows, replace=True)
+                self.db[table].insert_all(rows, replace=True)
 
     # -- streaming (the fast path) ----------------------------------------------------------
 
@@ -434,3 +441,11 @@ def _dict_diff(stored: object, wanted: object) -> str:
         parts = [f"{k}: store {stored.get(k)!r}, asked {wanted.get(k)!r}" for k in keys if stored.get(k) != wanted.get(k)]
         return "; ".join(parts)
     return f"store {stored!r}, asked {wanted!r}"
+
+
+def _pair_table(contrast_threshold: float | None) -> tuple[str, str, list]:
+    """The table of cached counts of the features as stored (None) or selected at ``contrast_threshold``, and
+    the condition and argument that pick that threshold's rows."""
+    if contrast_threshold is None:
+        return "pair_counts", "", []
+    return "selected_pair_counts", " AND contrast_threshold = ?", [float(contrast_threshold)]

@@ -9,7 +9,7 @@ from visloc import PAPER_SIFT, Workspace
 from visloc.features.sift import contrast_kept
 from visloc.retrieval.matching import count_correspondences
 from visloc.params import PAPER_MATCH
-from helpers import KITTI_DRIVE, run_cli
+from helpers import KITTI_DRIVE, copy_store, run_cli
 
 DENSE_CONTRAST = 0.02
 N_FRAMES = 3
@@ -64,6 +64,24 @@ def test_a_selection_is_refused_where_the_store_cannot_serve_it(dense_store, kit
         reference.load_queries(SOURCE, "image_00", PAPER_SIFT.replace(contrast_threshold=DENSE_CONTRAST))
     with pytest.raises(Exception, match="edge_threshold"):
         dense.load_queries(SOURCE, "image_00", PAPER_SIFT.replace(edge_threshold=12.0))
-    # counts of selected features are this run's only: the store keeps those of its features as they are
-    cache = dense.pair_cache(db, dense.load_queries(SOURCE, "image_00", PAPER_SIFT), PAPER_MATCH)
-    assert not cache.persistent
+
+
+def test_counts_of_selected_features_are_kept_apart_from_those_of_the_features_as_stored(dense_store, tmp_path):
+    store = copy_store(dense_store, tmp_path)
+    counted = {}
+    for sift in (PAPER_SIFT, None):  # the paper's selection, then the features as stored
+        ws = Workspace(store)
+        db, queries = ws.load_database(SOURCE, "image_00", sift), ws.load_queries(SOURCE, "image_00", sift)
+        cache = ws.pair_cache(db, queries, PAPER_MATCH)
+        [counted[sift]] = cache(queries.descriptors_u8[0], queries.key(0))([2])
+        assert ws.save_pair_counts(cache) == 1
+        assert counted[sift] == count_correspondences(queries.descriptors_u8[0], db.descriptors_u8[2], PAPER_MATCH)
+    # each is read back from its own table (a cache seeded from the store computes nothing)
+    for sift in (PAPER_SIFT, None):
+        ws = Workspace(store, read_only=True)
+        db, queries = ws.load_database(SOURCE, "image_00", sift), ws.load_queries(SOURCE, "image_00", sift)
+        cache = ws.pair_cache(db, queries, PAPER_MATCH)
+        assert list(cache(queries.descriptors_u8[0], queries.key(0))([2])) == [counted[sift]]
+        assert cache.take_new_entries() == {}
+    assert counted[None] > counted[PAPER_SIFT]
+    assert Workspace(store).clear_pair_counts() == 2

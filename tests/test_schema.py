@@ -29,7 +29,7 @@ IMAGES_SQL = ('CREATE TABLE "images" (\n   "id" INTEGER PRIMARY KEY,\n   "source
               '   "descriptors_crc32" INTEGER,\n   "keypoints_f32" BLOB,\n   "descriptors_u8" BLOB,\n'
               '   "created_at" TEXT\n)')
 TABLES = {"visloc_schema", "settings", "cameras", "images", "pair_counts", "structures", "global_vectors", "arrays",
-          "skipped_frames", "self_checks"}
+          "skipped_frames", "self_checks", "selected_pair_counts"}
 
 
 def _affinity(declared: str) -> str:
@@ -103,7 +103,7 @@ def test_the_history_defines_each_table_column_and_index_once():
     indexes = [c.name for c in changes if isinstance(c, Index)]
     assert len(set(tables)) == len(tables) and set(tables) == TABLES
     assert len(set(columns)) == len(columns) and len(set(indexes)) == len(indexes)
-    assert SCHEMA_VERSION == len(HISTORY) == 5
+    assert SCHEMA_VERSION == len(HISTORY) == 6
 
 
 def test_every_blob_of_the_schema_is_a_declared_stored_array_with_its_checksum_column():

@@ -291,16 +291,17 @@ class PairCountCache:
 
     ``db_keys`` names the database images (default: their indices); ``known`` seeds the cache,
     e.g. with counts persisted by an earlier run; ``take_new_entries()`` hands over what was
-    computed since it was last called, to persist; ``persistent`` False: counts not to be kept beyond this
-    run (of features other than the store's as they are).
+    computed since it was last called, to persist; ``selected_contrast``: the counts are of features selected
+    at this SIFT contrast threshold (None: as stored); ``persistent`` False: counts not to be kept beyond this run.
     """
 
     def __init__(self, db_descriptors: Sequence[np.ndarray], match_params: MatchParams, *,
                  db_keys: Sequence[Hashable] | None = None,
-                 known: dict[tuple[Hashable, Hashable], tuple[int, float]] | None = None, persistent: bool = True):
+                 known: dict[tuple[Hashable, Hashable], tuple[int, float]] | None = None,
+                 selected_contrast: float | None = None, persistent: bool = True):
         self.db_descriptors = db_descriptors
         self.match_params = match_params
-        self.persistent = persistent
+        self.selected_contrast, self.persistent = selected_contrast, persistent
         self.db_keys = list(range(len(db_descriptors))) if db_keys is None else list(db_keys)
         self._entries: dict[tuple[Hashable, Hashable], tuple[int, float]] = dict(known or {})
         self._new: dict[tuple[Hashable, Hashable], tuple[int, float]] = {}

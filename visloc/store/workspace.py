@@ -372,15 +372,15 @@ class Workspace:
     # -- cached correspondence counts -----------------------------------------------------------
 
     def pair_cache(self, db: GeoDatabase, queries: QuerySet, match_params: MatchParams) -> PairCountCache:
-        """A count cache keyed by store image ids, seeded with the counts the store keeps for these thresholds.
-        The store keeps the counts of its features as they are: of features selected at a higher contrast
-        threshold the cache holds this run's counts only (``persistent`` False)."""
+        """A count cache keyed by store image ids, seeded with the counts the store keeps for these thresholds,
+        of the features as stored or as selected at a higher contrast threshold (``GeoDatabase.selected_contrast``)."""
         db_keys = [im.image_id for im in db.images]
-        if db.selected_contrast is not None or queries.selected_contrast is not None:
+        if db.selected_contrast != queries.selected_contrast:  # no count of such a pair is kept
             return PairCountCache(db.descriptors_u8, match_params, db_keys=db_keys, persistent=False)
         with self._store() as store:
-            known = store.pair_counts(queries.image_ids, match_params.tau1, match_params.tau2)
-        return PairCountCache(db.descriptors_u8, match_params, db_keys=db_keys, known=known)
+            known = store.pair_counts(queries.image_ids, match_params.tau1, match_params.tau2, db.selected_contrast)
+        return PairCountCache(db.descriptors_u8, match_params, db_keys=db_keys, known=known,
+                              selected_contrast=db.selected_contrast)
 
     def save_pair_counts(self, cache: PairCountCache) -> int:
         """Persist the counts ``cache`` computed since the last save; returns how many. A read-only
@@ -388,7 +388,7 @@ class Workspace:
         new = cache.take_new_entries()
         if new and cache.persistent and not self.read_only:
             with self._store() as store:
-                store.add_pair_counts(new, cache.match_params.tau1, cache.match_params.tau2)
+                store.add_pair_counts(new, cache.match_params.tau1, cache.match_params.tau2, cache.selected_contrast)
         return len(new)
 
     def clear_pair_counts(self) -> int:
