@@ -26,13 +26,13 @@ import viser
 
 import visloc
 from visloc.dashboard import panels, runpanels
-from visloc.dashboard.gui import Handles, build_gui, enable_for_mode, paper_values, saved_values, tuned_from_html
-from visloc.dashboard.gui import rate_follows_mode
+from visloc.dashboard.gui import (Handles, build_gui, enable_for_mode, paper_values, rate_follows_mode, saved_values,
+                                  tuned_from_html)
 from visloc.dashboard.jobs import LatestJobRunner
 from visloc.dashboard.page import Page, run_file, run_file_name
 from visloc.dashboard.session import SessionView
 from visloc.dashboard.state import (CONTROLLED, Allowed, Controls, Run, Shown, discover_stores, first_choices,
-                                    measure_drive)
+                                    load_features, measure_drive)
 from visloc.dashboard.viewkit import flat_scene
 
 PARTIAL_EVERY_S = 0.5  # a run being matched is redrawn at most this often
@@ -298,14 +298,13 @@ class DashboardApp:
         self._show_status(f"Loading {db_name} and {q_name}…")
 
         def load(cancelled) -> None:
-            d, q = by_name[db_name], by_name[q_name]
-            db, queries = workspace.load_database(d.source, d.camera), workspace.load_queries(q.source, q.camera)
+            db, queries, paper_features = load_features(workspace, by_name[db_name], by_name[q_name])
             fast = visloc.REFINED_FAST_METHOD
             stored, index = workspace.load_structure(db, fast.pose), workspace.global_vectors.load_database_index(db, fast.shortlist)
             with self._lock:
                 if cancelled() or s.loading_key != data_key:
                     return
-                s.db, s.queries, s.data_key, s.loading_key = db, queries, data_key, None
+                s.db, s.queries, s.paper_features, s.data_key, s.loading_key = db, queries, paper_features, data_key, None
                 s.caches, s.structures, s.run, s.matching_key, s.step_key = {}, visloc.StructureCache(), None, None, None
                 s.image_key = None
                 s.stored, s.index, s.series_images = stored, index, None
@@ -320,22 +319,23 @@ class DashboardApp:
 
     def _start_matching(self, c: Controls, match_key: tuple) -> None:
         s = self.shown
-        db, queries, workspace = s.db, s.queries, s.workspace
+        workspace = s.workspace
         try:
             method = visloc.method_named(c.method)
             match = c.params_for(visloc.PAPER_MATCH)
             retrieval = c.params_for(visloc.PAPER_RETRIEVAL)
-            indices = visloc.drive_query_indices(queries.timestamps_s, c.start_s, 1.0 / c.rate_hz)
+            indices = visloc.drive_query_indices(s.queries.timestamps_s, c.start_s, 1.0 / c.rate_hz)
         except visloc.VislocError as exc:
             s.failed_key = match_key
             self._show_error(str(exc))
             return
-        s.matching_key = match_key
+        s.matching_key, (db, queries) = match_key, s.features(method)
         if s.run is not None and s.run.partial and s.run.previous is not None:
             s.run = s.run.previous  # a run superseded while it filled in: back to the complete one it replaced
-        if (match.tau1, match.tau2) not in s.caches:  # counts the store keeps for these thresholds
-            s.caches[(match.tau1, match.tau2)] = workspace.pair_cache(db, queries, match)
-        cache = s.caches[(match.tau1, match.tau2)]
+        counted = (match.tau1, match.tau2, db.selected_contrast)
+        if counted not in s.caches:  # counts the store keeps for these thresholds
+            s.caches[counted] = workspace.pair_cache(db, queries, match)
+        cache = s.caches[counted]
         label = f"Matching {len(indices)} queries ({method.name}, τ1 {match.tau1:g}, τ2 {match.tau2:g})"
         self._show_status(label + "…")
         self.gui.progress.value, self.gui.progress.visible = 0.0, True
@@ -414,8 +414,8 @@ class DashboardApp:
 
     def _show_pictures(self, run: Run, k: int, image_key: tuple) -> None:
         """Read the step's images and draw Figure 3 in the background; show them if the step is still on."""
+        db, queries = self.shown.features(run.matches.method)  # the features it matched
         s = self.shown
-        db, queries = s.db, s.queries
 
         def job(cancelled) -> None:
             show = self.page.step_pictures(run, k, db, queries)

@@ -132,7 +132,10 @@ class Shown:
     loading_key: tuple | None = None
     db: visloc.GeoDatabase | None = None
     queries: visloc.QuerySet | None = None
-    caches: dict[tuple[float, float], visloc.PairCountCache] = field(default_factory=dict)
+    # the paper's own features (database, queries), where the store's were described at a lower contrast
+    paper_features: tuple[visloc.GeoDatabase, visloc.QuerySet] | None = None
+    # counts per (tau1, tau2, the contrast the features were selected at)
+    caches: dict[tuple, visloc.PairCountCache] = field(default_factory=dict)
     structures: visloc.StructureCache = field(default_factory=visloc.StructureCache)
     stored: dict = field(default_factory=dict)  # the database's stored structure (the camera-rate path)
     index: visloc.GlobalIndex | None = None  # its stored global vectors
@@ -145,6 +148,24 @@ class Shown:
     drawn_key: tuple | None = None  # the run drawn in 3D: (its track key, the ellipses' magnification)
     image_key: tuple | None = None  # the step whose pictures are shown or being read
     runs_done: int = 0
+
+    def features(self, method: visloc.Method) -> tuple[visloc.GeoDatabase, visloc.QuerySet]:
+        """The database and queries ``method`` matches: the store's features, or the paper's own for its method."""
+        if self.paper_features is not None and method.pose is None:
+            return self.paper_features
+        return self.db, self.queries
+
+
+def load_features(workspace: visloc.Workspace, db_drive: visloc.StoredDrive, query_drive: visloc.StoredDrive):
+    """The database and the queries as the store holds them, and the paper's own features where the store's
+    were described at a lower SIFT contrast threshold than the paper's (else None)."""
+    db = workspace.load_database(db_drive.source, db_drive.camera)
+    queries = workspace.load_queries(query_drive.source, query_drive.camera)
+    paper_sift = visloc.features_for(visloc.PAPER_METHOD, workspace.sift_params)
+    if paper_sift == workspace.sift_params:
+        return db, queries, None
+    return db, queries, (workspace.load_database(db_drive.source, db_drive.camera, paper_sift, frame=db.frame),
+                         workspace.load_queries(query_drive.source, query_drive.camera, paper_sift))
 
 
 @dataclass(frozen=True)

@@ -5,6 +5,8 @@ from a denser store. Checked on real KITTI frames against the session's store (b
 import numpy as np
 import pytest
 
+import visloc
+
 from visloc import PAPER_SIFT, Workspace
 from visloc.features.sift import contrast_kept
 from visloc.retrieval.matching import count_correspondences
@@ -85,3 +87,20 @@ def test_counts_of_selected_features_are_kept_apart_from_those_of_the_features_a
         assert cache.take_new_entries() == {}
     assert counted[None] > counted[PAPER_SIFT]
     assert Workspace(store).clear_pair_counts() == 2
+
+
+def test_the_dashboard_matches_the_papers_method_on_its_own_features(dense_store, kitti_evaluation):
+    from visloc.dashboard.state import Shown, load_features
+
+    folder, _, _ = kitti_evaluation
+    dense = Workspace(dense_store, read_only=True)
+    [drive] = dense.drives()
+    db, queries, paper = load_features(dense, drive, drive)
+    shown = Shown(db=db, queries=queries, paper_features=paper)
+    paper_db, paper_queries = shown.features(visloc.PAPER_METHOD)
+    assert paper_db.selected_contrast == paper_queries.selected_contrast == PAPER_SIFT.contrast_threshold
+    assert paper_db.frame == db.frame and len(paper_db.descriptors_u8[0]) < len(db.descriptors_u8[0])
+    assert shown.features(visloc.REFINED_METHOD) == (db, queries)  # the refined modes read the store's own
+    reference = Workspace(folder / "kitti.sqlite", read_only=True)
+    left = next(d for d in reference.drives() if d.camera == "image_00")
+    assert load_features(reference, left, left)[2] is None  # a store at the paper's threshold is the paper's
