@@ -332,7 +332,7 @@ class DashboardApp:
         s.matching_key, (db, queries) = match_key, s.features(method)
         if s.run is not None and s.run.partial and s.run.previous is not None:
             s.run = s.run.previous  # a run superseded while it filled in: back to the complete one it replaced
-        counted = (match.tau1, match.tau2, db.selected_contrast)
+        counted = (match.tau1, match.tau2, db.selected_contrast or db.retrieval_contrast)  # retrieval's features
         if counted not in s.caches:  # counts the store keeps for these thresholds
             s.caches[counted] = workspace.pair_cache(db, queries, match)
         cache = s.caches[counted]

@@ -20,8 +20,7 @@ Tables
                    (uint8, N x 128) as BLOBs.
 ``pair_counts``    a cache: correspondences between a query image and a database
                    image for given (tau1, tau2), and how long computing it took.
-``selected_pair_counts`` (since version 6) the same, of the images' features selected at a
-                   higher SIFT contrast threshold than the store's (``contrast_threshold``).
+``selected_pair_counts`` (since version 6) the same, of features selected at a higher contrast.
 ``structures``     (since version 4) each database image's triangulated points: the
                    keypoint rows that carry one, the points and their covariances, the
                    neighbours and settings that made them (``visloc.db.structures``).
@@ -343,7 +342,7 @@ class FeatureStore:
 
     def add_pair_counts(self, counts: dict[tuple[int, int], tuple[int, float]], tau1: float, tau2: float,
                         contrast_threshold: float | None = None) -> None:
-        table, _, _ = _pair_table(contrast_threshold)
+        table = _pair_table(contrast_threshold)[0]
         selected = {} if contrast_threshold is None else {"contrast_threshold": float(contrast_threshold)}
         rows = [{"query_image_id": q, "db_image_id": d, "tau1": tau1, "tau2": tau2, **selected,
                  "n_correspondences": int(n), "match_ms": float(ms)} for (q, d), (n, ms) in counts.items()]
@@ -444,8 +443,7 @@ def _dict_diff(stored: object, wanted: object) -> str:
 
 
 def _pair_table(contrast_threshold: float | None) -> tuple[str, str, list]:
-    """The table of cached counts of the features as stored (None) or selected at ``contrast_threshold``, and
-    the condition and argument that pick that threshold's rows."""
+    """The table of counts of the features as stored (None) or selected at ``contrast_threshold``, and its rows'."""
     if contrast_threshold is None:
         return "pair_counts", "", []
     return "selected_pair_counts", " AND contrast_threshold = ?", [float(contrast_threshold)]

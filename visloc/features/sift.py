@@ -4,7 +4,7 @@ image's features as the localizer sees them (``Query``)."""
 from __future__ import annotations
 
 from collections.abc import Hashable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -99,6 +99,16 @@ def contrast_kept(keypoints_f32: np.ndarray, contrast_threshold: float, n_octave
     thousands, whose unrefined extremum the higher one would have skipped before refining it)."""
     response = np.asarray(keypoints_f32, np.float64)[:, 4]
     return response * int(n_octave_layers) >= float(contrast_threshold)
+
+
+def at_contrast(query: Query, contrast_threshold: float, n_octave_layers: int) -> Query:
+    """``query`` with only the features SIFT keeps at ``contrast_threshold`` (``contrast_kept``); as it is when
+    its keypoints do not say their response."""
+    keypoints = query.keypoints_f32
+    if keypoints is None or keypoints.ndim != 2 or keypoints.shape[1] < 5:
+        return query
+    kept = contrast_kept(keypoints, contrast_threshold, n_octave_layers)
+    return replace(query, descriptors_u8=query.descriptors_u8[kept], keypoints_f32=keypoints[kept])
 
 
 def undistort_keypoints(keypoints_f32: np.ndarray, K: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:

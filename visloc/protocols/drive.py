@@ -96,7 +96,7 @@ def match_drive(queries: QuerySet, db: GeoDatabase, match_params: MatchParams, r
     ``on_step(partial)`` is handed the run so far (the queries matched up to now, in order) after
     each query, so a caller can show a run as it is matched.
     """
-    cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
+    cache = cache if cache is not None else PairCountCache(db.retrieval_descriptors_u8, match_params)
     cache.check_thresholds(match_params)
     localizer = build_localizer(method, db, match_params, retrieval_params, filter_params,
                                 query_camera=queries.camera_model,

@@ -226,7 +226,7 @@ def evaluate(
     if start_indices is not None:
         wanted = set(int(i) for i in start_indices)
         schedule = [s for s in schedule if s[0] in wanted]
-    cache = cache if cache is not None else PairCountCache(db.descriptors_u8, match_params)
+    cache = cache if cache is not None else PairCountCache(db.retrieval_descriptors_u8, match_params)
     # the exact path reads the store's structure where it would triangulate the same view with the same
     # neighbours (the same numbers, built at ingest) and triangulates the rest
     structures = seeded_structure_cache(stored) if stored and not method.camera_rate else StructureCache()

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from visloc.features.sift import Query
+from visloc.features.sift import Query, at_contrast
 from visloc.retrieval.matching import Counter, CountFn
 from visloc.params import FastParams, RetrievalParams
 from visloc.features.vlad import GlobalIndex, shortlist
@@ -177,3 +177,17 @@ class ShortlistRetriever:
                                   self.counter(query.descriptors_u8, query.key), self.db_timestamps_s,
                                   self.db_east_north_m, self.index.vectors_f32, self.params, query.timestamp_s,
                                   self.retrieval_params, prediction)
+
+
+class ContrastSelecting:
+    """``retriever`` counting with a query's features SIFT keeps at ``contrast_threshold`` only, as the database's
+    ``retrieval_descriptors_u8`` are: the paper's retrieval on a store described at a lower threshold."""
+
+    def __init__(self, retriever, contrast_threshold: float, n_octave_layers: int):
+        self.retriever, self.contrast_threshold, self.n_octave_layers = retriever, contrast_threshold, n_octave_layers
+
+    def reset(self) -> None:
+        self.retriever.reset()
+
+    def retrieve(self, query: Query, prediction: Prediction = None) -> Retrieval:
+        return self.retriever.retrieve(at_contrast(query, self.contrast_threshold, self.n_octave_layers), prediction)

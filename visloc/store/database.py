@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
 from visloc.db import CameraRecord, StoredImage
-from visloc.features.sift import Query
+from visloc.features.sift import Query, contrast_kept
 from visloc.geometry.bundle import heading_spread_rad
 from visloc.geo import LocalFrame
 from visloc.geometry.projective import CameraModel, imu_poses, invert
@@ -47,6 +48,21 @@ class GeoDatabase:
     # the SIFT contrast threshold the store's features were selected at, higher than the one they were extracted
     # with (``visloc.features.sift.contrast_kept``); None: the features as stored
     selected_contrast: float | None = None
+    # the threshold retrieval counts correspondences at, where it is higher than the one the features were
+    # described with: the paper's, on a store described at a lower one (``retrieval_descriptors_u8``); None: all
+    retrieval_contrast: float | None = None
+    octave_layers: int = 3  # SIFT's layers per octave the features were described with
+
+    @cached_property
+    def retrieval_descriptors_u8(self) -> Sequence[np.ndarray]:
+        """Each image's descriptors that retrieval counts correspondences with: those of its keypoints SIFT keeps
+        at ``retrieval_contrast`` (all of them where that is None). A query's are chosen alike (``at_contrast``)."""
+        if self.retrieval_contrast is None:
+            return self.descriptors_u8
+        if not isinstance(self.keypoints_f32, tuple):  # a sharded store's: read when asked for
+            return self.keypoints_f32.selected(self.descriptors_u8, self.retrieval_contrast, self.octave_layers)
+        return tuple(d[contrast_kept(k, self.retrieval_contrast, self.octave_layers)]
+                     for k, d in zip(self.keypoints_f32, self.descriptors_u8))
 
     def __len__(self) -> int:
         return len(self.images)

@@ -157,6 +157,10 @@ class TileFeatures(Sequence):
     def map(self, fn: Callable[[np.ndarray], np.ndarray]) -> "TileFeatures":
         return TileFeatures(self.cache, self.image_ids, self.tiles, self.part, fn)
 
+    def selected(self, target: "TileFeatures", contrast_threshold: float, n_octave_layers: int) -> "ContrastSelected":
+        """``target`` (these keypoints' descriptors, say) at the rows SIFT keeps at ``contrast_threshold``."""
+        return ContrastSelected(self, target, contrast_threshold, n_octave_layers)
+
     def tiles_of(self, indices) -> list[str]:
         """The distinct tiles the images at ``indices`` are read from, in first-use order."""
         return list(dict.fromkeys(self.tiles[int(k)] for k in indices))

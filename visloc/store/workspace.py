@@ -33,6 +33,7 @@ from visloc.store.tilecache import ContrastSelected, TileCache, TileCacheStats, 
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
 from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
+from visloc.params.methods import PAPER_METHOD, features_for
 from visloc.pose.selfcheck import (CAMERA_RATE_PARAMS, SelfCheckPose, lever_gain_from, record_pose,
                                     self_check_settings_json)
 from visloc.sources.drives import Drive
@@ -344,7 +345,8 @@ class Workspace:
             lat_deg=lat, lon_deg=lon, east_north_m=frame.to_local(lat, lon),
             keypoints_f32=keypoints, descriptors_u8=descriptors,
             calibration=calibration, frame=frame, up_m=alt - alt[0], rpy_rad=rpy, geotag_sigma_m=_sigmas(images),
-            selected_contrast=selected,
+            selected_contrast=selected, octave_layers=sift.n_octave_layers,
+            retrieval_contrast=_retrieval_contrast(self._sift, sift),
         )
         if selected is not None:  # the self-checks measured the store's own features, which this is not
             return db
@@ -375,12 +377,13 @@ class Workspace:
         """A count cache keyed by store image ids, seeded with the counts the store keeps for these thresholds,
         of the features as stored or as selected at a higher contrast threshold (``GeoDatabase.selected_contrast``)."""
         db_keys = [im.image_id for im in db.images]
+        counted_at = db.selected_contrast or db.retrieval_contrast  # None: the features as stored
         if db.selected_contrast != queries.selected_contrast:  # no count of such a pair is kept
-            return PairCountCache(db.descriptors_u8, match_params, db_keys=db_keys, persistent=False)
+            return PairCountCache(db.retrieval_descriptors_u8, match_params, db_keys=db_keys, persistent=False)
         with self._store() as store:
-            known = store.pair_counts(queries.image_ids, match_params.tau1, match_params.tau2, db.selected_contrast)
-        return PairCountCache(db.descriptors_u8, match_params, db_keys=db_keys, known=known,
-                              selected_contrast=db.selected_contrast)
+            known = store.pair_counts(queries.image_ids, match_params.tau1, match_params.tau2, counted_at)
+        return PairCountCache(db.retrieval_descriptors_u8, match_params, db_keys=db_keys, known=known,
+                              selected_contrast=counted_at)
 
     def save_pair_counts(self, cache: PairCountCache) -> int:
         """Persist the counts ``cache`` computed since the last save; returns how many. A read-only
@@ -437,3 +440,10 @@ class Workspace:
 def _sigmas(images: tuple[StoredImage, ...]) -> np.ndarray:
     """(N,) stated geotag accuracy of each image, sigma per axis in metres, NaN where unknown."""
     return np.array([np.nan if im.position_accuracy_m is None else im.position_accuracy_m for im in images], float)
+
+
+def _retrieval_contrast(store: SiftParams, read: SiftParams) -> float | None:
+    """The contrast threshold retrieval counts features read at ``read`` from a store built with ``store`` at:
+    the paper's where both are lower (``visloc.params.methods.features_for``), else None (all of them)."""
+    paper = features_for(PAPER_METHOD, store).contrast_threshold
+    return paper if read.contrast_threshold < paper and store.n_features == 0 else None

@@ -30,7 +30,7 @@ from visloc.pose.measurement import GeotagMeasurer, MemoisedMeasurer
 from visloc.params import FilterParams, MatchParams, RetrievalParams
 from visloc.params.methods import Method
 from visloc.pose.refined import PoseMeasurer, StructureCache
-from visloc.retrieval.retrievers import ShortlistRetriever, WindowRetriever, build_global_index
+from visloc.retrieval.retrievers import ContrastSelecting, ShortlistRetriever, WindowRetriever, build_global_index
 from visloc.pose.structure import seeded_structure_cache
 from visloc.features.vlad import GlobalIndex
 
@@ -58,13 +58,15 @@ def build_localizer(method: Method, db: GeoDatabase, match: MatchParams, retriev
                                       shortlist_index, stored)
     if isinstance(counter, PairCountCache):
         counter.check_thresholds(match)
+    descriptors = db.retrieval_descriptors_u8  # the paper's features, also where the store's are denser
     if method.shortlist is None:
-        retriever = WindowRetriever(db.timestamps_s, counter or brute_force_counter(db.descriptors_u8, match),
-                                    retrieval)
+        retriever = WindowRetriever(db.timestamps_s, counter or brute_force_counter(descriptors, match), retrieval)
     else:
-        index = shortlist_index or build_global_index(db.descriptors_u8, method.shortlist)
-        counter = counter or backend_counter(method.shortlist.nn_backend, db.descriptors_u8, match)
+        index = shortlist_index or build_global_index(descriptors, method.shortlist)
+        counter = counter or backend_counter(method.shortlist.nn_backend, descriptors, match)
         retriever = ShortlistRetriever(db.timestamps_s, db.east_north_m, index, method.shortlist, counter, retrieval)
+    if db.retrieval_contrast is not None:
+        retriever = ContrastSelecting(retriever, db.retrieval_contrast, db.octave_layers)
     if method.pose is None:
         measurer = GeotagMeasurer(db.east_north_m)
     else:
