@@ -204,8 +204,9 @@ def render(r: dict) -> str:
         add(f"The keypoints and descriptors at the default contrast are those at the lower contrast whose response "
             f"times the layers per octave reaches {default}, on every {SUBSET_EVERY}th image of each drive's query "
             f"camera ({'; '.join(checks)}, where an extremum at the lower contrast starts its interpolation from "
-            "a neighbouring pixel): a store ingested at the lower contrast holds the paper's features, selectable "
-            "by response.")
+            "a neighbouring pixel): a store ingested at the lower contrast holds the paper's features, and visloc "
+            "selects them by response for the paper's method and for every mode's retrieval, while the refined "
+            "modes measure on all of them.")
     add("")
     add(SECTION.end)
     return "\n".join(lines)
