@@ -362,10 +362,13 @@ def step_figure(queries: visloc.QuerySet, db: visloc.GeoDatabase, q_index: int, 
     if q_gray is None or d_gray is None:
         missing = queries.paths[q_index] if q_gray is None else db.images[best].path
         return placeholder(f"Image file not reachable:\n{missing}\n(the store keeps features, not images)")
-    pairs = visloc.correspondences(queries.descriptors_u8[q_index], db.descriptors_u8[best], match)
+    # the features retrieval counted (the paper's, on a store described at a lower contrast): its count
+    (q_xy, q_desc), (d_xy, d_desc) = (db.as_retrieved(queries.keypoints_f32[q_index], queries.descriptors_u8[q_index]),
+                                      db.as_retrieved(db.keypoints_f32[best], db.descriptors_u8[best]))
+    pairs = visloc.correspondences(q_desc, d_desc, match)
     names = series_names(queries, db)
     return visloc.correspondence_figure(
-        q_gray, d_gray, queries.keypoints_f32[q_index][pairs[:, 0], :2], db.keypoints_f32[best][pairs[:, 1], :2],
+        q_gray, d_gray, q_xy[pairs[:, 0], :2], d_xy[pairs[:, 1], :2],
         width_px=FIGURE_WIDTH_PX,
         labels=(f"query {names[0]} frame {queries.frames[q_index]}",
                 f"best match {names[1]} frame {db.images[best].frame}: {len(pairs)} correspondences"))

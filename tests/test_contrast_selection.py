@@ -110,6 +110,10 @@ def test_the_dashboard_matches_the_papers_method_on_its_own_features(dense_store
     assert paper_db.selected_contrast == paper_queries.selected_contrast == PAPER_SIFT.contrast_threshold
     assert paper_db.frame == db.frame and len(paper_db.descriptors_u8[0]) < len(db.descriptors_u8[0])
     assert shown.features(visloc.REFINED_METHOD) == (db, queries)  # the refined modes read the store's own
+    # a step's picture joins the features retrieval counted, in every mode: the count its table shows
+    for k in range(N_FRAMES):
+        assert np.array_equal(db.as_retrieved(queries.keypoints_f32[k], queries.descriptors_u8[k])[1],
+                              paper_queries.descriptors_u8[k])
     reference = Workspace(folder / "kitti.sqlite", read_only=True)
     left = next(d for d in reference.drives() if d.camera == "image_00")
     assert load_features(reference, left, left)[2] is None  # a store at the paper's threshold is the paper's

@@ -53,6 +53,14 @@ class GeoDatabase:
     retrieval_contrast: float | None = None
     octave_layers: int = 3  # SIFT's layers per octave the features were described with
 
+    def as_retrieved(self, keypoints_f32: np.ndarray, descriptors_u8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One image's features (this database's, or a query's of the same store) as retrieval counts them: those
+        SIFT keeps at ``retrieval_contrast`` (all of them where that is None)."""
+        if self.retrieval_contrast is None:
+            return keypoints_f32, descriptors_u8
+        kept = contrast_kept(keypoints_f32, self.retrieval_contrast, self.octave_layers)
+        return keypoints_f32[kept], descriptors_u8[kept]
+
     @cached_property
     def retrieval_descriptors_u8(self) -> Sequence[np.ndarray]:
         """Each image's descriptors that retrieval counts correspondences with: those of its keypoints SIFT keeps
