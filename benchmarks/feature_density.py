@@ -205,8 +205,8 @@ def render(r: dict) -> str:
             f"times the layers per octave reaches {default}, on every {SUBSET_EVERY}th image of each drive's query "
             f"camera ({'; '.join(checks)}, where an extremum at the lower contrast starts its interpolation from "
             "a neighbouring pixel): a store ingested at the lower contrast holds the paper's features, and visloc "
-            "selects them by response for the paper's method and for every mode's retrieval, while the refined "
-            "modes measure on all of them.")
+            "selects them by response for the paper's method and for the refined mode's retrieval, while the "
+            "refined measurements and the camera-rate path read all of them.")
     add("")
     add(SECTION.end)
     return "\n".join(lines)

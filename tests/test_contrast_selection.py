@@ -55,6 +55,14 @@ def test_the_selected_features_are_the_ones_sift_finds_at_the_higher_threshold(d
         assert theirs > 100 and abs(ours - theirs) <= 0.01 * theirs
 
 
+def test_info_says_which_features_each_method_reads(dense_store):
+    result = run_cli("info", "--db", dense_store)
+    assert result.returncode == 0, result.stderr
+    assert "'contrast_threshold': 0.02" in result.stdout
+    assert ("the paper's method, and the refined mode's retrieval, read the keypoints SIFT keeps at contrast 0.04; "
+            "the refined measurements and the camera-rate path read all of them") in result.stdout
+
+
 def test_a_selection_is_refused_where_the_store_cannot_serve_it(dense_store, kitti_evaluation):
     folder, _, _ = kitti_evaluation
     dense = Workspace(dense_store, read_only=True)

@@ -7,6 +7,7 @@ import argparse
 
 from visloc.cli.describing import describe_drive
 from visloc.db.shards import is_sharded
+from visloc.params.methods import PAPER_METHOD, features_for
 from visloc.progress import progress_reporter
 from visloc.store.check import check_sharded, check_store
 from visloc.store.sharded import sharded_summary
@@ -43,6 +44,10 @@ def cmd_info(a: argparse.Namespace) -> int:
     if ws.sharded:
         print(sharded_summary(a.db))
     print(f"SIFT settings: {sift.as_dict() if sift else 'none yet'}")
+    paper = None if sift is None else features_for(PAPER_METHOD, sift)
+    if paper is not None and paper != sift:
+        print(f"the paper's method, and the refined mode's retrieval, read the keypoints SIFT keeps at contrast "
+              f"{paper.contrast_threshold:g}; the refined measurements and the camera-rate path read all of them")
     for d in ws.drives():
         calib = "P_rect known" if d.has_calibration else "no calibration"
         calib += ", extrinsics known" if d.has_extrinsics else ", no extrinsics"

@@ -48,7 +48,8 @@ class GeoDatabase:
     # the SIFT contrast threshold the store's features were selected at, higher than the one they were extracted
     # with (``visloc.features.sift.contrast_kept``); None: the features as stored
     selected_contrast: float | None = None
-    # the threshold retrieval counts correspondences at, where it is higher than the one the features were
+    # the threshold retrieval counts correspondences at (the paper's retrieval and the exact refined mode's; the
+    # camera-rate path counts matches to stored structure), where it is higher than the one the features were
     # described with: the paper's, on a store described at a lower one (``retrieval_descriptors_u8``); None: all
     retrieval_contrast: float | None = None
     octave_layers: int = 3  # SIFT's layers per octave the features were described with
