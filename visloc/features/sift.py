@@ -101,14 +101,25 @@ def contrast_kept(keypoints_f32: np.ndarray, contrast_threshold: float, n_octave
     return response * int(n_octave_layers) >= float(contrast_threshold)
 
 
+def at_contrast_threshold(keypoints_f32: np.ndarray, descriptors_u8: np.ndarray, contrast_threshold: float | None,
+                          n_octave_layers: int) -> tuple[np.ndarray, np.ndarray]:
+    """One image's keypoints and descriptors that SIFT keeps at ``contrast_threshold`` (``contrast_kept``); all
+    of them when it is None."""
+    if contrast_threshold is None:
+        return keypoints_f32, descriptors_u8
+    kept = contrast_kept(keypoints_f32, contrast_threshold, n_octave_layers)
+    return keypoints_f32[kept], descriptors_u8[kept]
+
+
 def at_contrast(query: Query, contrast_threshold: float, n_octave_layers: int) -> Query:
-    """``query`` with only the features SIFT keeps at ``contrast_threshold`` (``contrast_kept``); as it is when
-    its keypoints do not say their response."""
+    """``query`` with only the features SIFT keeps at ``contrast_threshold``; as it is when its keypoints do not
+    say their response."""
     keypoints = query.keypoints_f32
     if keypoints is None or keypoints.ndim != 2 or keypoints.shape[1] < 5:
         return query
-    kept = contrast_kept(keypoints, contrast_threshold, n_octave_layers)
-    return replace(query, descriptors_u8=query.descriptors_u8[kept], keypoints_f32=keypoints[kept])
+    keypoints, descriptors = at_contrast_threshold(keypoints, query.descriptors_u8, contrast_threshold,
+                                                   n_octave_layers)
+    return replace(query, descriptors_u8=descriptors, keypoints_f32=keypoints)
 
 
 def undistort_keypoints(keypoints_f32: np.ndarray, K: np.ndarray, distortion: np.ndarray | None) -> np.ndarray:

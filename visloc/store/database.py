@@ -9,7 +9,7 @@ from functools import cached_property
 import numpy as np
 
 from visloc.db import CameraRecord, StoredImage
-from visloc.features.sift import Query, contrast_kept
+from visloc.features.sift import Query, at_contrast_threshold
 from visloc.geometry.bundle import heading_spread_rad
 from visloc.geo import LocalFrame
 from visloc.geometry.projective import CameraModel, imu_poses, invert
@@ -57,10 +57,7 @@ class GeoDatabase:
     def as_retrieved(self, keypoints_f32: np.ndarray, descriptors_u8: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One image's features (this database's, or a query's of the same store) as retrieval counts them: those
         SIFT keeps at ``retrieval_contrast`` (all of them where that is None)."""
-        if self.retrieval_contrast is None:
-            return keypoints_f32, descriptors_u8
-        kept = contrast_kept(keypoints_f32, self.retrieval_contrast, self.octave_layers)
-        return keypoints_f32[kept], descriptors_u8[kept]
+        return at_contrast_threshold(keypoints_f32, descriptors_u8, self.retrieval_contrast, self.octave_layers)
 
     @cached_property
     def retrieval_descriptors_u8(self) -> Sequence[np.ndarray]:
@@ -70,8 +67,7 @@ class GeoDatabase:
             return self.descriptors_u8
         if not isinstance(self.keypoints_f32, tuple):  # a sharded store's: read when asked for
             return self.keypoints_f32.selected(self.descriptors_u8, self.retrieval_contrast, self.octave_layers)
-        return tuple(d[contrast_kept(k, self.retrieval_contrast, self.octave_layers)]
-                     for k, d in zip(self.keypoints_f32, self.descriptors_u8))
+        return tuple(self.as_retrieved(k, d)[1] for k, d in zip(self.keypoints_f32, self.descriptors_u8))
 
     def __len__(self) -> int:
         return len(self.images)

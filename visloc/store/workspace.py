@@ -23,7 +23,7 @@ from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecor
                        SkippedFrame,
                        StoredImage, StoreError, StructureRecord, StructureTable)
 from visloc.errors import InputError
-from visloc.features.sift import contrast_kept
+from visloc.features.sift import at_contrast_threshold
 from visloc.geo import LocalFrame
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
@@ -317,9 +317,8 @@ class Workspace:
             return images, keypoints, descriptors, None
         layers = sift.n_octave_layers
         if isinstance(keypoints, tuple):
-            kept = [contrast_kept(k, selected, layers) for k in keypoints]
-            return (images, tuple(k[m] for k, m in zip(keypoints, kept)),
-                    tuple(d[m] for d, m in zip(descriptors, kept)), selected)
+            pairs = [at_contrast_threshold(k, d, selected, layers) for k, d in zip(keypoints, descriptors)]
+            return images, tuple(k for k, _ in pairs), tuple(d for _, d in pairs), selected
         return (images, ContrastSelected(keypoints, keypoints, selected, layers),
                 ContrastSelected(keypoints, descriptors, selected, layers), selected)
 
