@@ -40,11 +40,11 @@ from visloc.features.sift import extract_sift, make_sift
 from visloc.errors import InputError
 from visloc.geo import geodesic_distance_m
 from visloc.retrieval.matching import backend_counter
-from visloc.params.methods import PAPER_METHOD
+from visloc.params.methods import PAPER_METHOD, features_for
 from visloc.tracking.methods import build_localizer
 from visloc.progress import progress_reporter
 from visloc.params import (BENCH, BENCH_WORKERS, PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_SIFT,
-                           BenchParams, FastParams, SiftParams)
+                           STORE_SIFT, BenchParams, FastParams, SiftParams)
 from visloc.sources.queries import extract_queries
 from visloc.retrieval.retrievers import build_global_index
 from visloc.tracking.runs import run_queries
@@ -81,7 +81,10 @@ def _cameras(root: Path | None, drive: str | None) -> tuple[str, str]:
 
 
 def _ensure_store(path: Path, sequences: dict, sift: SiftParams, workers: int, say) -> None:
+    """Ingest what the store at ``path`` lacks, as ``visloc ingest`` would: at the store's SIFT settings, ``sift``
+    for a new store."""
     ws = Workspace(path, create=True)
+    sift = ws.sift_params or sift
     for seq in {s.name: s for s in sequences.values()}.values():
         if ws.stored_frame_count(seq.source, seq.camera) < len(seq):
             say(f"building {path} ({seq.name}, SIFT {sift.as_dict()})")
@@ -96,9 +99,11 @@ def _ensure_store(path: Path, sequences: dict, sift: SiftParams, workers: int, s
 
 
 def _load_store(path: Path, sequences: dict):
+    """The workspace, and the database and queries as the paper's method reads them (on a store described at a
+    lower SIFT contrast, the paper's features selected)."""
     ws = Workspace(path)
-    db, queries = sequences["database"], sequences["queries"]
-    return ws, ws.load_database(db.source, db.camera), ws.load_queries(queries.source, queries.camera)
+    db, queries, sift = sequences["database"], sequences["queries"], features_for(PAPER_METHOD, ws.sift_params)
+    return ws, ws.load_database(db.source, db.camera, sift), ws.load_queries(queries.source, queries.camera, sift)
 
 
 # -- 1. accuracy ---------------------------------------------------------------------------------
@@ -141,7 +146,7 @@ def _accuracy(datasets: dict, indexes: dict, say) -> dict:
 def _live(lever: str, datasets: dict, indexes: dict, seq_by_key: dict, starts: list[list[int]]) -> list[dict]:
     store_key = "scaled" if lever == "fast" else "full"
     ws, db, _ = datasets[store_key]
-    sift = ws.sift_params
+    sift = features_for(PAPER_METHOD, ws.sift_params)  # the paper's features, as the database was loaded
     counter = backend_counter("faiss", db.descriptors_u8, PAPER_MATCH) if lever == "faiss_nn" else None
     method, index = PAPER_METHOD, None
     if lever in indexes:
@@ -294,7 +299,7 @@ def run_bench(root: Path | None, drive: str | None, db_path: Path, fast_db_path:
     seq_by_key = {"queries": open_source(root, drive=drive, camera=query_camera),
                   "database": open_source(root, drive=drive, camera=db_camera)}
     result.update(drive=seq_by_key["queries"].source, query_camera=query_camera, db_camera=db_camera)
-    _ensure_store(db_path, seq_by_key, PAPER_SIFT, workers, say)
+    _ensure_store(db_path, seq_by_key, STORE_SIFT, workers, say)
     _ensure_store(fast_db_path, seq_by_key, PAPER_SIFT.replace(image_scale=params.fast_scale), workers, say)
     datasets = {"full": _load_store(db_path, seq_by_key), "scaled": _load_store(fast_db_path, seq_by_key)}
     fp = FastParams(shortlist_size=params.shortlist_size)
@@ -318,7 +323,7 @@ def run_bench(root: Path | None, drive: str | None, db_path: Path, fast_db_path:
                                               params.refined_stride, say)
     result["peak_rss_mb"] = peak_rss_mb()
     say("3. ingest:")
-    result["ingest"] = _ingest_bench(seq_by_key, PAPER_SIFT, params.ingest_images, workers, say)
+    result["ingest"] = _ingest_bench(seq_by_key, STORE_SIFT, params.ingest_images, workers, say)
     if not params.skip_synthetic:
         say("4. scale (synthetic database, own process):")
         result["scale"] = _scale(Path(fast_db_path).parent, params, say)

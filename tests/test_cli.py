@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+import visloc
 from visloc.cli.parser import build_parser
 
 from helpers import CSV_PAIR_FRAMES, copy_store, run_cli, write_csv_drive
@@ -90,6 +91,8 @@ def test_info_describes_the_store(synthetic):
     assert result.returncode == 0
     assert f"{CSV_PAIR_FRAMES} images" in result.stdout and f"dbdrive/camera: {CSV_PAIR_FRAMES} images" in result.stdout
     assert "'n_features': 0" in result.stdout
+    # a new store keeps every keypoint at half the paper's contrast; the paper's method selects its own
+    assert f"'contrast_threshold': {visloc.STORE_SIFT.contrast_threshold}" in result.stdout
 
 
 @pytest.mark.parametrize("flag,value,name", [
@@ -111,8 +114,8 @@ def test_database_built_with_other_sift_settings_is_refused(synthetic):
     _, _, query_csv, store = synthetic
     result = run_cli("localize", query_csv, "--db", store, "--db-camera", "camera", "--sift-features", "500")
     one_line_error(result, str(store), "built with other SIFT settings", "n_features: store 0, asked 500")
-    result = run_cli("ingest", query_csv, "--db", store, "--sift-contrast", "0.02")
-    one_line_error(result, "contrast_threshold: store 0.04, asked 0.02")
+    result = run_cli("ingest", query_csv, "--db", store, "--sift-contrast", "0.01")
+    one_line_error(result, "contrast_threshold: store 0.02, asked 0.01")
 
 
 def test_empty_missing_and_foreign_database_files_are_refused_untouched(synthetic, tmp_path):

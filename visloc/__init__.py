@@ -29,7 +29,7 @@ _EXPORTS = {
     "visloc.features.vlad": ("GlobalIndex",),
     "visloc.geo": ("LocalFrame", "geodesic_distance_m"),
     "visloc.params": ("FAST", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT",
-                      "REFINED", "TRACK", "FastParams", "FilterParams", "MatchParams", "RefinedParams",
+                      "REFINED", "STORE_SIFT", "TRACK", "FastParams", "FilterParams", "MatchParams", "RefinedParams",
                       "RetrievalParams", "SiftParams", "TrackParams", "dashboard_controls"),
     "visloc.params.methods": ("METHODS", "PAPER_METHOD", "REFINED_FAST_METHOD", "REFINED_METHOD", "Method",
                               "features_for", "method_named"),
@@ -82,7 +82,7 @@ __all__ = [
     "ingest_sequence", "load_gray", "open_csv", "open_kitti", "open_source", "is_log", "log_topics", "open_log",
     # parameters and methods
     "FAST", "METHODS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER", "PAPER_MATCH", "PAPER_METHOD", "PAPER_RETRIEVAL",
-    "PAPER_SIFT", "REFINED", "REFINED_FAST_METHOD", "REFINED_METHOD", "TRACK", "FastParams", "FilterParams",
+    "PAPER_SIFT", "REFINED", "REFINED_FAST_METHOD", "REFINED_METHOD", "STORE_SIFT", "TRACK", "FastParams", "FilterParams",
     "MatchParams", "Method", "RefinedParams", "RetrievalParams", "SiftParams", "TrackParams", "dashboard_controls",
     "features_for", "method_named",
     # the pipeline's parts

@@ -19,8 +19,8 @@ from visloc.params.methods import METHODS, REFINED_FAST_METHOD, REFINED_METHOD, 
 from visloc.tracking.methods import build_localizer
 from visloc.cli.outputs import require_output_folder, require_writable_output
 from visloc.cli.param_flags import params_from_flags
-from visloc.params import (BENCH, FAST, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, TRACK, FilterParams,
-                           MatchParams, RetrievalParams, SiftParams)
+from visloc.params import (BENCH, FAST, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, REFINED, STORE_SIFT,
+                           TRACK, FilterParams, MatchParams, RetrievalParams, SiftParams)
 from visloc.sources.queries import extract_queries
 from visloc.progress import progress_reporter
 from visloc.protocols.records import QueryTruth, records_of
@@ -42,11 +42,11 @@ from visloc.db.shards import is_sharded
 
 def sift_params(a: argparse.Namespace, store: SiftParams | None = None, method: Method | None = None) -> SiftParams:
     """The SIFT settings from the flags. Without ``--sift-contrast``, the contrast threshold is the store's
-    (``store``; the paper's for a new store), as ``method`` reads it (``features_for``)."""
+    (``store``; ``STORE_SIFT``'s for a new store), as ``method`` reads it (``features_for``)."""
     sift = params_from_flags(a, PAPER_SIFT)
-    if getattr(a, "sift_contrast", None) is not None or store is None:
+    if getattr(a, "sift_contrast", None) is not None:
         return sift
-    sift = sift.replace(contrast_threshold=store.contrast_threshold)
+    sift = sift.replace(contrast_threshold=(store or STORE_SIFT).contrast_threshold)
     return sift if method is None else features_for(method, sift)
 
 
@@ -129,13 +129,14 @@ def _open_source(*args, **kwargs) -> Drive:
 # -- commands -----------------------------------------------------------------------------------
 
 def cmd_ingest(a: argparse.Namespace) -> int:
-    sift = sift_params(a)
+    sift_params(a)  # bad SIFT flags are refused before any source is opened
     refuse_camera_for_csv(a.source, "--camera", a.camera)
     cameras = a.camera or [kitti_camera(a.source, a.drive, None)]
     sequences = [_open_source(a.source, drive=a.drive, camera=camera, **log_options(a)) for camera in cameras]
     if a.tile_m is not None or is_sharded(a.db):
         return ingest_sharded(a, sequences, lambda ws, seq, cluster: _print_ingest(
-            a, seq, _ingest(ws, seq, sift, a, a.limit, structure=not a.features_only, repair=True, cluster=cluster)))
+            a, seq, _ingest(ws, seq, sift_params(a, ws.sift_params), a, a.limit, structure=not a.features_only,
+                            repair=True, cluster=cluster)))
     if a.halo_m is not None or a.address is not None:
         raise InputError(f"{'--halo-m' if a.halo_m is not None else '--address'}: only for a sharded store "
                          "(give --tile-m)")

@@ -19,8 +19,8 @@ from visloc.cli.param_flags import add_param_flags, check_flag_values
 from visloc.cli.stopping import interrupted_status, interrupted_text, stop_on_signal
 from visloc.errors import VislocError
 from visloc.params import (BENCH, BENCH_WORKERS, COMMAND_OPTIONS, FAST, PAPER_EVAL_RETRIEVAL, PAPER_FILTER,
-                           PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, TRACK, BenchParams, CommandOptions, FastParams,
-                           FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams, TrackParams)
+                           PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT, STORE_SIFT, TRACK, BenchParams, CommandOptions,
+                           FastParams, FilterParams, MatchParams, RefinedParams, RetrievalParams, SiftParams, TrackParams)
 from visloc.params.methods import METHODS
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP, require_max_image_mp
 
@@ -56,7 +56,7 @@ def _runs(module: str, function: str):
 
 # -- argument groups --------------------------------------------------------------
 
-SIFT_CONTRAST_HELP = (f"SIFT's contrast threshold (default: the store's, {PAPER_SIFT.contrast_threshold:g} for a new "
+SIFT_CONTRAST_HELP = (f"SIFT's contrast threshold (default: the store's, {STORE_SIFT.contrast_threshold:g} for a new "
                       "store; the paper's method reads a store built at a lower one at "
                       f"{PAPER_SIFT.contrast_threshold:g}, the paper's, with the keypoints SIFT keeps there)")
 

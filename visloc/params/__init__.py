@@ -17,7 +17,7 @@ from visloc.params.declare import (AUTO, MAX_C_INT, MAX_VARIANCE, METHODS_ALL, M
                                    check, declared, flag_of, param, refusal, refuse, spec_of, value_text)
 from visloc.params.paper import (MAX_DT_S, MAX_GEOTAG_SIGMA_M, MAX_SECONDS, METRES_PER_DEGREE, MIN_DT_S,
                                  PAPER_EVAL_RETRIEVAL, PAPER_FILTER, PAPER_MATCH, PAPER_RETRIEVAL, PAPER_SIFT,
-                                 FilterParams, MatchParams, RetrievalParams, SiftParams)
+                                 STORE_SIFT, FilterParams, MatchParams, RetrievalParams, SiftParams)
 from visloc.params.options import BENCH, BENCH_WORKERS, COMMAND_OPTIONS, BenchParams, CommandOptions
 from visloc.params.refined import FAST, NN_BACKENDS, REFINED, TRACK, FastParams, RefinedParams, TrackParams
 
@@ -36,7 +36,7 @@ def dashboard_controls() -> list[tuple[type, str, Spec, object]]:
 __all__ = [
     "AUTO", "BENCH", "BENCH_WORKERS", "COMMAND_OPTIONS", "BenchParams", "CommandOptions", "FAST", "MAX_C_INT", "MAX_DT_S", "MAX_GEOTAG_SIGMA_M", "MAX_SECONDS", "MAX_VARIANCE", "METHODS_ALL",
     "METRES_PER_DEGREE", "MIN_DT_S", "MIN_VARIANCE", "NN_BACKENDS", "PAPER_EVAL_RETRIEVAL", "PAPER_FILTER",
-    "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PARAMETER_CLASSES", "REFINED", "TRACK", "Control", "FastParams",
+    "PAPER_MATCH", "PAPER_RETRIEVAL", "PAPER_SIFT", "PARAMETER_CLASSES", "REFINED", "STORE_SIFT", "TRACK", "Control", "FastParams",
     "FilterParams", "MatchParams", "Params", "RefinedParams", "RetrievalParams", "SiftParams", "Spec", "TrackParams",
     "check", "dashboard_controls", "declared", "flag_of", "param", "parameter_table_markdown", "refusal", "refuse", "spec_of",
     "value_text",
