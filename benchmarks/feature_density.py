@@ -4,7 +4,7 @@
     python benchmarks/feature_density.py --page   # its section of docs/performance.md from the JSON
 
 OpenCV's SIFT keeps a scale-space extremum when its contrast times the layers per octave reaches the contrast
-threshold (visloc's default 0.04, the paper's settings); COLMAP's SIFT, the peer's, keeps extrema at about half
+threshold (0.04 in the paper's settings; a new visloc store, since this measurement, 0.02); COLMAP's SIFT, the peer's, keeps extrema at about half
 that (its peak threshold 0.02 / 3 layers), so on low-texture images it finds two or three times as many
 keypoints. Each contrast gets its own store, every camera of each drive's first setup ingested as a user would
 (``visloc ingest --sift-contrast C``: features, global vectors, structure, self-checks) and timed, one after the
@@ -45,7 +45,7 @@ from thinning_stress import PEER_RUNS, peer_runs
 sys.path.insert(0, str(REPO / "scripts"))
 from results_peer import digest_peer  # noqa: E402
 from visloc.features.sift import extract_sift  # noqa: E402
-from visloc.params import SiftParams  # noqa: E402
+from visloc.params import PAPER_SIFT, STORE_SIFT, SiftParams  # noqa: E402
 from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
 from visloc.sources.drives import default_data_root  # noqa: E402
 
@@ -163,10 +163,10 @@ def render(r: dict) -> str:
     lines = [SECTION.begin, ""]
     add = lines.append
     contrasts = list(r["contrasts"])
-    default = str(SiftParams().contrast_threshold)
+    default, store = str(PAPER_SIFT.contrast_threshold), str(STORE_SIFT.contrast_threshold)
     add("**Denser SIFT.** OpenCV's SIFT keeps a scale-space extremum whose contrast times the layers per octave "
-        f"reaches the contrast threshold (`--sift-contrast`, default {default}, the paper's settings); COLMAP's, the "
-        "peer's, keeps extrema at about half that. Each contrast has its own store, every camera of each drive's "
+        f"reaches the contrast threshold (`--sift-contrast`: {default} in the paper's settings, {store} for a new "
+        "store since this measurement); COLMAP's, the peer's, keeps extrema at about half the paper's. Each contrast has its own store, every camera of each drive's "
         "first setup ingested as a user would (structure and self-checks included, 2 processes) and timed; each "
         "store poses the frames the COLMAP-style peer measured, one measurement each (1 s exclusion, full-scan "
         "retrieval, no filter). Measurement: the refined measurement's time per query with the structure read "
@@ -201,7 +201,7 @@ def render(r: dict) -> str:
                           "more")
     if checks:
         add("")
-        add(f"The keypoints and descriptors at the default contrast are those at the lower contrast whose response "
+        add(f"The keypoints and descriptors at the paper's contrast are those at the lower contrast whose response "
             f"times the layers per octave reaches {default}, on every {SUBSET_EVERY}th image of each drive's query "
             f"camera ({'; '.join(checks)}, where an extremum at the lower contrast starts its interpolation from "
             "a neighbouring pixel): a store ingested at the lower contrast holds the paper's features, and visloc "

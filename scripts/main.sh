@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Set everything up and run the main job on ../shared/data/kitti (or $VISLOC_DATA), drive
 # 2011_09_26_drive_0001:
-#   1. store SIFT features of both gray cameras in $VISLOC_OUT/visloc.sqlite (about 2 minutes on
+#   1. store SIFT features of both gray cameras in $VISLOC_OUT/visloc.sqlite (several minutes on
 #      2 cores the first time, seconds afterwards);
 #   2. serve the dashboard on that store and print its URL: its first run (left camera queries
 #      against the right camera's database) fills in as the queries are matched;

@@ -132,9 +132,9 @@ def render_peer(peer: dict, add) -> None:
             "its merged multi-view tracks, with a 12 px RANSAC threshold; visloc counts its 2D-3D inliers at 2 px, where a "
             "query keypoint that meets the same point in two views' structure counts twice, and, stricter, the distinct "
             "query keypoints among them. A failed pose counts 0; visloc's figure on a frame is the median over the series "
-            "that pose it. Much of the difference is the peer's SIFT, which keeps keypoints of about half the contrast "
-            "visloc's does: the [performance notes](performance.md) measure visloc with the same threshold on these "
-            "frames (\"Denser SIFT\").")
+            "that pose it. Both describe the images at about the same SIFT contrast: a visloc store keeps every "
+            "keypoint at 0.02, half the paper's threshold, as COLMAP's SIFT does at its defaults (what that gave "
+            "and cost on these frames: \"Denser SIFT\" in the [performance notes](performance.md)).")
         add("")
         add("| drive | peer inliers min / median / max | visloc inliers min / median / max | visloc distinct query "
             "keypoints min / median / max | frames where visloc's distinct keypoints reach the peer's inliers |")
