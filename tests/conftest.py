@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import pytest
 
 from helpers import (CSV_PAIR_FRAMES, DRIVE_0005, DRIVE_0005_FRAMES, KITTI_DRIVE, OTHER_MEAS_VAR_M2, OTHER_RUN_NAME,
-                     built_once, copy_store, require_drive, run_cli, write_csv_drive)
+                     PAPER_CONTRAST, built_once, copy_store, require_drive, run_cli, write_csv_drive)
 from visloc.db import FeatureStore
 from visloc.sources.drives import default_data_root
 
@@ -69,7 +69,8 @@ def store_0005(kitti_root, shared_tmp) -> Path:
 
     def build(folder: Path) -> dict:
         result = run_cli("ingest", kitti_root, "--drive", DRIVE_0005, "--camera", "image_00", "--db",
-                         folder / "store.sqlite", "--limit", DRIVE_0005_FRAMES, "--workers", "2", timeout=1800)
+                         folder / "store.sqlite", "--limit", DRIVE_0005_FRAMES, "--workers", "2", *PAPER_CONTRAST,
+                         timeout=1800)
         assert result.returncode == 0, result.stderr
         return {}
 
@@ -85,7 +86,7 @@ def kitti_evaluation(kitti_root, shared_tmp):
     that writes into the store copies it first (``copy_store``)."""
     def build(folder: Path) -> dict:
         result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", folder / "kitti.sqlite",
-                         "--start-frames", "0,25,50", "--json", folder / "eval.json", timeout=1800)
+                         "--start-frames", "0,25,50", "--json", folder / "eval.json", *PAPER_CONTRAST, timeout=1800)
         assert result.returncode == 0, result.stderr
         return {"stdout": result.stdout}
 

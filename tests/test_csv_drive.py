@@ -26,7 +26,7 @@ from visloc.features.sift import extract_sift, undistort_keypoints
 from visloc.store.ingest import ingest
 from visloc.sources.drives import load_gray, open_csv
 
-from helpers import DRIVE_0005, DRIVE_0005_FRAMES, REPO, copy_store, run_cli, write_csv_drive
+from helpers import DRIVE_0005, DRIVE_0005_FRAMES, PAPER_CONTRAST, REPO, copy_store, run_cli, write_csv_drive
 
 DRIVE = DRIVE_0005
 KITTI_SOURCE = DRIVE + "_sync"
@@ -55,7 +55,8 @@ def both(kitti_root, store_0005, tmp_path_factory) -> SimpleNamespace:
     result = export(kitti_root, csv_dir, "--frames", str(N_FRAMES))
     assert result.returncode == 0, result.stderr
     kitti_db, csv_db = copy_store(store_0005, tmp / "kitti"), tmp / "csv.sqlite"
-    result = run_cli("ingest", csv_dir / "geotags.csv", "--db", csv_db, "--features-only", "--workers", "2")
+    result = run_cli("ingest", csv_dir / "geotags.csv", "--db", csv_db, "--features-only", "--workers", "2",
+                     *PAPER_CONTRAST)  # as the shared store was described
     assert result.returncode == 0, result.stderr
     assert f"{CSV_SOURCE}/camera: {N_FRAMES} added" in result.stdout
     return SimpleNamespace(root=kitti_root, csv_dir=csv_dir, kitti_db=kitti_db, csv_db=csv_db, tmp=tmp)

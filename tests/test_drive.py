@@ -17,7 +17,7 @@ from visloc import (
     MatchParams,
     ParameterError,
     RetrievalParams,
-    SiftParams,
+    STORE_SIFT,
     Workspace,
     build_localizer,
     correspondence_figure,
@@ -37,7 +37,7 @@ from helpers import copy_store
 def workspace(csv_pair, tmp_path_factory):
     """The shared synthetic pair (14 frames each), both drives in a store of this module's own."""
     ws = Workspace(copy_store(csv_pair.store, tmp_path_factory.mktemp("drive")))
-    ingest_sequence(ws, open_csv(csv_pair.query_csv), SiftParams(), workers=1)
+    ingest_sequence(ws, open_csv(csv_pair.query_csv), STORE_SIFT, workers=1)  # as visloc ingest made the pair's store
     return ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera")
 
 
@@ -58,7 +58,7 @@ def test_workspace_describes_the_store(workspace):
     names = [d.name for d in ws.drives()]
     assert names == ["dbdrive/camera", "querydrive/camera"]
     assert all(d.n_images == 14 and d.duration_s == pytest.approx(6.5) for d in ws.drives())
-    assert ws.sift_params == SiftParams()
+    assert ws.sift_params == STORE_SIFT  # a new store, made by visloc ingest
     assert len(queries.keypoints_f32) == 14 and queries.keypoints_f32[0].shape[1] == 6
     assert np.allclose(queries.heading_deg, 90.0)
 

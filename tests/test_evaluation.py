@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from visloc import (PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, SiftParams, Workspace, evaluate,
+from visloc import (PAPER_FILTER, MatchParams, PairCountCache, RetrievalParams, STORE_SIFT, Workspace, evaluate,
                     ingest_sequence, open_csv)
 from visloc.results.report import (PAPER_DATABASE, PAPER_QUERIES, evaluation_json, save_error_plot, series_tables, summary_text,
                            write_json)
@@ -18,8 +18,8 @@ def drives(csv_pair, tmp_path_factory):
     """The shared synthetic pair (14 frames each), both drives in a store of this module's own."""
     tmp = tmp_path_factory.mktemp("eval")
     ws = Workspace(copy_store(csv_pair.store, tmp))
-    ingest_sequence(ws, open_csv(csv_pair.query_csv), SiftParams(), workers=1)
-    return tmp, ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera", SiftParams())
+    ingest_sequence(ws, open_csv(csv_pair.query_csv), STORE_SIFT, workers=1)  # as visloc ingest made the pair's store
+    return tmp, ws, ws.load_database("dbdrive", "camera"), ws.load_queries("querydrive", "camera", STORE_SIFT)
 
 
 def test_every_series_finds_its_own_frame_without_exclusion(drives):

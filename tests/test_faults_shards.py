@@ -16,7 +16,7 @@ import pytest
 from visloc.db.shards import Manifest, rows_digest, staging_images
 from visloc.store.sharded import merged_store, prepare_store, publish_tiles, staging_path
 
-from helpers import KITTI_DRIVE, run_cli
+from helpers import KITTI_DRIVE, PAPER_CONTRAST, run_cli
 from fault_table import Fault, params
 from helpers import one_line_error
 
@@ -131,7 +131,7 @@ def test_a_worker_killed_mid_ingest_changes_nothing(fault, kitti_root, tmp_path)
     limit = 24
     single = tmp_path / "one.sqlite"
     made = run_cli("ingest", kitti_root, "--drive", KITTI_DRIVE, "--camera", "image_00", "--db", single,
-                   "--workers", "1", "--limit", str(limit), "--features-only", timeout=1800)
+                   "--workers", "1", "--limit", str(limit), "--features-only", *PAPER_CONTRAST, timeout=1800)
     assert made.returncode == 0, made.stderr
 
     city = tmp_path / "city"

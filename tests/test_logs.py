@@ -341,13 +341,14 @@ def test_a_log_of_a_shared_drive_is_stored_and_localized_as_the_drive_itself(tmp
     the same figures exactly, the refined mode to 1e-6 m (the log's camera pose on the vehicle went through a
     quaternion). The other formats hold the same drive (``test_a_log_of_a_shared_drive_is_that_drive_in_
     every_format``), so they give the same figures."""
-    from helpers import snapshot
+    from helpers import PAPER_CONTRAST, snapshot
 
     kitti_features = snapshot(store_0005)
     for fmt, name in FORMATS.items():
         log = kitti_to_log.write_log(kitti_root, DRIVE_0005, ["image_00"], tmp_path / name, fmt, frames=30)
         stored = tmp_path / f"{fmt}.sqlite"
-        result = run_cli("ingest", log, "--db", stored, "--features-only", "--limit", "3", "--workers", "1")
+        result = run_cli("ingest", log, "--db", stored, "--features-only", "--limit", "3", "--workers", "1",
+                         *PAPER_CONTRAST)  # as the shared store was described
         assert result.returncode == 0, result.stderr
         log_features = snapshot(stored)
         assert len(log_features) == 3 and all(log_features[f] == kitti_features[f] for f in log_features)

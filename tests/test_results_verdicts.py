@@ -99,3 +99,12 @@ def test_a_speed_only_page_needs_a_committed_digest(tmp_path, monkeypatch, capsy
     assert results.page() == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "missing.json: not found" in err[0]
+
+
+def test_the_page_says_which_contrast_its_store_was_described_at():
+    older = results.store_contrast_note(None)  # a digest from before a new store's default was lowered
+    assert "the paper's contrast threshold, 0.04" in older and "keeps them at 0.02" in older
+    assert "Denser SIFT" in older
+    today = results.store_contrast_note(0.02)
+    assert "contrast threshold 0.02" in today and "the ones kept at 0.04" in today
+    assert "keeps them at" not in today

@@ -56,9 +56,9 @@ def _runs(module: str, function: str):
 
 # -- argument groups --------------------------------------------------------------
 
-SIFT_CONTRAST_HELP = (f"SIFT's contrast threshold (default: the store's, {STORE_SIFT.contrast_threshold:g} for a new "
-                      "store; the paper's method reads a store built at a lower one at "
-                      f"{PAPER_SIFT.contrast_threshold:g}, the paper's, with the keypoints SIFT keeps there)")
+SIFT_CONTRAST_HELP = (f"SIFT's contrast threshold (the paper's {PAPER_SIFT.contrast_threshold:g}; default: the store's, "
+                      f"{STORE_SIFT.contrast_threshold:g} for a new store; the paper's method reads a store built at a "
+                      "lower one with the keypoints SIFT keeps at the paper's)")
 
 
 def _add_sift(p: argparse.ArgumentParser) -> None:

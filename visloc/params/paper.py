@@ -31,7 +31,7 @@ class SiftParams(Params):
                             methods=SIFT_STAGE, flag="--sift-features")
     n_octave_layers: int = param(3, "layers per octave of SIFT's scale space", kind="integer", low=1, high=32,
                                  methods=SIFT_STAGE, flag="--sift-octave-layers")
-    contrast_threshold: float = param(0.04, "SIFT's contrast threshold (0.04: the paper's; visloc ingest describes a "
+    contrast_threshold: float = param(0.04, "SIFT's contrast threshold (the paper's 0.04; visloc ingest describes a "
                                             "new store at 0.02, and the paper's method selects its own features there)",
                                       low=0, methods=SIFT_STAGE,
                                       flag="--sift-contrast")
