@@ -18,7 +18,7 @@ from pathlib import Path
 import cv2
 import pytest
 
-from helpers import KITTI_DRIVE, REPO, built_once, copy_store, run_cli
+from helpers import KITTI_DRIVE, PAPER_CONTRAST, REPO, built_once, copy_store, run_cli
 from fault_table import Fault, params
 from helpers import SERVER_WORK_S, DashboardProcess, new_page, one_line_error, screenshot, visit
 
@@ -108,7 +108,7 @@ def clean(kitti_root, shared_tmp):
     def build(folder: Path) -> dict:
         root = drive_copy(kitti_root, folder / "kitti")
         store = folder / "clean.sqlite"
-        result = ingest(root, store)
+        result = ingest(root, store, *PAPER_CONTRAST)  # later runs on it read the store's, as a user's do
         assert result.returncode == 0, result.stderr
         assert f"{N_FRAMES} added" in result.stdout
         checked = run_cli("check", "--db", store)
@@ -220,7 +220,7 @@ def test_a_full_disk_is_said_and_rerunning_goes_on(clean, tmp_path, fault):
     # features only, both times: the disk fills while frames are described, and what is kept is what was described
     result = subprocess.run(["bash", "-c", f"ulimit -f {limit_kib} && exec \"$@\"", "bash", sys.executable, "-m",
                              "visloc", "ingest", str(root), "--drive", KITTI_DRIVE, "--camera", "image_00", "--db",
-                             str(store), "--features-only"], capture_output=True, text=True, cwd=REPO, timeout=1800)
+                             str(store), "--features-only", *PAPER_CONTRAST], capture_output=True, text=True, cwd=REPO, timeout=1800)
     one_line_error(result, str(store), "the disk is full or a file-size limit is reached", "run the same command")
     kept = sqlite3.connect(store).execute("SELECT count(*) FROM images").fetchone()[0]
     assert 0 < kept < N_FRAMES
@@ -255,7 +255,7 @@ def test_images_remade_under_the_same_names_are_described_again(clean, kitti_roo
     again = ingest(remade, store)
     assert again.returncode == 0 and f"0 added, {N_FRAMES} already stored" in again.stdout, again.stdout
     fresh = tmp_path / "fresh.sqlite"
-    assert ingest(remade, fresh).returncode == 0
+    assert ingest(remade, fresh, *PAPER_CONTRAST).returncode == 0  # described as the clean store was
     assert table_rows(store) == table_rows(fresh)
 
 
