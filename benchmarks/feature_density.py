@@ -4,9 +4,9 @@
     python benchmarks/feature_density.py --page   # its section of docs/performance.md from the JSON
 
 OpenCV's SIFT keeps a scale-space extremum when its contrast times the layers per octave reaches the contrast
-threshold (0.04 in the paper's settings; a new visloc store, since this measurement, 0.02); COLMAP's SIFT, the peer's, keeps extrema at about half
-that (its peak threshold 0.02 / 3 layers), so on low-texture images it finds two or three times as many
-keypoints. Each contrast gets its own store, every camera of each drive's first setup ingested as a user would
+threshold (0.04 in the paper's settings; a new visloc store, since this measurement, 0.02); COLMAP's SIFT, the
+peer's, keeps extrema at about half that (its peak threshold 0.02 / 3 layers), so on low-texture images it finds
+two or three times as many keypoints. Each contrast gets its own store, every camera of each drive's first setup ingested as a user would
 (``visloc ingest --sift-contrast C``: features, global vectors, structure, self-checks) and timed, one after the
 other on this machine. Each store then poses the frames the COLMAP-style peer measured at its defaults (the
 drive's first setup, 1 s exclusion), one measurement each (``visloc evaluate --mode refined --steps 1``: a
@@ -166,7 +166,8 @@ def render(r: dict) -> str:
     default, store = str(PAPER_SIFT.contrast_threshold), str(STORE_SIFT.contrast_threshold)
     add("**Denser SIFT.** OpenCV's SIFT keeps a scale-space extremum whose contrast times the layers per octave "
         f"reaches the contrast threshold (`--sift-contrast`: {default} in the paper's settings, {store} for a new "
-        "store since this measurement); COLMAP's, the peer's, keeps extrema at about half the paper's. Each contrast has its own store, every camera of each drive's "
+        "store since this measurement); COLMAP's, the peer's, keeps extrema at about half the paper's. Each "
+        "contrast has its own store, every camera of each drive's "
         "first setup ingested as a user would (structure and self-checks included, 2 processes) and timed; each "
         "store poses the frames the COLMAP-style peer measured, one measurement each (1 s exclusion, full-scan "
         "retrieval, no filter). Measurement: the refined measurement's time per query with the structure read "

@@ -570,7 +570,7 @@ def store_contrast_note(contrast: float | None) -> str:
             f"paper's method reads its own, the ones kept at {paper:g}.")
     if measured != store:
         note += (f" A store `visloc ingest` makes today keeps them at {store:g}: what that gives the refined mode "
-                 "(about twice the 2D-3D inliers per query) and what it costs are measured on the peer's frames as "
+                 "(more 2D-3D inliers per query) and what it costs are measured on the peer's frames as "
                  "\"Denser SIFT\" in the [performance notes](performance.md); this page is measured again by "
                  "`python scripts/results.py run`.")
     return note

@@ -27,6 +27,8 @@ import numpy as np
 import pytest
 from filelock import FileLock
 
+from visloc.params import PAPER_SIFT
+
 # -- the checkout, the data and synthetic drives -----------------------------------------------------------
 
 REPO = Path(__file__).resolve().parent.parent
@@ -40,7 +42,7 @@ CSV_PAIR_FRAMES = 14  # frames of each drive of the shared synthetic pair (conft
 # The shared real-data stores are described at the paper's SIFT contrast threshold, not a new store's lower one:
 # they test the paper's features and every path on them at half the cost; a store at the new store's threshold
 # is tested on a few frames (test_contrast_selection) and measured on whole drives by the benchmarks.
-PAPER_CONTRAST = ("--sift-contrast", "0.04")
+PAPER_CONTRAST = ("--sift-contrast", str(PAPER_SIFT.contrast_threshold))
 
 
 def require_drive(drive: Path) -> None:

@@ -220,7 +220,8 @@ def test_a_full_disk_is_said_and_rerunning_goes_on(clean, tmp_path, fault):
     # features only, both times: the disk fills while frames are described, and what is kept is what was described
     result = subprocess.run(["bash", "-c", f"ulimit -f {limit_kib} && exec \"$@\"", "bash", sys.executable, "-m",
                              "visloc", "ingest", str(root), "--drive", KITTI_DRIVE, "--camera", "image_00", "--db",
-                             str(store), "--features-only", *PAPER_CONTRAST], capture_output=True, text=True, cwd=REPO, timeout=1800)
+                             str(store), "--features-only", *PAPER_CONTRAST], capture_output=True, text=True, cwd=REPO,
+                            timeout=1800)
     one_line_error(result, str(store), "the disk is full or a file-size limit is reached", "run the same command")
     kept = sqlite3.connect(store).execute("SELECT count(*) FROM images").fetchone()[0]
     assert 0 < kept < N_FRAMES
