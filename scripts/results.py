@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from visloc.errors import InputError  # noqa: E402
 from visloc.params import PAPER_SIFT, STORE_SIFT  # noqa: E402
 from visloc.protocols.suite import drive_protocols, drives_of  # noqa: E402
-from visloc.stats import summary_of  # noqa: E402
+from visloc.stats import CHI2_2DOF_95, summary_of  # noqa: E402
 from results_camera_rate import coverage_cells, digest_refined_fast, digest_track, render_camera_rate  # noqa: E402
 from filter_replay import render_filter_replay, replay  # noqa: E402
 from results_peer import digest_peer, render_peer  # noqa: E402
@@ -252,6 +252,7 @@ def page() -> int:
                     if row["mode"] != "paper" and (OUT / row.get("file", "")).is_file():
                         evaluation = json.loads((OUT / row["file"]).read_text())  # read once, large
                         row["final_minus_measurement_m"] = final_minus_measurement(evaluation["series"])
+                        row["calibration_frames"] = distinct_frames(evaluation["series"])
                         digest["filter_replay"][Path(row["file"]).stem] = replay(evaluation)
                         digest["store_sift_contrast"] = evaluation["params"]["sift"]["contrast_threshold"]
             continue
@@ -342,15 +343,37 @@ TARGETS = ("Targets, the same parameters on every drive. Where the ground truth 
 RTK_STATED_M = 0.05  # a drive whose geotags state at most this is held to the RTK-fixed targets
 
 
-def _honest_chance(share: float, n: int) -> str:
+def _honest_chance(share: float, n: int, frames: dict | None = None) -> str:
     """For a share inside the 95 % ellipse outside 85-99 %: how often n measurements with an honest covariance
-    would give a share at least that far out (binomial), so a small sample's verdict can be read for what it is."""
+    would give a share at least that far out (binomial), so a small sample's verdict can be read for what it is.
+    ``frames`` (``distinct_frames``: the query frames those measurements are of, and the share of the frames
+    inside): the series of an evaluation measure the same query frame up to once per step, so the chance is
+    that of the distinct frames, the independent draws there are."""
     if 0.85 <= share <= 0.99 or not n:
         return ""
+    what = f"of {n}"
+    if frames and frames.get("n"):
+        what = f"of {n}, measuring {frames['n']} query frames"
+        share, n = frames["inside_95"], frames["n"]
     k = round(share * n)
     ks = range(k, n + 1) if share > 0.99 else range(0, k + 1)
     chance = sum(math.comb(n, i) * 0.95 ** i * 0.05 ** (n - i) for i in ks)
-    return f" (of {n}: an honest ellipse gives this {c(100 * chance, '.0f')} % of the time)"
+    return f" ({what}: an honest ellipse gives this {c(100 * chance, '.0f')} % of the time)"
+
+
+def distinct_frames(series: list[list[dict]]) -> dict:
+    """Per side of the views ("all", "both", "one"): how many distinct query frames the geometry measurements
+    of an evaluation's series measure, and the share of those frames inside the 95 % ellipse (a frame measured
+    in several series counts by the share of its measurements inside)."""
+    inside: dict[str, dict[int, list[bool]]] = {"all": {}, "both": {}, "one": {}}
+    for step in (st for s in series for st in s):
+        if step.get("measurement_nees") is None:
+            continue
+        for side in ("all", step.get("measurement_side")):
+            if side in inside:
+                inside[side].setdefault(step["query_frame"], []).append(step["measurement_nees"] <= CHI2_2DOF_95)
+    return {side: {"n": len(frames), "inside_95": float(np.mean([np.mean(v) for v in frames.values()]))
+                   if frames else None} for side, frames in inside.items()}
 
 
 def uncertainty_verdicts(r: dict) -> list[tuple[str, bool]]:
@@ -364,7 +387,8 @@ def uncertainty_verdicts(r: dict) -> list[tuple[str, bool]]:
         if not k["n"]:
             continue
         views = "views on both sides" if side == "both" else "views on one side"
-        inside = f"{c(100 * k['inside_95'], '.0f')} % inside{_honest_chance(k['inside_95'], k['n'])}"
+        frames = (r.get("calibration_frames") or {}).get(side)
+        inside = f"{c(100 * k['inside_95'], '.0f')} % inside{_honest_chance(k['inside_95'], k['n'], frames)}"
         if rtk:
             out.append((f"{views}: NEES {c(k['nees_mean'])} in 1-4, {inside} in 85-99 %",
                         1 <= k["nees_mean"] <= 4 and 0.85 <= k["inside_95"] <= 0.99))

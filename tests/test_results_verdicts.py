@@ -49,6 +49,20 @@ def test_the_honest_chance_of_a_split_s_coverage():
     assert "0 %" in results._honest_chance(0.70, 100)
 
 
+def test_the_honest_chance_counts_each_query_frame_once():
+    """Six series that measure the same four frames are four draws, not 24: all inside is then likely enough."""
+    def step(frame: int, nees: float, side: str = "both") -> dict:
+        return {"query_frame": frame, "measurement_nees": nees, "measurement_side": side}
+
+    runs = [[step(f, 1.0) for f in range(4)] for _ in range(6)] + [[step(9, 7.0, "one"), step(9, 1.0, "one")]]
+    frames = results.distinct_frames(runs)
+    assert frames["both"] == {"n": 4, "inside_95": 1.0}
+    assert frames["one"] == {"n": 1, "inside_95": 0.5} and frames["all"]["n"] == 5
+    text = results._honest_chance(1.0, 24, frames["both"])
+    assert "of 24, measuring 4 query frames" in text and "81 %" in text  # 0.95^4
+    assert "29 %" in results._honest_chance(1.0, 24, None)
+
+
 def rtk_row(final_m: float, final_measurement_m: float, one_side_inside: float) -> dict:
     k = {"n": 100, "nees_mean": 2.0, "inside_95": 0.95}
     return {"drive": "some_drive", "calibration": {"both": k, "one": {**k, "inside_95": one_side_inside}},
