@@ -39,7 +39,7 @@ from visloc.params import REFINED, MatchParams, RetrievalParams
 from visloc.pose.refined import PoseMeasurer
 from visloc.pose.selfcheck import lever_gain_from, self_check, self_check_params, self_checked_indices
 from visloc.pose.structure import seeded_structure_cache
-from visloc.pose.uncertainty import SIDES, calibration, lever_covariance_m2, nees
+from visloc.pose.uncertainty import SIDES, calibration, nees
 from visloc.protocols.suite import drive_protocols, drives_of
 from visloc.retrieval.retrievers import WindowRetriever
 from visloc.stats import summary_of
@@ -60,7 +60,7 @@ def _nees_at(m, truth_east_north_m: np.ndarray, gain) -> float | None:
     if m.source != "geometry":
         return None
     terms = m.cov_terms_m2
-    lever = lever_covariance_m2(gain.of(m.side), m.lever_m)
+    lever = gain.covariance_m2(m.side, m.lever_m, m.heading_deg)
     return nees(np.asarray(m.east_north_m, float) - truth_east_north_m, m.cov_m2 - terms["lever"] + lever)
 
 

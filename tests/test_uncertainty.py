@@ -6,8 +6,8 @@ import pytest
 from visloc.geometry.bundle import heading_spread_rad
 from visloc.pose.selfcheck import MIN_POSES_PER_SIDE, SelfCheckPose, lever_gain_from
 from visloc.stats import CHI2_2DOF_95, chi2_2dof_quantile
-from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, calibration,
-                                fit_lever_gain, lever_covariance_m2, nees)
+from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, LeverGain, along_across, calibration,
+                                fit_lever_gain, fit_lever_gains, lever_covariance_m2, nees)
 
 
 def test_the_chi_square_quantiles_of_two_degrees_of_freedom():
@@ -62,6 +62,58 @@ def test_calibration_figures_of_honest_and_dishonest_covariances():
     empty = calibration([None])
     assert empty.n == 0 and empty.nees_mean is None and empty.coverage == ()
     assert set(cal.as_dict()["coverage"]) == {f"{p:g}" for p in NOMINAL_LEVELS}
+
+
+def _road_errors(rng, n: int, along_gain: float, across_gain: float):
+    """Errors of poses on a winding road: ``along_gain`` per metre of lever along each pose's heading,
+    ``across_gain`` across it, over a small base covariance."""
+    lever = rng.uniform(2.0, 12.0, n)
+    heading = rng.uniform(0.0, 360.0, n)
+    base = np.tile(np.eye(2) * 1e-6, (n, 1, 1))
+    axes = [along_across(h) for h in heading]
+    errors = np.array([d * (along_gain * rng.normal() * u + across_gain * rng.normal() * v)
+                       for d, (u, v) in zip(lever, axes)])
+    return errors, base, lever, heading
+
+
+def test_the_gains_along_and_across_the_road_are_told_apart():
+    rng = np.random.default_rng(5)
+    errors, base, lever, heading = _road_errors(rng, 600, 0.03, 0.006)
+    along, across = fit_lever_gains(errors, base, lever, heading)
+    assert along == pytest.approx(0.03, rel=0.15) and across == pytest.approx(0.006, rel=0.2)
+    # the covariance they state is long along the heading, and honest
+    cov = [lever_covariance_m2(along, d, across_gain=across, heading_deg=h) for d, h in zip(lever, heading)]
+    u, v = along_across(90.0)  # due east: along is east, across is north
+    np.testing.assert_allclose(u, [1.0, 0.0], atol=1e-12) and np.testing.assert_allclose(v, [0.0, 1.0], atol=1e-12)
+    east = lever_covariance_m2(along, 10.0, across_gain=across, heading_deg=90.0)
+    assert east[0, 0] == pytest.approx((10 * along) ** 2) and east[1, 1] == pytest.approx((10 * across) ** 2)
+    cal = calibration([nees(e, b + c) for e, b, c in zip(errors, base, cov)])
+    assert cal.nees_mean == pytest.approx(2.0, rel=0.2) and cal.inside_95 == pytest.approx(0.95, abs=0.03)
+    # one round gain for the same errors: too large across, too small along; the shaped one is tighter
+    round_gain = fit_lever_gain(errors, base, lever)
+    assert across < round_gain < along
+    # errors the base covariances hold need no lever term either way
+    assert fit_lever_gains(errors * 1e-4, base, lever, heading) == (0.0, 0.0)
+    # no heading: round, at the larger gain
+    np.testing.assert_allclose(lever_covariance_m2(0.02, 5.0, across_gain=0.01, heading_deg=None),
+                               (0.1) ** 2 * np.eye(2))
+
+
+def test_the_self_check_fits_along_and_across_where_its_poses_state_a_heading():
+    rng = np.random.default_rng(6)
+    errors, base, lever, heading = _road_errors(rng, 300, 0.02, 0.005)
+    poses = [SelfCheckPose(k, e, b, d, "both", heading_deg=h)
+             for k, (e, b, d, h) in enumerate(zip(errors, base, lever, heading))]
+    gain = lever_gain_from(poses)
+    assert gain.of("both") == pytest.approx(0.02, rel=0.2) and gain.across_of("both") == pytest.approx(0.005, rel=0.25)
+    # no one-sided poses: that side keeps the default, never below the both-sides gains either way
+    assert gain.of("one") >= max(gain.of("both"), DEFAULT_LEVER_GAIN.one_side)
+    assert gain.across_of("one") >= gain.across_of("both")
+    # a pose without a heading: one round gain for its side
+    unheaded = lever_gain_from([SelfCheckPose(p.index, p.error_m, p.base_cov_m2, p.lever_m, p.side) for p in poses])
+    assert unheaded.of("both") == unheaded.across_of("both")
+    # a gain made without a shape is round
+    assert LeverGain(0.01, 0.03).across_of("one") == 0.03 and LeverGain(0.01, 0.03).as_dict()["both_sides_across"] == 0.01
 
 
 def _poses(side, n, gain, rng, lever=8.0):

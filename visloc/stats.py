@@ -38,6 +38,14 @@ def chi2_2dof_quantile(probability: float) -> float:
     return float(-2.0 * np.log1p(-probability))
 
 
+def chi2_1dof_quantile(probability: float) -> float:
+    """The squared radius holding ``probability`` of a 1-D Gaussian, in standard deviations: z^2 with
+    z the two-sided quantile, Phi^-1((1 + p) / 2)."""
+    from statistics import NormalDist
+
+    return float(NormalDist().inv_cdf(0.5 + 0.5 * probability) ** 2)
+
+
 def summary_of(values: Iterable[float | None], names: Iterable[str] = ERROR_FIGURES, *, count: bool = False) -> dict:
     """Each figure of ``names`` (of ``FIGURES``) over ``values`` without its None entries, as floats
     (None for every figure when nothing is left); with ``count``, also their number as "n"."""

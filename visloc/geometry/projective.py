@@ -106,6 +106,12 @@ def heading_deg_of(T_world_imu: np.ndarray) -> float:
     return float((90.0 - math.degrees(math.atan2(forward[1], forward[0]))) % 360.0)
 
 
+def headings_deg_of(T_world_imu: np.ndarray) -> np.ndarray:
+    """(N,) compass headings of (N, 4, 4) imu poses, as ``heading_deg_of`` (NaN where a pose is unknown)."""
+    forward = np.asarray(T_world_imu, float).reshape(-1, 4, 4)[:, :3, 0]
+    return (90.0 - np.degrees(np.arctan2(forward[:, 1], forward[:, 0]))) % 360.0
+
+
 def heading_difference_deg(a_deg: float, b_deg: float) -> float:
     """How far apart two compass headings are, degrees in [0, 180]."""
     return abs((float(a_deg) - float(b_deg) + 180.0) % 360.0 - 180.0)

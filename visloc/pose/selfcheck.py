@@ -45,7 +45,7 @@ from visloc.params.methods import REFINED_FAST_METHOD
 from visloc.pose.refined import StructureCache, pose_measurement
 from visloc.retrieval.retrievers import Retrieval
 from visloc.pose.structure import structure_settings_json
-from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, SIDES, LeverGain, fit_lever_gain
+from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, SIDES, LeverGain, fit_lever_gain, fit_lever_gains
 from visloc.pose.viewpose import DatabaseGeometry
 
 SELF_CHECK_EXCLUSION_S = 1.0  # as the evaluation's: a same-drive query never sees its own second of driving
@@ -68,7 +68,8 @@ class SelfCheckPose:
 
     index: database index; error_m: (2,) pose minus the image's geotag, metres (None: no pose);
     base_cov_m2: (2, 2) the pose's covariance without the lever term; lever_m, side: as the
-    measurement's; reason: why there is no pose (None otherwise)."""
+    measurement's; reason: why there is no pose (None otherwise); heading_deg: the image's compass heading
+    (its geotag's attitude; None where it states none), along which the lever gain is told from across."""
 
     index: int
     error_m: np.ndarray | None
@@ -76,6 +77,7 @@ class SelfCheckPose:
     lever_m: float | None
     side: str | None
     reason: str | None = None
+    heading_deg: float | None = None
 
 
 def self_check_params(params: RefinedParams) -> RefinedParams:
@@ -194,31 +196,43 @@ def self_check(geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_times
     return out
 
 
+def _side_gains(chosen: list[SelfCheckPose]) -> tuple[float, float]:
+    """(along, across) the heading for one side's poses: ``fit_lever_gains`` where every pose states its
+    heading, else one round gain (``fit_lever_gain``) both ways."""
+    errors = np.array([p.error_m for p in chosen])
+    base = np.array([p.base_cov_m2 for p in chosen])
+    lever = np.array([p.lever_m for p in chosen])
+    headings = np.array([np.nan if p.heading_deg is None else p.heading_deg for p in chosen], float)
+    if np.all(np.isfinite(headings)):
+        return fit_lever_gains(errors, base, lever, headings, probability=SELF_CHECK_PROBABILITY)
+    gain = fit_lever_gain(errors, base, lever, probability=SELF_CHECK_PROBABILITY)
+    return gain, gain
+
+
 def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check") -> LeverGain:
-    """The lever gain per side that the self-check's poses call for (``fit_lever_gain`` at
-    ``SELF_CHECK_PROBABILITY``). The one-side gain is never below the both-sides one: a query with
-    views on one side only extrapolates the database's errors where one with views on both sides
-    interpolates them, and is never better off (a self-check with few one-sided poses can say
-    otherwise by chance). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the default gain,
+    """The lever gain per side, along the heading and across it, that the self-check's poses call for
+    (``_side_gains`` at ``SELF_CHECK_PROBABILITY``). The one-side gain is never below the both-sides one,
+    either way: a query with views on one side only extrapolates the database's errors where one with views
+    on both sides interpolates them, and is never better off (a self-check with few one-sided poses can say
+    otherwise by chance). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the default gain (round),
     again never below the other side's; with no pose on either side, the defaults."""
     gains, counts = {}, {}
     for side in SIDES:
         chosen = [p for p in poses if p.error_m is not None and p.side == side]
         counts[side] = len(chosen)
         if len(chosen) >= MIN_POSES_PER_SIDE:
-            gains[side] = fit_lever_gain(np.array([p.error_m for p in chosen]),
-                                         np.array([p.base_cov_m2 for p in chosen]),
-                                         np.array([p.lever_m for p in chosen]), probability=SELF_CHECK_PROBABILITY)
-    if "both" in gains and "one" in gains:
-        both, one = gains["both"], max(gains["one"], gains["both"])
-    elif "both" in gains:
-        both, one = gains["both"], max(DEFAULT_LEVER_GAIN.one_side, gains["both"])
+            gains[side] = _side_gains(chosen)
+    default_one = (DEFAULT_LEVER_GAIN.one_side, DEFAULT_LEVER_GAIN.one_side)
+    if "both" in gains:
+        both = gains["both"]
+        one = np.maximum(gains.get("one", default_one), both)
     elif "one" in gains:
         both = one = gains["one"]
     else:
-        both, one = DEFAULT_LEVER_GAIN.both_sides, DEFAULT_LEVER_GAIN.one_side
-    return LeverGain(both_sides=float(both), one_side=float(one), n_both=counts["both"], n_one=counts["one"],
-                     source=source)
+        both = (DEFAULT_LEVER_GAIN.both_sides, DEFAULT_LEVER_GAIN.both_sides)
+        one = default_one
+    return LeverGain(both_sides=float(both[0]), one_side=float(one[0]), n_both=counts["both"], n_one=counts["one"],
+                     source=source, both_sides_across=float(both[1]), one_side_across=float(one[1]))
 
 
 def pose_record(p: SelfCheckPose, image_id: int, settings_json: str) -> SelfCheckRecord:
@@ -230,9 +244,11 @@ def pose_record(p: SelfCheckPose, image_id: int, settings_json: str) -> SelfChec
                            float(C[0, 1]), float(C[1, 1]), float(p.lever_m), p.side, None)
 
 
-def record_pose(r: SelfCheckRecord, index: int) -> SelfCheckPose:
-    """A stored self-check as a pose of database index ``index``."""
+def record_pose(r: SelfCheckRecord, index: int, heading_deg: float | None = None) -> SelfCheckPose:
+    """A stored self-check as a pose of database index ``index``, whose geotag's heading is ``heading_deg``."""
     if r.error_east_m is None:
         return SelfCheckPose(index, None, None, None, None, r.reason)
+    heading = None if heading_deg is None or not np.isfinite(heading_deg) else float(heading_deg)
     return SelfCheckPose(index, np.array([r.error_east_m, r.error_north_m]),
-                         np.array([[r.cov_ee_m2, r.cov_en_m2], [r.cov_en_m2, r.cov_nn_m2]]), r.lever_m, r.side)
+                         np.array([[r.cov_ee_m2, r.cov_en_m2], [r.cov_en_m2, r.cov_nn_m2]]), r.lever_m, r.side,
+                         heading_deg=heading)

@@ -18,8 +18,8 @@ from visloc.geometry.projective import (CameraModel, PnPResult, heading_deg_of, 
                                         imu_east_north_covariance, imu_pose_from_camera, refine_pose, solve_pnp)
 from visloc.params import RefinedParams
 from visloc.pose.guided import guided_pairs
-from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, lever_covariance_m2,
-                                     unstated_geotag_covariance_m2, unstated_geotags)
+from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, unstated_geotag_covariance_m2,
+                                     unstated_geotags)
 
 
 @dataclass(frozen=True)
@@ -327,7 +327,7 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
     lever_m = float(min(np.linalg.norm(east_north - np.asarray(db_east_north_m[i], float)) for i in chosen))
     gain = geometry.lever_gain if geometry.lever_gain is not None else DEFAULT_LEVER_GAIN
     terms = {"pnp": pnp_cov_m2, "views": _mean_covariance(list(per_view.values())),
-             "lever": lever_covariance_m2(gain.of(side), lever_m)}
+             "lever": gain.covariance_m2(side, lever_m, heading)}
     terms["geotags"] = unstated_geotag_covariance_m2(inliers.neighbours or {}, geometry.unstated_geotags,
                                                      params.geotag_sigma_m)
     cov = terms["pnp"] + terms["views"] + terms["lever"] + terms["geotags"]

@@ -25,6 +25,7 @@ from visloc.db import (SCHEMA_VERSION, EmptyStoreError, FeatureStore, ImageRecor
 from visloc.errors import InputError
 from visloc.features.sift import at_contrast_threshold
 from visloc.geo import LocalFrame
+from visloc.geometry.projective import headings_deg_of
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.store.sharded import Catalogue, held_datasets, owner_tiles
@@ -235,8 +236,8 @@ class Workspace:
         settings = self_check_settings_json(params, camera_rate=camera_rate)
         with self._store() as store:
             records = SelfCheckTable(store).get([im.image_id for im in db.images], settings)
-        index_of = {im.image_id: k for k, im in enumerate(db.images)}
-        return [record_pose(r, index_of[r.image_id]) for r in records.values()]
+        index_of, headings = {im.image_id: k for k, im in enumerate(db.images)}, headings_deg_of(db.T_world_imu())
+        return [record_pose(r, index_of[r.image_id], headings[index_of[r.image_id]]) for r in records.values()]
 
     def lever_gain(self, db: GeoDatabase, params: RefinedParams = REFINED, *,
                    camera_rate: bool = False) -> LeverGain | None:
