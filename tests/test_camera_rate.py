@@ -146,8 +146,13 @@ def test_the_self_check_poses_every_other_image(store):
     ids = ws.image_ids(SOURCE, "image_00").tolist()
     assert len(ids) == N_FRAMES
     assert ws.self_checked_ids(ids, self_check_settings_json(REFINED)) == set(ids[::2])
-    gain = ws.lever_gain(ws.load_database(SOURCE, "image_00"))
+    db = ws.load_database(SOURCE, "image_00")
+    gain = ws.lever_gain(db)
     assert gain is not None and 0 < gain.n_both + gain.n_one <= len(ids[::2])
+    # each pose carries its image's heading (its geotag's attitude): the gains along the road and across it
+    posed = [p for p in ws.self_check_poses(db) if p.error_m is not None]
+    assert posed and all(0 <= p.heading_deg < 360 for p in posed)
+    assert gain.both_sides_across is not None and gain.one_side_across is not None
 
 
 def test_the_camera_rate_path_has_a_self_check_and_a_gain_of_its_own(store):
