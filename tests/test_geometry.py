@@ -309,6 +309,9 @@ def test_views_posed_apart_and_averaged_keep_both_sides_where_their_geotags_disa
     np.testing.assert_allclose(fused.cov_m2, sum(fused.cov_terms_m2.values()))
     # the spread came from the two views' own positions; one PnP kept one side's points, one view: no spread
     assert fused.views_posed_apart == 2
+    # two views' spread lies on one line and says nothing across it: stated round, at its longest axis
+    views = fused.cov_terms_m2["views"]
+    np.testing.assert_allclose(views + fused.cov_terms_m2["views_round"], np.linalg.eigvalsh(views).max() * np.eye(2))
     assert pooled.views_posed_apart == 1 and not pooled.cov_terms_m2["views"].any()
     # where the geotags agree, the views posed apart give back the known position
     geometry, geotags, xq, dq, truth = synthetic_database(east_m, query_east_m=0.0)
@@ -344,7 +347,8 @@ def test_the_covariance_is_relative_to_the_map_and_grows_with_the_lever_to_the_n
     for m, truth in ((m_near, near[4]), (m_far, far[4])):
         # the parts, each named, add up to the covariance the filter takes
         np.testing.assert_allclose(m.cov_m2, sum(m.cov_terms_m2.values()))
-        assert set(m.cov_terms_m2) == {"pnp", "views", "lever", "geotags"}
+        # (and on its two views, what their spread could not see across the line they lie on)
+        assert set(m.cov_terms_m2) == {"pnp", "views", "lever", "geotags", "views_round"}
         assert not m.cov_terms_m2["geotags"].any()  # every geotag states its accuracy
         # every view lies ahead of these queries: one side, the lever to the nearest view's geotag
         assert m.side == "one"

@@ -51,8 +51,9 @@ from visloc.pose.viewpose import DatabaseGeometry
 SELF_CHECK_EXCLUSION_S = 1.0  # as the evaluation's: a same-drive query never sees its own second of driving
 SELF_CHECK_PROBABILITY = 0.8  # the level at which the lever gain matches the errors (see fit_lever_gain)
 MIN_POSES_PER_SIDE = 10  # fewer: that side keeps the default gain (never below the other side's)
-SELF_CHECK_VERSION = 2  # bump when what a self-check measures changes: older rows are then not used
-CAMERA_RATE_SELF_CHECK_VERSION = 2  # the same, for the camera-rate path's (2: its two views posed apart)
+SELF_CHECK_VERSION = 3  # bump when what a self-check measures changes: older rows are then not used (3: the
+# spread of fewer than 4 views is round)
+CAMERA_RATE_SELF_CHECK_VERSION = 3  # the same, for the camera-rate path's (2: its two views posed apart; 3: round)
 # what of a query's pose settings a stored self-check depends on beyond the structure's, top_k and pnp_px
 POSE_SETTINGS = ("n_views", "fuse_views", "guided_radius_px", "thin_support_pnp_px", "other_side_candidates")
 # every other image of a drive is checked: adjacent frames' poses share nearly all their errors (the same views,
@@ -156,7 +157,8 @@ def _pose_of(k: int, m: Measurement, db_east_north_m: np.ndarray) -> SelfCheckPo
     if m.source != GEOMETRY:
         return SelfCheckPose(k, None, None, None, None, m.fallback_reason)
     error = np.asarray(m.east_north_m, float) - np.asarray(db_east_north_m[k], float)
-    return SelfCheckPose(k, error, m.cov_terms_m2["pnp"] + m.cov_terms_m2["views"], float(m.lever_m), m.side)
+    base = sum(v for name, v in m.cov_terms_m2.items() if name in ("pnp", "views", "views_round"))
+    return SelfCheckPose(k, error, base, float(m.lever_m), m.side)
 
 
 def self_check(geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray,

@@ -21,7 +21,7 @@ def shared_map_error(m: Measurement, frames: int) -> Measurement:
     terms = m.cov_terms_m2
     if m.cov_m2 is None or frames <= 1 or not {"pnp", "views", "lever"} <= set(terms):
         return m
-    map_terms = [k for k in ("views", "lever", "geotags") if k in terms]
+    map_terms = [k for k in ("views", "views_round", "lever", "geotags") if k in terms]
     cov = np.asarray(terms["pnp"], float) + frames * sum(np.asarray(terms[k], float) for k in map_terms)
     counted = {k: frames * np.asarray(terms[k], float) for k in map_terms}
     return replace(m, cov_m2=cov, cov_terms_m2={**terms, **counted})
@@ -70,5 +70,7 @@ class ViewScatter:
         n = max(m.views_posed_apart, 1)
         own = np.asarray(m.cov_terms_m2["views"], float)
         views = ((n - 1) * n * own + per_m2 * m.lever_m ** 2) / n / n
-        cov = np.asarray(m.cov_m2, float) - own + views
-        return replace(m, cov_m2=cov, cov_terms_m2={**m.cov_terms_m2, "views": views})
+        rounded = np.asarray(m.cov_terms_m2.get("views_round", np.zeros((2, 2))), float)  # the pooled scatter says
+        cov = np.asarray(m.cov_m2, float) - own - rounded + views  # what a few views' spread could not
+        terms = {k: v for k, v in m.cov_terms_m2.items() if k != "views_round"}
+        return replace(m, cov_m2=cov, cov_terms_m2={**terms, "views": views})
