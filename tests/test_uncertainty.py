@@ -116,21 +116,19 @@ def test_the_self_check_fits_along_and_across_where_its_poses_state_a_heading():
     assert LeverGain(0.01, 0.03).across_of("one") == 0.03 and LeverGain(0.01, 0.03).as_dict()["both_sides_across"] == 0.01
 
 
-def test_a_self_check_pose_is_fitted_beyond_the_covariance_its_path_states():
-    """The refined path's self-check counts a few views' spread as its measurement states it (round); the camera-rate
-    path's as posed, since a followed frame states that spread from the run's pooled scatter instead."""
+def test_a_self_check_pose_is_fitted_beyond_the_covariance_its_measurement_states():
+    """A self-check pose keeps the covariance its measurement states without the lever and the geotags' terms: on
+    the exact path, a few views' spread made round."""
     from visloc.pose.measurement import Measurement
-    from visloc.pose.selfcheck import SHAPED_BASE, _pose_of
+    from visloc.pose.selfcheck import _pose_of
 
     terms = {"pnp": np.eye(2) * 1e-4, "views": np.diag([4e-4, 0.0]), "views_round": np.diag([0.0, 4e-4]),
-             "lever": np.eye(2) * 1e-2, "geotags": np.zeros((2, 2))}
+             "lever": np.eye(2) * 1e-2, "geotags": np.eye(2) * 1e-2}
     m = Measurement(np.array([1.0, 2.0]), sum(terms.values()), "geometry", lever_m=5.0, side="both",
                     cov_terms_m2=terms)
-    geotags = np.array([[0.0, 0.0], [1.0, 1.0]])
-    refined = _pose_of(1, m, geotags)
-    np.testing.assert_allclose(refined.base_cov_m2, np.eye(2) * 5e-4)
-    np.testing.assert_allclose(refined.error_m, [0.0, 1.0])
-    np.testing.assert_allclose(_pose_of(1, m, geotags, base_terms=SHAPED_BASE).base_cov_m2, np.diag([5e-4, 1e-4]))
+    pose = _pose_of(1, m, np.array([[0.0, 0.0], [1.0, 1.0]]))
+    np.testing.assert_allclose(pose.base_cov_m2, np.eye(2) * 5e-4)
+    np.testing.assert_allclose(pose.error_m, [0.0, 1.0])
 
 
 def _poses(side, n, gain, rng, lever=8.0):

@@ -56,7 +56,7 @@ class Measurement:
     thin_support:        geometry: no pose reached ``min_pnp_inliers`` at ``pnp_px``, so this one was made at
                          ``thin_support_pnp_px`` with ``thin_support_min_inliers`` (``viewpose.thin_support_params``).
     cov_terms_m2:        geometry: the parts of ``cov_m2`` by name ("pnp", "views", "lever", "geotags"; "views_round":
-                         on 2-3 views posed apart, what makes their spread round at its longest axis).
+                         the exact path, on 2-3 views posed apart, what makes their spread round at its longest axis).
     views_posed_apart:   geometry: how many views' own positions the "views" term comes from (the covariance of
                          their mean, from their spread); fewer than 2: the term is zero, nothing stated how far
                          one view's pose strays.

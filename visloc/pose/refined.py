@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -291,7 +292,24 @@ def pose_measurement(
                 posed = again
             else:
                 posed.structure_ms += again.structure_ms
-    return end.posed(posed, **base)
+    return end.posed(round_spread(posed), **base)
+
+
+SHAPED_SPREAD_VIEWS = 4  # fewer views posed apart: their spread tells the views term's size, not its shape
+
+
+def round_spread(posed: PosedViews) -> PosedViews:
+    """``posed`` with the spread of its two or three views posed apart stated round, at its longest axis (the part
+    added is the term "views_round"): two positions lie on one line and say nothing across it, and three say little
+    more (``benchmarks/nees_tails.py`` measures what shaped ellipses on so few views held). The exact path's: its
+    self-check's poses are stated so too, and its lever gain fitted beyond them. The camera-rate path poses every
+    frame on two views, its self-check's poses too, so its gain already holds what their spread cannot see, and a
+    followed frame states that spread from the run's pooled scatter (``visloc.pose.trackedcov``)."""
+    if posed.reason is not None or not 2 <= posed.views_posed_apart < SHAPED_SPREAD_VIEWS:
+        return posed
+    views = np.asarray(posed.cov_terms_m2["views"], float)
+    extra = float(np.linalg.eigvalsh(views).max()) * np.eye(2) - views
+    return replace(posed, cov_m2=posed.cov_m2 + extra, cov_terms_m2={**posed.cov_terms_m2, "views_round": extra})
 
 
 def _verified(indices: Sequence[int], query_xy: np.ndarray, query_descriptors_u8: np.ndarray,

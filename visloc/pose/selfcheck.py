@@ -54,10 +54,7 @@ MIN_POSES_PER_SIDE = 10  # fewer: that side keeps the default gain (never below 
 SELF_CHECK_VERSION = 3  # bump when what a self-check measures changes: older rows are then not used (3: the
 # spread of fewer than 4 views is round)
 CAMERA_RATE_SELF_CHECK_VERSION = 2  # the same, for the camera-rate path's (2: its two views posed apart)
-# the covariance a self-check pose's gain is fitted beyond: the refined path's as its measurement states it (two or
-# three views' spread round); the camera-rate path's with its two views' spread as posed, since a followed frame
-# states that spread from the run's pooled scatter instead (``visloc.pose.trackedcov.ViewScatter``)
-ROUNDED_BASE, SHAPED_BASE = ("pnp", "views", "views_round"), ("pnp", "views")
+BASE_TERMS = ("pnp", "views", "views_round")  # what a self-check pose's gain is fitted beyond
 # what of a query's pose settings a stored self-check depends on beyond the structure's, top_k and pnp_px
 POSE_SETTINGS = ("n_views", "fuse_views", "guided_radius_px", "thin_support_pnp_px", "other_side_candidates")
 # every other image of a drive is checked: adjacent frames' poses share nearly all their errors (the same views,
@@ -153,16 +150,16 @@ def camera_rate_self_check_pose(k: int, query: Query, measurer: FastPoseMeasurer
     retrieval = Retrieval(candidates=chosen, counts=counts,
                           best_index=int(chosen[int(np.argmax(counts))]) if counts.max() > 0 else None,
                           allowed=allowed, pairs=counts_of.pairs)
-    return _pose_of(k, measurer.measure(query, retrieval), measurer.db_east_north_m, base_terms=SHAPED_BASE)
+    return _pose_of(k, measurer.measure(query, retrieval), measurer.db_east_north_m)
 
 
-def _pose_of(k: int, m: Measurement, db_east_north_m: np.ndarray,
-             base_terms: tuple[str, ...] = ROUNDED_BASE) -> SelfCheckPose:
-    """A measurement of database image ``k`` as a self-check pose, its base covariance the sum of ``base_terms``."""
+def _pose_of(k: int, m: Measurement, db_east_north_m: np.ndarray) -> SelfCheckPose:
+    """A measurement of database image ``k`` as a self-check pose: its base covariance is the measurement's without
+    the lever and the geotags' terms, as its path states it (the exact path's with a few views' spread round)."""
     if m.source != GEOMETRY:
         return SelfCheckPose(k, None, None, None, None, m.fallback_reason)
     error = np.asarray(m.east_north_m, float) - np.asarray(db_east_north_m[k], float)
-    base = sum(v for name, v in m.cov_terms_m2.items() if name in base_terms)
+    base = sum(v for name, v in m.cov_terms_m2.items() if name in BASE_TERMS)
     return SelfCheckPose(k, error, base, float(m.lever_m), m.side)
 
 

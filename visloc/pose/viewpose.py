@@ -21,9 +21,6 @@ from visloc.pose.guided import guided_pairs
 from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, unstated_geotag_covariance_m2,
                                      unstated_geotags)
 
-SHAPED_SPREAD_VIEWS = 4  # fewer views posed apart: their spread tells the views term's size, not its shape
-
-
 @dataclass(frozen=True)
 class DatabaseGeometry:
     """The database as the refined mode needs it, in arrays.
@@ -168,9 +165,9 @@ class PosedViews:
 
     support: view_indices, neighbour_indices, n_correspondences_3d and n_pnp_inliers (Measurement fields).
     cov_m2 is the relative covariance (``visloc.pose.uncertainty``): the sum of ``cov_terms_m2`` ("pnp", "views",
-    "lever", "geotags"; "views_round" on fewer than ``SHAPED_SPREAD_VIEWS`` views); side: "both" or "one" (the views'
-    sides of the pose); lever_m: the distance from the pose to its nearest view's geotag; absolute_sigma_m: the
-    views' geotags' stated accuracy."""
+    "lever", "geotags"; the exact path adds "views_round": ``visloc.pose.refined.round_spread``); side: "both" or
+    "one" (the views' sides of the pose); lever_m: the distance from the pose to its nearest view's geotag;
+    absolute_sigma_m: the views' geotags' stated accuracy."""
 
     reason: str | None
     support: dict
@@ -333,8 +330,6 @@ def _finish(east_north: np.ndarray, T_world_imu: np.ndarray, anchor: int, chosen
              "lever": gain.covariance_m2(side, lever_m, heading)}
     terms["geotags"] = unstated_geotag_covariance_m2(inliers.neighbours or {}, geometry.unstated_geotags,
                                                      params.geotag_sigma_m)
-    if 2 <= len(per_view) < SHAPED_SPREAD_VIEWS:  # two views' spread lies on one line: round at its longest axis
-        terms["views_round"] = float(np.linalg.eigvalsh(terms["views"]).max()) * np.eye(2) - terms["views"]
     cov = sum(terms.values())
     absolute_sigma_m = float(np.sqrt(np.mean([_geotag_sigma_m(geometry, i, params) ** 2 for i in chosen])))
     return PosedViews(None, support, structure_ms, east_north, cov, anchor, reprojection_rms_px,
