@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from measuring import REPO, Section, commit
+from visloc.geo import LocalFrame  # noqa: E402
 from visloc.pose.uncertainty import along_across  # noqa: E402
 from visloc.stats import CHI2_2DOF_95  # noqa: E402
 
@@ -43,8 +44,6 @@ def track_heading_deg(frames: list[int], east_north_m: np.ndarray) -> dict[int, 
 
 def frame_rows(evaluation: dict) -> list[dict]:
     """Each query frame's geometry measurement once, with what the tail analysis needs."""
-    from visloc.geo import LocalFrame
-
     first: dict[int, dict] = {}
     for step in (st for s in evaluation["series"] for st in s):
         first.setdefault(step["query_frame"], step)

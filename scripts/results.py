@@ -422,17 +422,17 @@ def render_uncertainty(s: dict, add) -> None:
         "from the receiver that geotagged the database, on the same drive, so it shares the map's absolute error, "
         "which is stated apart (the geotags' own accuracy) and is not in R: see the [method notes](method.md). "
         "\"both\" counts measurements whose views lie before and after them, \"one\" those whose views all lie on "
-        "one side. The lever gain (m of error per m from the nearest view, along the vehicle's heading / across it) "
-        "is what each store's self-check measured on its own images; the camera-rate path, posed on the stored structure, has a self-check and a "
-        "gain of its own. The estimate's NEES uses the filter's covariance P.")
+        "one side. The lever gain (m of error per m from the nearest view, along the vehicle's heading / across "
+        "it) is what each store's self-check measured on its own images; the camera-rate path, posed on the stored "
+        "structure, has a self-check and a gain of its own. The estimate's NEES uses the filter's covariance P.")
     add("")
     rows = [(drive, r) for drive, rs in s["drives"].items() for r in rs if r["mode"] != "paper" and "calibration" in r]
     if not rows:
         add("Not measured with this commit: `python scripts/results.py run` measures it.")
         add("")
         return
-    add("| drive | protocol | GPS stated (median) | heading spread | lever gain along / across: both sides; one side (self-check poses) | "
-        "camera rate's | NEES, inside 95 %: all | both sides | one side | estimate (P) |")
+    add("| drive | protocol | GPS stated (median) | heading spread | lever gain along / across: both sides; one side "
+        "(self-check poses) | camera rate's | NEES, inside 95 %: all | both sides | one side | estimate (P) |")
     add("|---|---|---|---|---|---|---|---|---|---|")
 
     def _gain(g: dict | None) -> str:

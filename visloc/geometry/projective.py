@@ -100,16 +100,16 @@ def imu_poses(east_north_up_m: np.ndarray, rpy_rad: np.ndarray) -> np.ndarray:
     return out
 
 
-def heading_deg_of(T_world_imu: np.ndarray) -> float:
-    """Compass heading (0 = north, clockwise, degrees) of the imu frame's x axis (forward)."""
-    forward = T_world_imu[:3, 0]
-    return float((90.0 - math.degrees(math.atan2(forward[1], forward[0]))) % 360.0)
-
-
 def headings_deg_of(T_world_imu: np.ndarray) -> np.ndarray:
-    """(N,) compass headings of (N, 4, 4) imu poses, as ``heading_deg_of`` (NaN where a pose is unknown)."""
+    """(N,) compass headings (0 = north, clockwise, degrees) of the x axes (forward) of (N, 4, 4) imu poses
+    (NaN where a pose is unknown)."""
     forward = np.asarray(T_world_imu, float).reshape(-1, 4, 4)[:, :3, 0]
     return (90.0 - np.degrees(np.arctan2(forward[:, 1], forward[:, 0]))) % 360.0
+
+
+def heading_deg_of(T_world_imu: np.ndarray) -> float:
+    """Compass heading of one imu pose (``headings_deg_of``)."""
+    return float(headings_deg_of(T_world_imu)[0])
 
 
 def heading_difference_deg(a_deg: float, b_deg: float) -> float:

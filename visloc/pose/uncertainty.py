@@ -159,15 +159,7 @@ def fit_lever_gain(errors_m: np.ndarray, base_cov_m2: np.ndarray, lever_m: np.nd
         m = np.einsum("ni,ni->n", e, np.linalg.solve(S, e[:, :, None])[..., 0])
         return float(np.mean(m <= radius2))
 
-    if covered(0.0) >= probability:
-        return 0.0
-    if covered(max_gain) < probability:
-        return max_gain
-    low, high = 0.0, max_gain
-    for _ in range(40):  # coverage grows with the gain: bisection to 1e-12
-        mid = 0.5 * (low + high)
-        low, high = (low, mid) if covered(mid) >= probability else (mid, high)
-    return high
+    return _fit_scale(covered, max_gain, probability)
 
 
 def _fit_scale(covered, max_scale: float, probability: float) -> float:

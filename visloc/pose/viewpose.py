@@ -21,6 +21,7 @@ from visloc.pose.guided import guided_pairs
 from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, LeverGain, unstated_geotag_covariance_m2,
                                      unstated_geotags)
 
+
 @dataclass(frozen=True)
 class DatabaseGeometry:
     """The database as the refined mode needs it, in arrays.
