@@ -125,6 +125,7 @@ class SelfCheckRecord:
     lever_m:        distance from the pose to its nearest view's geotag, metres
     side:           "both" (views before and after it) or "one"
     reason:         why there is no pose, None otherwise
+    views_posed_apart: how many views the pose is the mean of (None: not recorded, a row of an older store)
     """
 
     image_id: int
@@ -137,3 +138,4 @@ class SelfCheckRecord:
     lever_m: float | None
     side: str | None
     reason: str | None = None
+    views_posed_apart: int | None = None

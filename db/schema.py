@@ -20,6 +20,8 @@ step of ``HISTORY`` that brought it, and ``upgrade`` is the one function that ap
 6  the cache of correspondence counts of features selected at a higher SIFT contrast threshold than the
    store's (``selected_pair_counts``: a store built at a lower threshold serves the paper's method its own
    features, whose counts are other than those of the features as stored).
+7  how many views a self-check's pose was posed against apart (self_checks: views_posed_apart), NULL in rows
+   written before.
 
 A new store is the whole history applied to an empty file. Opening a store for writing applies
 whatever of the history it lacks (a store of an older version: every later step; any store: a
@@ -130,6 +132,9 @@ HISTORY: tuple[tuple[Change, ...], ...] = (
                                        ("tau2", "REAL"), ("contrast_threshold", "REAL"),
                                        ("n_correspondences", "INTEGER"), ("match_ms", "REAL")),
               key=("query_image_id", "db_image_id", "tau1", "tau2", "contrast_threshold")),
+    ),
+    (  # 6 -> 7
+        Column("self_checks", "views_posed_apart", "INTEGER", after="side"),
     ),
 )
 SCHEMA_VERSION = len(HISTORY)

@@ -1,9 +1,10 @@
 """The ``self_checks`` table: how well the database poses its own images (``visloc.pose.selfcheck``).
 
 One row per (image, settings): the pose's error against the image's own geotag, its covariance
-without the lever term, the lever and the side, or why there is no pose. A store read as it is may
-lack the table (one written before it was part of the schema): its measurements use the default
-lever gain until ``visloc ingest`` runs the self-check.
+without the lever term, the lever, the side and how many views it is the mean of, or why there is no
+pose. A store read as it is may lack the table (one written before it was part of the schema): its
+measurements use the default lever gain until ``visloc ingest`` runs the self-check; or lack the column of
+the views (schema version 7): its rows read as not saying.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from visloc.db.schema import now_iso
 from visloc.db.store import FeatureStore
 
 COLUMNS = ("image_id", "params_json", "error_east_m", "error_north_m", "cov_ee_m2", "cov_en_m2", "cov_nn_m2",
-           "lever_m", "side", "reason")
+           "lever_m", "side", "views_posed_apart", "reason")
 
 
 class SelfCheckTable:
@@ -38,9 +39,11 @@ class SelfCheckTable:
         if "self_checks" not in self.db.table_names():
             return {}
         ids = [int(i) for i in image_ids]
+        have = set(self.db["self_checks"].columns_dict)
+        columns = [c for c in COLUMNS if c in have]
         out: dict[int, SelfCheckRecord] = {}
         for chunk, marks in chunks(ids):
-            for r in self.db.query(f"SELECT {', '.join(COLUMNS)} FROM self_checks WHERE params_json = ? "
+            for r in self.db.query(f"SELECT {', '.join(columns)} FROM self_checks WHERE params_json = ? "
                                    f"AND image_id IN ({marks})", [params_json, *chunk]):
                 out[int(r["image_id"])] = SelfCheckRecord(**r)
         return out

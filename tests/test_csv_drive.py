@@ -357,7 +357,7 @@ def test_a_schema_2_store_is_migrated_keeping_its_rows_and_reingest_fills_accura
     assert result.returncode == 0, result.stderr
     assert f"0 added, {N_FRAMES} already stored" in result.stdout
     conn = sqlite3.connect(path)
-    assert conn.execute("SELECT version FROM visloc_schema").fetchone() == (SCHEMA_VERSION,) == (6,)
+    assert conn.execute("SELECT version FROM visloc_schema").fetchone() == (SCHEMA_VERSION,) == (7,)
     after = conn.execute("SELECT id, frame, lat_deg, keypoints_f32, descriptors_u8 FROM images ORDER BY id").fetchall()
     conn.close()
     assert after == before  # every row and feature kept

@@ -103,7 +103,7 @@ def test_the_history_defines_each_table_column_and_index_once():
     indexes = [c.name for c in changes if isinstance(c, Index)]
     assert len(set(tables)) == len(tables) and set(tables) == TABLES
     assert len(set(columns)) == len(columns) and len(set(indexes)) == len(indexes)
-    assert SCHEMA_VERSION == len(HISTORY) == 6
+    assert SCHEMA_VERSION == len(HISTORY) == 7
 
 
 def test_every_blob_of_the_schema_is_a_declared_stored_array_with_its_checksum_column():
@@ -186,7 +186,8 @@ def test_a_store_that_lost_tables_is_refused_as_damaged_when_read_and_rebuilt_wh
     conn.close()
     before = hashlib.sha256(path.read_bytes()).hexdigest()
     with pytest.raises(DamagedStoreError, match=r"lost.sqlite: damaged visloc store: missing table skipped_frames, "
-                                                r"table self_checks; 'visloc ingest' of its drives rebuilds"):
+                                                r"table self_checks, column self_checks.views_posed_apart; 'visloc ingest' of its "
+                                                r"drives rebuilds"):
         FeatureStore(path, read_only=True)
     assert hashlib.sha256(path.read_bytes()).hexdigest() == before
     with FeatureStore(path) as store:

@@ -163,7 +163,7 @@ def test_a_version_1_store_is_migrated_in_place_keeping_its_data(tmp_path):
         assert store.set_position_accuracies("drive", "image_01", {0: 0.3, 7: 0.5}) == 1  # frame 7 is not stored
         store.set_camera(CameraRecord("drive", "image_01", cam.P_rect, 64, 32, T_camera_imu=np.eye(4)))
     with FeatureStore(path) as store:
-        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == SCHEMA_VERSION == 6
+        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == SCHEMA_VERSION == 7
         (image,) = store.images()
         assert (image.roll_rad, image.pitch_rad, image.yaw_rad) == (0.01, 0.02, -2.6)
         assert image.position_accuracy_m == 0.3 and store.frames_without_accuracy("drive", "image_01") == set()
@@ -198,5 +198,5 @@ def test_a_version_2_store_gains_the_accuracy_column_keeping_its_rows(tmp_path):
         np.testing.assert_array_equal(store.features([image.image_id])[image.image_id][1], desc)
         assert store.set_position_accuracies("drive", "image_01", {0: 0.03}) == 1
     with FeatureStore(path) as store:
-        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == 6
+        assert next(store.db.query("SELECT version FROM visloc_schema"))["version"] == 7
         assert store.images()[0].position_accuracy_m == 0.03

@@ -1,10 +1,12 @@
 """The covariance model's pieces: the lever gain fit, the calibration figures, the heading spread."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from visloc.geometry.bundle import heading_spread_rad
-from visloc.pose.selfcheck import MIN_POSES_PER_SIDE, SelfCheckPose, lever_gain_from
+from visloc.pose.selfcheck import MIN_POSES_PER_SIDE, SelfCheckPose, lever_gain_from, pose_record, record_pose
 from visloc.stats import CHI2_2DOF_95, chi2_2dof_quantile
 from visloc.pose.uncertainty import (DEFAULT_LEVER_GAIN, NOMINAL_LEVELS, LeverGain, along_across, calibration,
                                 fit_lever_gain, fit_lever_gains, lever_covariance_m2, nees)
@@ -126,9 +128,32 @@ def test_a_self_check_pose_is_fitted_beyond_the_covariance_its_measurement_state
              "lever": np.eye(2) * 1e-2, "geotags": np.eye(2) * 1e-2}
     m = Measurement(np.array([1.0, 2.0]), sum(terms.values()), "geometry", lever_m=5.0, side="both",
                     cov_terms_m2=terms)
+    m = replace(m, views_posed_apart=3)
     pose = _pose_of(1, m, np.array([[0.0, 0.0], [1.0, 1.0]]))
     np.testing.assert_allclose(pose.base_cov_m2, np.eye(2) * 5e-4)
     np.testing.assert_allclose(pose.error_m, [0.0, 1.0])
+    # as the store keeps it and reads it back: the views it is the mean of too
+    again = record_pose(pose_record(pose, 7, "{}"), 1, heading_deg=90.0)
+    assert again.views_posed_apart == 3 and again.heading_deg == 90.0
+    np.testing.assert_allclose(again.base_cov_m2, pose.base_cov_m2)
+
+
+def test_the_gain_is_fitted_on_poses_whose_spread_is_shaped_where_a_side_has_enough():
+    """Poses on few views carry a round spread that already holds their error: fitted among the others, the more a
+    self-check has of them, the lower the gain a query on more views gets."""
+    rng = np.random.default_rng(8)
+    many = [replace(p, views_posed_apart=6) for p in _poses("both", 100, 0.02, rng)]
+    few = [SelfCheckPose(1000 + k, rng.normal(size=2) * 0.02, np.eye(2), 8.0, "both", views_posed_apart=2)
+           for k in range(300)]
+    pooled, shaped = lever_gain_from(many + few), lever_gain_from(many + few, min_views=4)
+    assert shaped.both_sides == pytest.approx(0.02, rel=0.2) and pooled.both_sides < 0.5 * shaped.both_sides
+    assert shaped.n_both == pooled.n_both == 400  # the counts are the side's poses, whichever were fitted
+    # too few poses on enough views: every pose of the side is fitted
+    assert lever_gain_from(many[:MIN_POSES_PER_SIDE - 1] + few, min_views=4).both_sides == pytest.approx(
+        lever_gain_from(many[:MIN_POSES_PER_SIDE - 1] + few).both_sides)
+    # a pose that does not say (a row of an older store) is not among those on enough views
+    unsaid = [replace(p, views_posed_apart=None) for p in many]
+    assert lever_gain_from(unsaid + few, min_views=4).both_sides == pytest.approx(pooled.both_sides)
 
 
 def _poses(side, n, gain, rng, lever=8.0):

@@ -51,8 +51,8 @@ from visloc.pose.viewpose import DatabaseGeometry
 SELF_CHECK_EXCLUSION_S = 1.0  # as the evaluation's: a same-drive query never sees its own second of driving
 SELF_CHECK_PROBABILITY = 0.8  # the level at which the lever gain matches the errors (see fit_lever_gain)
 MIN_POSES_PER_SIDE = 10  # fewer: that side keeps the default gain (never below the other side's)
-SELF_CHECK_VERSION = 3  # bump when what a self-check measures changes: older rows are then not used (3: the
-# spread of fewer than 4 views is round)
+SELF_CHECK_VERSION = 4  # bump when what a self-check measures changes: older rows are then not used (3: the
+# spread of fewer than 4 views is round; 4: each pose says how many views it is the mean of)
 CAMERA_RATE_SELF_CHECK_VERSION = 2  # the same, for the camera-rate path's (2: its two views posed apart)
 BASE_TERMS = ("pnp", "views", "views_round")  # what a self-check pose's gain is fitted beyond
 # what of a query's pose settings a stored self-check depends on beyond the structure's, top_k and pnp_px
@@ -71,7 +71,8 @@ class SelfCheckPose:
     index: database index; error_m: (2,) pose minus the image's geotag, metres (None: no pose);
     base_cov_m2: (2, 2) the pose's covariance without the lever term; lever_m, side: as the
     measurement's; reason: why there is no pose (None otherwise); heading_deg: the image's compass heading
-    (its geotag's attitude; None where it states none), along which the lever gain is told from across."""
+    (its geotag's attitude; None where it states none), along which the lever gain is told from across;
+    views_posed_apart: how many views the pose is the mean of (None: not recorded)."""
 
     index: int
     error_m: np.ndarray | None
@@ -80,6 +81,7 @@ class SelfCheckPose:
     side: str | None
     reason: str | None = None
     heading_deg: float | None = None
+    views_posed_apart: int | None = None
 
 
 def self_check_params(params: RefinedParams) -> RefinedParams:
@@ -160,7 +162,7 @@ def _pose_of(k: int, m: Measurement, db_east_north_m: np.ndarray) -> SelfCheckPo
         return SelfCheckPose(k, None, None, None, None, m.fallback_reason)
     error = np.asarray(m.east_north_m, float) - np.asarray(db_east_north_m[k], float)
     base = sum(v for name, v in m.cov_terms_m2.items() if name in BASE_TERMS)
-    return SelfCheckPose(k, error, base, float(m.lever_m), m.side)
+    return SelfCheckPose(k, error, base, float(m.lever_m), m.side, views_posed_apart=int(m.views_posed_apart))
 
 
 def self_check(geometry: DatabaseGeometry, db_east_north_m: np.ndarray, db_timestamps_s: np.ndarray,
@@ -213,9 +215,14 @@ def _side_gains(chosen: list[SelfCheckPose]) -> tuple[float, float]:
     return gain, gain
 
 
-def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check") -> LeverGain:
+def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check", *, min_views: int = 0) -> LeverGain:
     """The lever gain per side, along the heading and across it, that the self-check's poses call for
-    (``_side_gains`` at ``SELF_CHECK_PROBABILITY``). The one-side gain is never below the both-sides one,
+    (``_side_gains`` at ``SELF_CHECK_PROBABILITY``), fitted on a side's poses on at least ``min_views`` views
+    posed apart where it has ``MIN_POSES_PER_SIDE`` of them, else on all its poses. The exact path states the
+    spread of fewer than ``SHAPED_SPREAD_VIEWS`` views round (``visloc.pose.refined.round_spread``): those poses'
+    own term already holds most of their error, so fitted among the others they lower the gain that a query on
+    more views needs, and the more of them a store's self-check has the lower it goes (a store whose images keep
+    fewer keypoints poses more of its own images on few views than its queries). The one-side gain is never below the both-sides one,
     either way: a query with views on one side only extrapolates the database's errors where one with views
     on both sides interpolates them, and is never better off (a self-check with few one-sided poses can say
     otherwise by chance). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the default gain (round),
@@ -224,6 +231,8 @@ def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check") 
     for side in SIDES:
         chosen = [p for p in poses if p.error_m is not None and p.side == side]
         counts[side] = len(chosen)
+        shaped = [p for p in chosen if p.views_posed_apart is not None and p.views_posed_apart >= min_views]
+        chosen = shaped if len(shaped) >= MIN_POSES_PER_SIDE else chosen
         if len(chosen) >= MIN_POSES_PER_SIDE:
             gains[side] = _side_gains(chosen)
     default_one = (DEFAULT_LEVER_GAIN.one_side, DEFAULT_LEVER_GAIN.one_side)
@@ -245,7 +254,7 @@ def pose_record(p: SelfCheckPose, image_id: int, settings_json: str) -> SelfChec
         return SelfCheckRecord(image_id, settings_json, None, None, None, None, None, None, None, p.reason)
     C = p.base_cov_m2
     return SelfCheckRecord(image_id, settings_json, float(p.error_m[0]), float(p.error_m[1]), float(C[0, 0]),
-                           float(C[0, 1]), float(C[1, 1]), float(p.lever_m), p.side, None)
+                           float(C[0, 1]), float(C[1, 1]), float(p.lever_m), p.side, None, p.views_posed_apart)
 
 
 def record_pose(r: SelfCheckRecord, index: int, heading_deg: float | None = None) -> SelfCheckPose:
@@ -255,4 +264,4 @@ def record_pose(r: SelfCheckRecord, index: int, heading_deg: float | None = None
     heading = None if heading_deg is None or not np.isfinite(heading_deg) else float(heading_deg)
     return SelfCheckPose(index, np.array([r.error_east_m, r.error_north_m]),
                          np.array([[r.cov_ee_m2, r.cov_en_m2], [r.cov_en_m2, r.cov_nn_m2]]), r.lever_m, r.side,
-                         heading_deg=heading)
+                         heading_deg=heading, views_posed_apart=r.views_posed_apart)

@@ -29,16 +29,16 @@ from visloc.geometry.projective import headings_deg_of
 from visloc.sources.imagesize import DEFAULT_MAX_IMAGE_MP
 from visloc.store.ingest import IngestReport, check_sift_settings, ingest, stored_sift_params
 from visloc.store.sharded import Catalogue, held_datasets, owner_tiles
-from visloc.params import COMMAND_OPTIONS
 from visloc.store.tilecache import ContrastSelected, TileCache, TileCacheStats, TileStructures
 from visloc.db.shards import is_sharded
 from visloc.retrieval.matching import PairCountCache
-from visloc.params import REFINED, MatchParams, RefinedParams, SiftParams
+from visloc.params import COMMAND_OPTIONS, REFINED, MatchParams, RefinedParams, SiftParams
 from visloc.params.methods import PAPER_METHOD, features_for
 from visloc.pose.selfcheck import (CAMERA_RATE_PARAMS, SelfCheckPose, lever_gain_from, record_pose,
                                     self_check_settings_json)
 from visloc.sources.drives import Drive
-from visloc.pose.structure import (ViewStructure, structure_settings_json)
+from visloc.pose.refined import SHAPED_SPREAD_VIEWS
+from visloc.pose.structure import ViewStructure, structure_settings_json
 from visloc.pose.uncertainty import LeverGain
 from visloc.store.globalvectors import GlobalVectors, global_vectors_name  # noqa: F401 (named here too)
 
@@ -248,7 +248,8 @@ class Workspace:
         if not poses:
             return None
         what = "camera-rate self-check" if camera_rate else "self-check"
-        return lever_gain_from(poses, source=f"{what} of {db.source}/{db.camera} ({len(poses)} images)")
+        return lever_gain_from(poses, source=f"{what} of {db.source}/{db.camera} ({len(poses)} images)",
+                               min_views=0 if camera_rate else SHAPED_SPREAD_VIEWS)
 
     def load_structure(self, db: GeoDatabase, params: RefinedParams = REFINED,
                        views: list[int] | None = None) -> Mapping[int, dict[str, ViewStructure]]:
