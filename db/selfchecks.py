@@ -3,8 +3,7 @@
 One row per (image, settings): the pose's error against the image's own geotag, its covariance
 without the lever term, the lever, the side and how many views it is the mean of, or why there is no
 pose. A store read as it is may lack the table (one written before it was part of the schema): its
-measurements use the default lever gain until ``visloc ingest`` runs the self-check; or lack the column of
-the views (schema version 7): its rows read as not saying.
+measurements use the default lever gain until ``visloc ingest`` runs the self-check.
 """
 
 from __future__ import annotations
@@ -39,11 +38,9 @@ class SelfCheckTable:
         if "self_checks" not in self.db.table_names():
             return {}
         ids = [int(i) for i in image_ids]
-        have = set(self.db["self_checks"].columns_dict)
-        columns = [c for c in COLUMNS if c in have]
         out: dict[int, SelfCheckRecord] = {}
         for chunk, marks in chunks(ids):
-            for r in self.db.query(f"SELECT {', '.join(columns)} FROM self_checks WHERE params_json = ? "
+            for r in self.db.query(f"SELECT {', '.join(COLUMNS)} FROM self_checks WHERE params_json = ? "
                                    f"AND image_id IN ({marks})", [params_json, *chunk]):
                 out[int(r["image_id"])] = SelfCheckRecord(**r)
         return out
