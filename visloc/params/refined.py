@@ -189,11 +189,12 @@ class TrackParams(Params):
     stride: int = param(1, "localize every stride-th frame (1: every frame); the filter's time step follows",
                         kind="integer", low=1, methods=TRACK_ONLY)
     follow_points: bool | None = param(None, "between full localizations, follow the last posed frame's map "
-                                             "points by optical flow and pose each frame against them: at the "
-                                             "camera's 10 Hz, a third of the processor of localizing every frame "
-                                             "in full (--no-follow-points) and about as accurate "
-                                             "(docs/performance.md); read as fast as possible (--pace-hz 0), far "
-                                             "less accurate, as the full localizations fall behind",
+                                             "points by optical flow and pose each frame against them: read as "
+                                             "each full localization keeps up (the default), as accurate as "
+                                             "localizing every frame in full (--no-follow-points); at the camera's "
+                                             "10 Hz (--pace-hz 10), about half its processor and a little less "
+                                             "accurate (docs/performance.md); read as fast as possible (--pace-hz "
+                                             "0), far less accurate, as the full localizations fall behind",
                                        kind="bool", methods=TRACK_ONLY,
                                        when_unset="on the camera-rate path at every frame (--stride 1), off on the exact "
                                                   "one (--exact): points are followed from one frame to the next")
