@@ -107,7 +107,7 @@ def test_reading_an_old_store_does_not_migrate_it(tmp_path, fault):
     assert digest(path) == before
     upgraded = run_cli("upgrade", "--db", path)
     assert upgraded.returncode == 0, upgraded.stderr
-    assert "schema version 1 -> 6" in upgraded.stdout
+    assert "schema version 1 -> 7" in upgraded.stdout
     again = run_cli("upgrade", "--db", path)
     assert again.returncode == 0 and "already at schema version 7" in again.stdout
     info = run_cli("info", "--db", path)
