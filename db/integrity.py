@@ -20,7 +20,7 @@ import numpy as np
 
 from visloc.db.arrays import GLOBAL_VECTOR, NAMED_ARRAY, arrays_of, chunks
 from visloc.db.blobs import blob_problem
-from visloc.db.schema import change_name, lacking
+from visloc.db.schema import lacking, missing_names
 from visloc.db.store import FeatureStore, where_drive
 
 CHUNK_ROWS = 64  # rows whose BLOBs are in memory at a time
@@ -51,7 +51,7 @@ def sqlite_problems(store: FeatureStore) -> list[str]:
 
 def missing_schema(store: FeatureStore) -> list[str]:
     """The tables, columns and indexes the schema needs that the store lacks, named."""
-    return [change_name(change) for change in lacking(store.db)]
+    return missing_names(lacking(store.db))
 
 
 def row_counts(store: FeatureStore) -> dict[str, int]:

@@ -154,6 +154,13 @@ def change_name(change: Change) -> str:
     return f"index {change.name}"
 
 
+def missing_names(changes: list[Change]) -> list[str]:
+    """The lacking ``changes`` as a user reads them (``change_name``), without the columns and indexes of a table
+    that is itself lacking: its table says it."""
+    tables = {c.name for c in changes if isinstance(c, Table)}
+    return [change_name(c) for c in changes if isinstance(c, Table) or c.table not in tables]
+
+
 def lacking(db: sqlite_utils.Database, target: int = SCHEMA_VERSION) -> list[Change]:
     """The changes of the history's first ``target`` steps that the store does not hold, in order."""
     tables = set(db.table_names())

@@ -60,7 +60,7 @@ from visloc.db.connection import BUSY_TIMEOUT_S, Database, connect
 from visloc.db.records import (DESCRIPTOR_DIM, KEYPOINT_COLUMNS, CameraRecord, DamagedStoreError, EmptyStoreError,
                                ImageRecord, NotAStoreError, SettingsMismatchError, SkippedFrame, StoredImage, StoreError)
 from visloc.db.checksums import fill_checksums
-from visloc.db.schema import REQUIRED_TABLES, SCHEMA_VERSION, change_name, lacking, now_iso, upgrade
+from visloc.db.schema import REQUIRED_TABLES, SCHEMA_VERSION, lacking, missing_names, now_iso, upgrade
 
 
 def _enable_wal(db: sqlite_utils.Database) -> None:
@@ -147,7 +147,7 @@ class FeatureStore:
         if self.read_only:
             absent = [] if self._lacking_ok else lacking(db)
             if absent:
-                shown = ", ".join(change_name(c) for c in absent[:4])
+                shown = ", ".join(missing_names(absent)[:4])
                 raise DamagedStoreError(f"{label}: damaged visloc store: missing {shown}; 'visloc ingest' of its "
                                         "drives rebuilds what is missing (or ingest them into a new store)")
             return

@@ -223,9 +223,9 @@ def lever_gain_from(poses: Sequence[SelfCheckPose], source: str = "self-check", 
     own term already holds most of their error, so fitted among the others they lower the gain that a query on
     more views needs, and the more of them a store's self-check has the lower it goes (a store whose images keep
     fewer keypoints poses more of its own images on few views than its queries). The one-side gain is never
-    below the both-sides one, either way: a query with views on one side only extrapolates the database's errors where one with views
-    on both sides interpolates them, and is never better off (a self-check with few one-sided poses can say
-    otherwise by chance). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the default gain (round),
+    below the both-sides one, either way: a query with views on one side only extrapolates the database's
+    errors where one with views on both sides interpolates them, and is never better off (a self-check with
+    few one-sided poses can say otherwise by chance). A side with fewer than ``MIN_POSES_PER_SIDE`` poses keeps the default gain (round),
     again never below the other side's; with no pose on either side, the defaults."""
     gains, counts = {}, {}
     for side in SIDES:
