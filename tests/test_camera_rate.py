@@ -427,8 +427,8 @@ def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covari
     pose = follower.pose
     engine = make_sift(follower.sift)
     start = 10
-    full = follower._full(load_gray(seq.frames[start].image_path), seq.timestamps_s[start], None, engine, "frame")
-    points = follower._points(full)
+    full = follower.relocalizer._full(load_gray(seq.frames[start].image_path), seq.timestamps_s[start], None, engine, "frame")
+    points = follower.relocalizer._points(full)
     assert points is not None and len(points) >= 40
     previous = full.gray
     for k in range(start + 1, start + 4):
@@ -437,7 +437,7 @@ def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covari
         tracked, inliers = pose_tracked(points, points.pixels_px, db.east_north_m, db.geometry(), seq.camera_model,
                                         pose)
         assert inliers is not None, tracked.fallback_reason
-        again = follower._full(gray, seq.timestamps_s[k], None, engine, "frame").measurement
+        again = follower.relocalizer._full(gray, seq.timestamps_s[k], None, engine, "frame").measurement
         assert again.source == "geometry"
         d = tracked.east_north_m - again.east_north_m
         assert float(d @ np.linalg.solve(tracked.cov_m2 + again.cov_m2, d)) < CHI2_2DOF_999  # 99.9 % for 2 degrees
@@ -446,6 +446,40 @@ def test_a_tracked_frame_is_posed_where_the_full_path_poses_it_within_its_covari
         assert all(abs(db.timestamps_s[v] - seq.timestamps_s[k]) >= 1.0 for v in tracked.view_indices)
         points = points.subset(inliers.query_rows)
         previous = gray
+
+
+def test_a_relocalization_guided_by_the_tracked_pose_poses_where_the_full_path_does(store):
+    """Real frames: frame 10's map points followed into frame 12 and the frame posed on them; relocalized guided by
+    that pose, it finds the nearest views' points where they project (no retrieval, SIFT describing only the
+    keypoints there), enough of them to follow on, and is posed where the full path poses it within their
+    covariances, on no view inside the exclusion window."""
+    from visloc.features.sift import make_sift
+    from visloc.pose.flowtrack import follow
+    from visloc.sources.drives import load_gray
+    from visloc.tracking.relocalize import GUIDED
+
+    db, seq, follower = _follower(store)
+    follower.params = follower.params.replace(guided_relocalization=True)
+    engine = make_sift(follower.sift)
+    full = follower.relocalizer._full(load_gray(seq.frames[10].image_path), seq.timestamps_s[10], None, engine, "frame")
+    points, previous = follower.relocalizer._points(full), full.gray
+    for k in (11, 12):
+        gray = load_gray(seq.frames[k].image_path)
+        points = follower.window.allowed(follow(points, previous, gray, seq.camera_model.K, None), seq.timestamps_s[k])
+        previous = gray
+    t_s = seq.timestamps_s[12]
+    tracked, kept, _ = follower._pose(points, t_s, None)
+    assert kept is not None, tracked.fallback_reason
+    done = follower._relocalize(previous, t_s, None, (engine, make_sift(follower.sift.replace(n_features=0))), "frame",
+                                kept)
+    assert done.how == GUIDED and done.full.retrieval_ms == 0 and not len(done.full.retrieval.candidates)
+    guided = done.full.measurement
+    again = follower.relocalizer.relocalize(previous, t_s, None, engine, "frame")
+    assert guided.source == again.full.measurement.source == "geometry"
+    assert done.points.n_tracks >= follower.params.min_followed_points
+    d = guided.east_north_m - again.full.measurement.east_north_m
+    assert float(d @ np.linalg.solve(guided.cov_m2 + again.full.measurement.cov_m2, d)) < CHI2_2DOF_999
+    assert all(abs(db.timestamps_s[v] - t_s) >= 1.0 for v in np.unique(done.points.view_of))
 
 
 def test_a_frame_followed_on_a_few_image_tracks_is_not_posed_however_many_views_repeat_them(store):
@@ -457,10 +491,10 @@ def test_a_frame_followed_on_a_few_image_tracks_is_not_posed_however_many_views_
     from visloc.sources.drives import load_gray
     db, seq, follower = _follower(store)
     pose = follower.pose
-    full = follower._full(load_gray(seq.frames[10].image_path), seq.timestamps_s[10], None, make_sift(follower.sift),
+    full = follower.relocalizer._full(load_gray(seq.frames[10].image_path), seq.timestamps_s[10], None, make_sift(follower.sift),
                           "frame")
     t_s = seq.timestamps_s[11]
-    followed = follow(follower._points(full), full.gray, load_gray(seq.frames[11].image_path), seq.camera_model.K, None)
+    followed = follow(follower.relocalizer._points(full), full.gray, load_gray(seq.frames[11].image_path), seq.camera_model.K, None)
     points = follower.window.allowed(follower._linked(follower.window.allowed(followed, t_s), t_s, None), t_s)
     tracked, inliers = pose_tracked(points, points.pixels_px, db.east_north_m, db.geometry(), seq.camera_model, pose)
     assert inliers is not None, tracked.fallback_reason

@@ -212,3 +212,50 @@ def test_points_merged_keep_the_current_ones_and_add_the_fresh_ones_they_lack():
     assert out.track_of.tolist() == [0, 1, 8] and out.neighbours == {0: (3,), 1: (2,)}
     np.testing.assert_allclose(out.T_world_camera, np.eye(4))  # at the current points' pose
     assert merged(None, fresh) is fresh
+
+
+def test_sift_near_describes_what_sift_finds_near_the_given_pixels_and_nothing_else(kitti_root):
+    """A real frame at the camera-rate path's scale: the keypoints SIFT finds near a few pixels are exactly those of
+    the whole image's SIFT (every keypoint, same place, same descriptor) that lie there, and none lies elsewhere."""
+    from visloc.features.sift import extract_sift, sift_near
+    from visloc.params import SiftParams
+
+    gray = cv2.imread(str(next((kitti_root / "2011_09_26" / "2011_09_26_drive_0001_sync" / "image_00" / "data")
+                               .glob("*.png"))), cv2.IMREAD_GRAYSCALE)
+    params = SiftParams(contrast_threshold=0.02, image_scale=0.75)
+    everything = extract_sift(gray, params)
+    near_px = everything.xy_px[::40] + 3.0  # near every 40th keypoint, 3 px off it
+    radius_px = 6.0
+    found = sift_near(gray, params, near_px, radius_px)
+    distance = np.linalg.norm(found.xy_px[:, None] - near_px[None], axis=2).min(axis=1)
+    # the mask lies on the pixel grid of the image SIFT sees (at 0.75): a keypoint and the disc's centre each round
+    assert 0 < len(found) < len(everything) / 4 and distance.max() <= radius_px + 2.5
+    # a keypoint is its place, size and orientation (SIFT gives one place several orientations), with its descriptor
+    def by_keypoint(f):
+        return {tuple(np.round(k[:4], 3).tolist()): d.tobytes() for k, d in zip(f.keypoints_f32, f.descriptors_u8)}
+
+    whole, near = by_keypoint(everything), by_keypoint(found)
+    assert all(whole.get(k) == d for k, d in near.items())
+    inside = np.linalg.norm(everything.xy_px[:, None] - near_px[None], axis=2).min(axis=1) <= radius_px - 1.5
+    assert {tuple(np.round(k[:4], 3).tolist()) for k in everything.keypoints_f32[inside]} <= set(near)
+    assert len(sift_near(gray, params, np.zeros((0, 2)), radius_px)) == 0
+
+
+def test_guided_matching_takes_no_lone_keypoint_whose_descriptor_is_far():
+    """A map point with one keypoint near where it projects: taken when its descriptor is near the view's, not when
+    it is farther than the bound (with the pose as the only other evidence, that keypoint is no match)."""
+    from visloc.pose.flowtrack import guided_matches
+
+    K = np.array([[700.0, 0, 600], [0, 700.0, 180], [0, 0, 1]])
+    view_desc = np.zeros((2, 128), np.uint8)
+    view_desc[0, :64], view_desc[1, 64:] = 40, 40
+    view_points = {0: (np.array([0, 1]), np.array([[0.0, 0, 10], [1.0, 0, 10]]), np.repeat(np.eye(3)[None], 2, 0))}
+    query_xy = np.array([[601.0, 180], [671.0, 181]])
+    query_desc = view_desc.copy()
+    query_desc[1] = 0
+    query_desc[1, 64:96] = 40  # half of point 1's descriptor: L2 distance 226 from it
+    found = guided_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0)
+    assert sorted(found.query_rows.tolist()) == [0, 1]
+    bounded = guided_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0,
+                             max_distance=200.0)
+    assert bounded.query_rows.tolist() == [0] and bounded.view_rows.tolist() == [0]

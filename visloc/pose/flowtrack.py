@@ -346,7 +346,7 @@ def appended(points: TrackedPoints, more: TrackedPoints) -> TrackedPoints:
 
 def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,
                    T_world_camera: np.ndarray, K: np.ndarray, image_shape: tuple[int, int], *,
-                   radius_px: float = 4.0, ratio: float = 0.8) -> MapCorrespondences:
+                   radius_px: float = 4.0, ratio: float = 0.8, max_distance: float = np.inf) -> MapCorrespondences:
     """Every structure point of some views found among the query's keypoints by its projection: each point
     projected by the pose takes the query keypoint within ``radius_px`` whose descriptor is nearest its view
     keypoint's, if nearer than ``ratio`` times the next one within the radius (one point per query keypoint,
@@ -385,7 +385,7 @@ def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray
         second = np.full(len(starts), np.inf)
         has_second = np.r_[starts[1:], len(pi)] - starts > 1
         second[has_second] = dist[starts[has_second] + 1]
-        ok = starts[dist[starts] < ratio * second]
+        ok = starts[(dist[starts] < ratio * second) & (dist[starts] <= max_distance)]
         k = idx[pi[ok]]
         parts.append((dist[ok], qi[ok], np.full(ok.size, view, np.int64), rows[k], points[k], covs[k]))
     if not parts:

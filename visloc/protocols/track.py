@@ -122,17 +122,19 @@ class TrackFrame:
     relocalize_reason: str | None = None  # why this frame asked for a full localization
     merged: str | None = None  # a background relocalization's points "joined" (or "replaced") the followed ones
     relocalization_ms: dict | None = None  # the relocalization this frame used, its cost by stage (any thread), ms
+    relocalized_by: str | None = None  # ... how it was made: "full" or "guided" by the frame's tracked pose
 
 
 def _latency(values: list[float]) -> dict | None:
     return summary_of(values, LATENCY_FIGURES) if len(values) else None
 
 
-def _relocalizations(costs: list[dict], wall_s: float) -> dict | None:
-    """Full localizations a run that follows points made: how many, per second of wall time, median cost by stage."""
+def _relocalizations(costs: list[dict], wall_s: float, guided: int = 0) -> dict | None:
+    """Relocalizations a run that follows points made: how many (``guided`` of them guided by a tracked pose), per
+    second of wall time, median cost by stage."""
     if not costs:
         return None
-    return {"n": len(costs), "per_s": len(costs) / wall_s if wall_s > 0 else None,
+    return {"n": len(costs), "guided": guided, "per_s": len(costs) / wall_s if wall_s > 0 else None,
             "stages_ms": {k: float(np.median([c[k] for c in costs])) for k in costs[0]},
             "total_ms": float(np.median([sum(c.values()) for c in costs]))}
 
@@ -158,7 +160,8 @@ class TrackRun:
             "kinds": {kind: {"frames": n, "share": n / len(f), "latency_ms": _latency([x.latency_ms for x in f
                                                                                       if x.kind == kind])}
                       for kind in sorted({x.kind for x in f}) for n in [sum(x.kind == kind for x in f)]},
-            "relocalizations": _relocalizations([x.relocalization_ms for x in f if x.relocalization_ms], self.wall_s),
+            "relocalizations": _relocalizations([x.relocalization_ms for x in f if x.relocalization_ms], self.wall_s,
+                                                sum(x.relocalized_by == "guided" for x in f)),
             "tracked_stages_ms": {k: float(np.median([getattr(x, k) for x in f if x.kind == "tracked"]))
                                   for k in ("flow_ms", "geometry_ms", "filter_ms")}
             if any(x.kind == "tracked" for x in f) else None,
@@ -290,7 +293,7 @@ def _record_steps(run: TrackRun, seq: Drive, indices: list[int], steps, db: GeoD
         record = _frame_record(seq, i, step.result, step.latency_ms, db, truths)
         run.frames.append(replace(record, kind=step.kind, flow_ms=step.flow_ms, followed_points=step.followed_points,
                                   relocalize_reason=step.relocalize_reason, merged=step.merged,
-                                  relocalization_ms=step.relocalization_ms))
+                                  relocalization_ms=step.relocalization_ms, relocalized_by=step.relocalized_by))
         run.wall_s = time.perf_counter() - start
         run.cpu_s = time.process_time() - cpu_start
         if progress:

@@ -222,6 +222,7 @@ def track_text(s: dict) -> str:
            and s["params"]["track"].get("pace_hz", 0) is None else "")
         + (f", processor {s['cpu_share_of_one_core']:.2f} of one core" if s.get("cpu_share_of_one_core") else ""),
         *([following_line(s["kinds"])] if "tracked" in (s.get("kinds") or {}) else []),
+        *([relocalizations_line(s["relocalizations"])] if s.get("relocalizations") else []),
         f"estimate error (m): mean {e['mean']:.3f}, median {e['median']:.3f}, p90 {e['p90']:.3f}, max {e['max']:.3f}",
         f"measurement error (m): mean {m['mean']:.3f}, median {m['median']:.3f}, p90 {m['p90']:.3f}, "
         f"max {m['max']:.3f}; {geometry}" + (f" (their mean {g['mean']:.3f})" if g["n"] else ""),
@@ -234,6 +235,13 @@ def following_line(kinds: dict) -> str:
     parts = [f"{kind} {100 * k['share']:.0f}% (p50 {k['latency_ms']['p50']:.0f} ms, p95 {k['latency_ms']['p95']:.0f} ms)"
              for kind, k in sorted(kinds.items(), reverse=True)]
     return "following points: frames " + ", ".join(parts)
+
+
+def relocalizations_line(r: dict) -> str:
+    """What a run that follows map points spent on new points: how many relocalizations, how made, their cost."""
+    how = f", {r['guided']} guided by the tracked pose" if r.get("guided") else ""
+    return (f"relocalizations: {r['n']}{how}, {r['per_s'] or 0:.1f} per second, median {r['total_ms']:.0f} ms each "
+            f"(SIFT {r['stages_ms']['sift_ms']:.0f} ms)")
 
 
 def calibration_line(measurements: dict, estimates: dict) -> str:

@@ -34,7 +34,6 @@ own cost is on another core.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor, wait
@@ -42,11 +41,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from visloc.features.sift import Query, extract_sift, make_sift, undistort_keypoints
+from visloc.features.sift import Query, make_sift, undistort_keypoints
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams, TrackParams
-from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied, guided_matches,
-                                   linked, merged, needs_relocalization, points_of, pose_tracked, predicted_camera)
+from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied, linked, merged,
+                                   needs_relocalization, pose_tracked, predicted_camera)
 from visloc.pose.measurement import GEOMETRY, Measurement
 from visloc.pose.trackedcov import ViewScatter, shared_map_error
 from visloc.pose.viewpose import DatabaseGeometry, side_of
@@ -54,21 +53,18 @@ from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
 from visloc.sources.drives import Drive, load_gray
 from visloc.tracking.localizer import Localizer, StepResult, first_fix
+from visloc.tracking.relocalize import EXTRA_VIEW_RADIUS_M, GUIDED, NO_RETRIEVAL, Relocalization, Relocalizer
 from visloc.tracking.viewwindow import ViewWindow
 
 TRACKED = "tracked"
 RELOCALIZED = "relocalized"
 PREDICTED = "predicted"  # no pose from the followed points and a full localization under way: the filter predicts
-LOOKAHEAD_S = 0.5  # a full localization also takes on the points of views that still serve this much later
-EXTRA_VIEWS = 4  # ... this many of them
-EXTRA_VIEW_RADIUS_M = 40.0
 LINKED_VIEWS = 4  # a followed frame takes on the same map points in this many views nearest it, half on each side
 POSED_VIEWS = 2  # ... is posed on the views no farther away than the POSED_VIEWS nearest on each side that hold
 POSED_VIEW_MIN_POINTS = 10  # ... this many points
 CARRIED_VIEWS = 4  # ... and carries on the points of the views up to the CARRIED_VIEWS nearest on each side, for when
 # the exclusion window takes the nearest views away
 HISTORY_FRAMES = 50  # a relocalization that arrives later than this many frames is not fused in its frame's place
-NO_RETRIEVAL = Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
 
 
 @dataclass(frozen=True)
@@ -86,37 +82,7 @@ class FollowedStep:
     relocalize_reason: str | None = None
     merged: str | None = None
     relocalization_ms: dict | None = None  # the relocalization this frame used (its own or one from beside), by stage
-
-
-@dataclass(frozen=True)
-class _Relocalized:
-    full: "_Full"
-    points: TrackedPoints | None
-    points_ms: float = 0.0  # widening and posing its points
-
-    @property
-    def stages_ms(self) -> dict[str, float]:
-        """What it cost, by stage, ms."""
-        f = self.full
-        return {"sift_ms": f.query.sift_ms, "retrieval_ms": f.retrieval_ms, "measurement_ms": f.measurement.query_side_ms,
-                "points_ms": self.points_ms}
-
-
-@dataclass(frozen=True)
-class _Full:
-    """A full localization of one frame."""
-
-    gray: np.ndarray
-    query: Query
-    raw_px: np.ndarray
-    retrieval: Retrieval
-    measurement: Measurement
-    retrieval_ms: float
-    measurement_ms: float
-
-    @property
-    def cost_ms(self) -> float:
-        return self.query.sift_ms + self.retrieval_ms + self.measurement.query_side_ms
+    relocalized_by: str | None = None  # ... how it was made: "full" or "guided" (visloc.tracking.relocalize)
 
 
 def _moved_to(points: TrackedPoints, displacement_m: np.ndarray | None) -> np.ndarray:
@@ -146,11 +112,9 @@ class PointFollower:
         self.distortion = distortion
         self.stored = stored or {}
         self.window = ViewWindow(db_east_north_m, db_timestamps_s, params.exclusion_s, self.stored)
-        # every keypoint of a fully localized frame starts an image track of its own: the first number the next one
-        # takes (full localizations run in the thread beside the tracker too), and per view structure (view, its
-        # neighbours) the first track not yet linked into it
-        self._next_track = 0
-        self._track_lock = threading.Lock()
+        self.relocalizer = Relocalizer(localizer, db_east_north_m, geometry, query_camera, pose, sift, self.window,
+                                       distortion, self.stored)
+        # per view structure (view, its neighbours): the first image track not yet linked into it
         self._linked_from: dict[tuple, int] = {}
         self._trees: dict = {}  # each view structure's k-d tree over its points, for linking
 
@@ -160,61 +124,6 @@ class PointFollower:
 
     def _undistort(self, px: np.ndarray) -> np.ndarray:
         return undistort_keypoints(np.asarray(px, np.float32), self.camera.K, self.distortion)
-
-    def _full(self, gray: np.ndarray, timestamp_s: float, prediction, engine, name: str) -> _Full:
-        t0 = time.perf_counter()
-        features = extract_sift(gray, self.sift, sift=engine, name=name)
-        keypoints = self._undistort(features.keypoints_f32)
-        query = Query(features.descriptors_u8, timestamp_s, keypoints_f32=keypoints,
-                      sift_ms=(time.perf_counter() - t0) * 1000.0)
-        retrieval, m, r_ms, m_ms = self.localizer.measure(query, prediction)
-        return _Full(gray, query, features.keypoints_f32[:, :2], retrieval, m, r_ms, m_ms)
-
-    def _view_points(self, view: int, neighbours: tuple, structure: dict) -> tuple:
-        """(rows, points_world, points_cov) of a view's structure: the stored arrays when the store has this
-        variant, else made from the measurement's own (row -> (point, covariance))."""
-        for s in self.stored.get(view, {}).values():
-            if tuple(s.neighbours) == tuple(neighbours):
-                return s.rows, s.points_world, s.cov_world
-        rows = np.fromiter(structure, np.int64, len(structure))
-        return (rows, np.array([structure[r][0] for r in rows.tolist()], float).reshape(-1, 3),
-                np.array([structure[r][1] for r in rows.tolist()], float).reshape(-1, 3, 3))
-
-    def _points(self, full: _Full) -> TrackedPoints | None:
-        """The map points a fully localized frame hands the tracker: its pose's inliers, widened by the structure
-        of its views and of views that keep serving (``guided_matches``), posed again to keep the consistent ones."""
-        m = full.measurement
-        if m.source != GEOMETRY or m.inliers is None:
-            return None
-        inliers = m.inliers
-        neighbours = dict(inliers.neighbours or {})
-        with self._track_lock:
-            first_track, self._next_track = self._next_track, self._next_track + len(full.raw_px)
-        base = points_of(inliers, full.raw_px, m.east_north_m, neighbours, first_track)
-        if not inliers.view_structure:
-            return base
-        view_points = {v: self._view_points(v, neighbours.get(v, ()), structure)
-                       for v, structure in inliers.view_structure.items()}
-        for view, s in self.window.nearest_views(m.east_north_m, full.query.timestamp_s, LOOKAHEAD_S, EXTRA_VIEWS,
-                                                 EXTRA_VIEW_RADIUS_M).items():
-            if view not in view_points:
-                view_points[view], neighbours[view] = (s.rows, s.points_world, s.cov_world), tuple(s.neighbours)
-        guided = guided_matches(view_points, self.geometry.descriptors_u8, full.query.keypoints_f32[:, :2],
-                                full.query.descriptors_u8, inliers.T_world_camera, self.camera.K, full.gray.shape)
-        wide = points_of(guided, full.raw_px, m.east_north_m, neighbours, first_track)
-        if len(wide) <= len(base):
-            return base
-        posed, kept = pose_tracked(wide, full.query.keypoints_f32[guided.query_rows, :2], self.db_east_north_m,
-                                   self.geometry, self.camera, self.pose)
-        if kept is None or len(kept.query_rows) <= len(base):
-            return base
-        return _at_pose(wide.subset(kept.query_rows), kept.T_world_camera, posed.east_north_m)
-
-    def _relocalize(self, gray: np.ndarray, timestamp_s: float, prediction, engine, name: str) -> _Relocalized:
-        full = self._full(gray, timestamp_s, prediction, engine, name)
-        t0 = time.perf_counter()
-        points = self._points(full)
-        return _Relocalized(full, points, (time.perf_counter() - t0) * 1000.0)
 
     def _linked(self, points: TrackedPoints, timestamp_s: float, displacement_m: np.ndarray | None) -> TrackedPoints:
         """``points`` on the views a frame at ``timestamp_s`` takes on: each image track linked into the structure
@@ -272,15 +181,27 @@ class PointFollower:
             kept = appended(kept, carried)
         return m, _at_pose(kept, inliers.T_world_camera, m.east_north_m), views_ahead
 
+    def _relocalize(self, gray: np.ndarray, timestamp_s: float, prediction, engines: tuple, name: str,
+                    posed: TrackedPoints | None = None) -> Relocalization:
+        """The frame relocalized: guided by ``posed``, its tracked points at its pose, when it has them and the guided
+        points give a pose (``visloc.tracking.relocalize``), else in full. ``engines``: SIFT for the full path and for
+        the guided one (all keypoints near the map's points), each used by one thread only."""
+        if posed is not None and self.stored and self.params.guided_relocalization:
+            done = self.relocalizer.guided(gray, timestamp_s, posed.T_world_camera, posed.east_north_m, engines[1],
+                                           lambda points: self._pose(points, timestamp_s, None)[:2])
+            if done is not None:
+                return done
+        return self.relocalizer.relocalize(gray, timestamp_s, prediction, engines[0], name)
+
     def steps(self, seq: Drive, indices: Iterable[int],
               cancelled: Callable[[], bool] | None = None) -> Iterator[FollowedStep]:
         """The frames ``indices`` of ``seq`` in order, from the localizer's current state (see the module
         docstring); ``cancelled()`` is asked after each frame and raises ``MatchCancelled`` when true."""
         p, K = self.params, self.camera.K
         self.window.direction = self._direction(seq)
-        engine = make_sift(self.sift)
+        engine = (make_sift(self.sift), make_sift(self.sift.replace(n_features=0)))
         pool = ThreadPoolExecutor(1, thread_name_prefix="relocalize") if p.background_relocalization else None
-        background_engine = make_sift(self.sift) if pool else None
+        background_engine = (make_sift(self.sift), make_sift(self.sift.replace(n_features=0))) if pool else None
         points: TrackedPoints | None = None
         points_t_s = 0.0  # the time of the frame the points were last seen in
         previous_gray = None
@@ -292,10 +213,14 @@ class PointFollower:
         scatter = ViewScatter()  # one view's scatter, from this run's poses on several views posed apart
         full_ahead = [False]  # whether the last full localization was posed on a view ahead of the vehicle
 
-        def learn(m: Measurement) -> None:  # from a full localization: the view scatter, whether it found a view ahead
+        def learn(done: Relocalization) -> Measurement:
+            """From a relocalization: the view scatter, whether it found a view ahead; its measurement for the filter
+            (a guided one states the view scatter, as a followed frame's does)."""
+            m = done.full.measurement
             scatter.add(m)
             full_ahead[0] = (m.source == GEOMETRY and m.inliers is not None
                              and self._rests_ahead(m.inliers.view_of, m.inliers.T_world_camera))
+            return scatter.stated(m) if done.how == GUIDED else m
         started = time.perf_counter()
 
         def moved_m(since_s: float) -> np.ndarray | None:
@@ -322,19 +247,19 @@ class PointFollower:
                 h[1] = self.localizer.snapshot()
                 self.localizer.fuse(Query(np.zeros((0, 128), np.uint8), 0.0), NO_RETRIEVAL, h[2])
 
-        def take(done: _Relocalized, tracked_then: Measurement | None, current: TrackedPoints | None,
+        def take(done: Relocalization, tracked_then: Measurement | None, current: TrackedPoints | None,
                  n_then: int):
             """The points a relocalization brings, followed into this frame and joined to ``current``; its
             measurement takes the place of the tracked one of its frame in the filter."""
-            learn(done.full.measurement)
-            refuse_from(n_then, done.full.measurement)
+            m = learn(done)
+            refuse_from(n_then, m)
             used[0] = done
             if done.points is None:
                 return current, None
             fresh = follow(done.points, done.full.gray, gray, K, moved_m(done.full.query.timestamp_s))
             if current is None or not len(current):
                 return fresh, "joined"
-            replaced = tracked_then is not None and disagree(done.full.measurement, tracked_then)
+            replaced = tracked_then is not None and disagree(m, tracked_then)
             return (fresh, "replaced") if replaced else (merged(current, fresh), "joined")
 
         try:
@@ -347,7 +272,7 @@ class PointFollower:
                 gray = load_gray(frame.image_path)
                 t_s = frame.timestamp_s
                 t0 = time.perf_counter()
-                used: list[_Relocalized | None] = [None]  # the relocalization whose result this frame used
+                used: list[Relocalization | None] = [None]  # the relocalization whose result this frame used
                 tracked, kept, reason, joined, n_followed, flow_ms = None, None, None, None, 0, 0.0
                 followed = None
                 if points is not None and previous_gray is not None:
@@ -394,19 +319,19 @@ class PointFollower:
                         since_full = 0
                         if pool is not None:
                             pending = (pool.submit(self._relocalize, gray, t_s, self.localizer.prediction(),
-                                                   background_engine, str(frame.image_path)), tracked, n)
-                        else:  # the frame waits, and is measured by the full path: its own image, nothing to follow
+                                                   background_engine, str(frame.image_path), points), tracked, n)
+                        else:  # the frame waits, and is measured by the relocalization: its own image, nothing to follow
                             done = self._relocalize(gray, t_s, self.localizer.prediction(), engine,
-                                                    str(frame.image_path))
+                                                    str(frame.image_path), points)
                             used[0] = done
-                            learn(done.full.measurement)
+                            m = learn(done)
                             if done.points is not None:
-                                replaced = disagree(done.full.measurement, tracked)
+                                replaced = disagree(m, tracked)
                                 points = done.points if replaced else merged(points, done.points)
                                 joined = "replaced" if replaced else "joined"
                                 self.localizer.restore(history.pop()[1])
-                                result = fuse(done.full.query, done.full.retrieval, done.full.measurement,
-                                              done.full.retrieval_ms, done.full.measurement_ms)
+                                result = fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,
+                                              done.full.measurement_ms)
                             kind = RELOCALIZED
                 elif pool is not None and self.localizer.started:  # no pose from its points: predicted, no wait
                     if pending is None:  # a full localization of this frame, beside the tracker
@@ -427,8 +352,7 @@ class PointFollower:
                         pending = None
                     done = self._relocalize(gray, t_s, self.localizer.prediction(), engine, str(frame.image_path))
                     used[0] = done
-                    m = done.full.measurement
-                    learn(m)
+                    m = learn(done)
                     if not self.localizer.started:
                         m = first_fix(m, done.full.retrieval, self.db_east_north_m)
                     result = fuse(done.full.query, done.full.retrieval, m, done.full.retrieval_ms,
@@ -440,7 +364,8 @@ class PointFollower:
                     reason = reason or ("first frame" if n == 0 else "no points to follow")
                 latency = (time.perf_counter() - t0) * 1000.0
                 step = FollowedStep(result, latency, kind, flow_ms, n_followed, reason, joined,
-                                    None if used[0] is None else used[0].stages_ms)
+                                    None if used[0] is None else used[0].stages_ms,
+                                    None if used[0] is None else used[0].how)
                 previous_gray = gray
                 if cancelled is not None and cancelled():
                     raise MatchCancelled()
