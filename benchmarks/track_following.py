@@ -16,7 +16,10 @@ evaluation protocol), four ``visloc track`` configurations on every frame, one a
   processor time the process used per second of wall time (every thread; what is left of the machine is
   the vehicle's);
 * ``follow_paced_loaded``: the same with another process spinning on one core beside it the whole run (a
-  vehicle's other software): its error against the idle paced run's.
+  vehicle's other software): its error against the idle paced run's;
+* ``follow_guided``, ``follow_paced_guided``: as fast as possible and at 10 Hz, a tracked frame's relocalizations
+  guided by its pose (``--guided-relocalization``: no retrieval, SIFT describing only the keypoints near where the
+  nearest views' points project).
 
 Accuracy: the mean estimate error against the frames' geotags of each run, over the same frames, against the
 full path's, with the bound: within 10 % or 0.02 m of it, whichever is larger (the loaded run: within 10 % of
@@ -39,13 +42,15 @@ SECTION = Section("track-following", "track_following", REPO / "docs" / "perform
 OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
 
 PACED = ["--follow-points", "--pace-hz", "10"]
+GUIDED = ["--guided-relocalization"]
 RUNS = {"full": ["--no-follow-points"], "follow_keeping_up": [], "follow": ["--follow-points", "--pace-hz", "0"],
-        "follow_paced": PACED, "follow_paced_loaded": PACED}
+        "follow_paced": PACED, "follow_paced_loaded": PACED,
+        "follow_guided": ["--follow-points", "--pace-hz", "0", *GUIDED], "follow_paced_guided": PACED + GUIDED}
 LOADED = {"follow_paced_loaded"}  # runs made beside a process that keeps one core busy
 # following is not reproducible run to run where the frames do not wait for the full localizations (the background
 # thread's timing decides which frames relocalize): these runs are made --repeats times and the one of median error
 # stands for them, with the range of their errors; the default run, which waits, is the same every time
-REPEATED = {"follow", "follow_paced", "follow_paced_loaded"}
+REPEATED = {"follow", "follow_paced", "follow_paced_loaded", "follow_guided", "follow_paced_guided"}
 
 
 def _digest(run: dict) -> dict:
@@ -114,7 +119,8 @@ def render(result: dict) -> str:
              "its 95 % ellipse; \"follow keeping up\": the default, each frame read once the full localization "
              "asked for before it has come, the same every time; \"follow\": as fast as possible (`--pace-hz 0`); "
              "\"follow paced\": at 10 Hz (`--pace-hz 10`); \"follow paced loaded\": paced at 10 Hz while another "
-             "process keeps one core busy, its error within 10 % of the idle paced run's; the runs that do not wait "
+             "process keeps one core busy, its error within 10 % of the idle paced run's; \"guided\": a tracked frame's "
+             "relocalizations guided by its pose (`--guided-relocalization`); the runs that do not wait "
              "are made " f"{result.get('repeats', 1)} times, and the one of median error shown):", "",
              "| drive | run | latency p50 / p95 / max (ms) | tracked frames: share, p95 (ms) | predicted frames: share "
              "| relocalized: p95 (ms) | frames/s | processor (share of one core) | estimate error mean / max (m) "
@@ -139,8 +145,9 @@ def render(result: dict) -> str:
                          f"{lat['max']:.0f} | {share} | {predicted} | {_ms(reloc['latency_ms'], 'p95') if reloc else '–'} | "
                          f"{r['sustained_hz']:.1f} | {r['cpu_share_of_one_core']:.2f} | "
                          f"{r['error_mean_m']:.3f} / {r['error_max_m']:.2f}{_range(r)} | {nees} | {within} |")
-    profiled = [(d, r["follow_paced"]) for d, r in result["drives"].items()
-                if r["follow_paced"].get("relocalizations") and r["follow_paced"].get("tracked_stages_ms")]
+    profiled = [(d if n == "follow_paced" else f"{d} (guided)", r[n]) for d, r in result["drives"].items()
+                for n in ("follow_paced", "follow_paced_guided")
+                if n in r and r[n].get("relocalizations") and r[n].get("tracked_stages_ms")]
     if profiled:
         lines += ["", "Where the time goes, paced at 10 Hz (medians, ms): a tracked frame's stages, and the full "
                   "localizations the run made (in the thread beside the tracker, and the first frame's), how many "

@@ -75,7 +75,7 @@ def test_the_dashboard_feedback_timings_are_what_their_json_renders():
 
 def test_the_point_following_figures_are_what_their_json_renders():
     """docs/performance.md's table of ``visloc track --follow-points`` against the full path is rendered from
-    docs/results/track_following.json (written by benchmarks/track_following.py), every drive with its four runs."""
+    docs/results/track_following.json (written by benchmarks/track_following.py), every drive with all its runs."""
     import json
 
     import track_following
@@ -84,13 +84,14 @@ def test_the_point_following_figures_are_what_their_json_renders():
     assert track_following.render(result) in (REPO / "docs" / "performance.md").read_text()
     assert len(result["drives"]) == 3
     for runs in result["drives"].values():
-        assert set(runs) == {"full", "follow_keeping_up", "follow", "follow_paced", "follow_paced_loaded"}
+        assert set(runs) == set(track_following.RUNS)
         assert all(0 < r["estimate_nees"] and 0 <= r["estimate_inside_95"] <= 1 for r in runs.values())
         assert set(runs["full"]["kinds"]) == {"full"}
         assert {"tracked", "relocalized"} <= set(runs["follow"]["kinds"]) <= {"tracked", "relocalized", "predicted"}
         assert runs["follow_paced"]["sustained_hz"] <= 10.5 and runs["follow_paced_loaded"]["sustained_hz"] <= 10.5
         profile = runs["follow_paced"]["relocalizations"]
         assert profile["n"] > 0 and profile["total_ms"] >= profile["stages_ms"]["sift_ms"] > 0
+        assert profile["guided"] == 0 and 0 < runs["follow_paced_guided"]["relocalizations"]["guided"]
 
 
 def test_the_self_check_agreement_is_what_its_json_renders():
