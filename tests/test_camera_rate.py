@@ -518,6 +518,7 @@ def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_
                          "--no-background-relocalization", "--json", out)
         assert result.returncode == 0, result.stderr
         assert "following points: frames tracked" in result.stdout and "of one core" in result.stdout
+        assert "relocalizations: " in result.stdout and "guided" not in result.stdout  # full ones, by default
         runs.append(json.loads(out.read_text()))
     run = runs[0]
     kinds = [f["kind"] for f in run["per_frame"]]
@@ -534,6 +535,22 @@ def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_
     assert [f["estimate_m"] for f in run["per_frame"]] == [f["estimate_m"] for f in runs[1]["per_frame"]]
     assert np.median([f["error_m"] for f in run["per_frame"]]) < 1.0
     assert load_run(tmp_path / "a.json").n_steps == 25  # the dashboard plays it like any track run
+
+
+@pytest.mark.slow
+def test_track_with_guided_relocalization_says_how_many_were_guided(store, kitti_root, tmp_path):
+    out = tmp_path / "guided.json"
+    result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store, "--db-source", SOURCE,
+                     "--exclusion-s", "1", "--frames", "14", "--follow-points", "--no-background-relocalization",
+                     "--guided-relocalization", "--json", out)
+    assert result.returncode == 0, result.stderr
+    run = json.loads(out.read_text())
+    guided = [f for f in run["per_frame"] if f["relocalized_by"] == "guided"]
+    assert guided and run["relocalizations"]["guided"] == len(guided) and run["params"]["track"]["guided_relocalization"]
+    assert f"{len(guided)} guided by the tracked pose" in result.stdout
+    assert all(f["relocalization_ms"]["retrieval_ms"] == 0 < f["relocalization_ms"]["sift_ms"] for f in guided)
+    assert run["per_frame"][0]["relocalized_by"] == "full"  # the first frame has no pose to be guided by
+    assert np.median([f["error_m"] for f in run["per_frame"]]) < 1.0
 
 
 @pytest.mark.slow
