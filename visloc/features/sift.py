@@ -76,12 +76,35 @@ def extract_sift(gray_u8: np.ndarray, params: SiftParams, *, sift: "cv2.SIFT | N
     """
     if gray_u8.ndim != 2 or gray_u8.dtype != np.uint8:
         raise InputError(f"{name}: expected a 2-D uint8 gray image, got {gray_u8.dtype} {gray_u8.shape}")
-    sift = sift or make_sift(params)
-    scale = params.image_scale
-    image = gray_u8 if scale == 1.0 else cv2.resize(gray_u8, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    keypoints, descriptors = sift.detectAndCompute(image, None)
-    if not keypoints:
+    features = _detect_and_describe(gray_u8, params, sift or make_sift(params), None)
+    if not len(features):
         raise InputError(f"{name}: no SIFT keypoints found (blank or featureless image)")
+    return features
+
+
+def _scaled(gray_u8: np.ndarray, scale: float) -> np.ndarray:
+    """The image SIFT runs on: resized by ``scale`` (area interpolation), as it is at 1."""
+    return gray_u8 if scale == 1.0 else cv2.resize(gray_u8, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+
+
+def _detect_and_describe(gray_u8: np.ndarray, params: SiftParams, sift: "cv2.SIFT",
+                         near: tuple[np.ndarray, float] | None) -> Features:
+    """SIFT on the image at ``params.image_scale``, keypoints mapped back to full-resolution pixels; ``near``:
+    (pixels (M, 2), radius px), only the keypoints within the radius of one of them are kept, and described (None:
+    every keypoint). Empty when none is found."""
+    scale = params.image_scale
+    image = _scaled(gray_u8, scale)
+    mask = None
+    if near is not None:
+        mask = np.zeros(image.shape[:2], np.uint8)
+        centres = np.round((np.asarray(near[0], float).reshape(-1, 2) + 0.5) * scale - 0.5).astype(np.int32)
+        inside = ((centres >= 0) & (centres < [image.shape[1], image.shape[0]])).all(axis=1)
+        mask[centres[inside, 1], centres[inside, 0]] = 255
+        side = 2 * max(1, int(np.ceil(near[1] * scale))) + 1
+        mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side)))
+    keypoints, descriptors = sift.detectAndCompute(image, mask)  # the mask drops keypoints before they are described
+    if not keypoints:
+        return Features(np.zeros((0, 6), np.float32), np.zeros((0, 128), np.uint8))
     kp = np.array(
         [(k.pt[0], k.pt[1], k.size, k.angle, k.response, k.octave) for k in keypoints], dtype=np.float32
     )
@@ -99,23 +122,8 @@ def sift_near(gray_u8: np.ndarray, params: SiftParams, near_xy_px: np.ndarray, r
     over the whole image (``params.image_scale`` as ``extract_sift``), but describes only the keypoints near those
     pixels, every one of them (no ``n_features`` cap: the cap keeps the strongest over the whole image, and a
     keypoint away from the map's points serves nothing here). Empty when none is found."""
-    sift = sift or make_sift(params.replace(n_features=0))
-    scale = params.image_scale
-    image = gray_u8 if scale == 1.0 else cv2.resize(gray_u8, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-    mask = np.zeros(image.shape[:2], np.uint8)
-    centres = np.round((np.asarray(near_xy_px, float).reshape(-1, 2) + 0.5) * scale - 0.5).astype(np.int32)
-    inside = ((centres >= 0) & (centres < [image.shape[1], image.shape[0]])).all(axis=1)
-    mask[centres[inside, 1], centres[inside, 0]] = 255
-    side = 2 * max(1, int(np.ceil(radius_px * scale))) + 1
-    mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (side, side)))
-    keypoints, descriptors = sift.detectAndCompute(image, mask)  # the mask drops keypoints before they are described
-    if not keypoints:
-        return Features(np.zeros((0, 6), np.float32), np.zeros((0, 128), np.uint8))
-    kp = np.array([(k.pt[0], k.pt[1], k.size, k.angle, k.response, k.octave) for k in keypoints], dtype=np.float32)
-    if scale != 1.0:
-        kp[:, :2] = (kp[:, :2] + 0.5) / scale - 0.5
-        kp[:, 2] /= scale
-    return Features(keypoints_f32=kp, descriptors_u8=np.ascontiguousarray(descriptors, dtype=np.uint8))
+    return _detect_and_describe(gray_u8, params, sift or make_sift(params.replace(n_features=0)),
+                                (near_xy_px, radius_px))
 
 
 def contrast_kept(keypoints_f32: np.ndarray, contrast_threshold: float, n_octave_layers: int) -> np.ndarray:

@@ -12,7 +12,8 @@
   views are carried on unposed: with the window on, the nearest view ahead leaves it every frame or two, and its
   points would leave with it, where the carried ones take over without a full localization.
 * **Relocalization.** The full path (SIFT, retrieval, structure, PnP) runs when the followed points no longer
-  serve (``visloc.pose.flowtrack.needs_relocalization``). With ``background_relocalization`` it runs in a
+  serve (``visloc.pose.flowtrack.needs_relocalization``), or, with ``guided_relocalization``, a relocalization
+  guided by the tracked pose of the frame that asked (``visloc.tracking.relocalize``). With ``background_relocalization`` it runs in a
   thread beside the tracker on the frame that asked, and its points are followed from that frame into the
   frame where it arrives and joined to the tracked ones (replacing them if its pose disagrees with the
   tracked pose of the same frame); unpaced (``pace_hz`` None), the next frame is read once it has come.
@@ -41,7 +42,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from visloc.features.sift import Query, make_sift, undistort_keypoints
+from visloc.features.sift import Query, make_sift
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams, TrackParams
 from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied, linked, merged,
@@ -122,9 +123,6 @@ class PointFollower:
         """Whether one of the database ``views`` lies ahead of a camera posed at ``T_world_camera``."""
         return any(side_of(self.geometry.T_world_camera[v][:3, 3], T_world_camera) > 0 for v in np.unique(views))
 
-    def _undistort(self, px: np.ndarray) -> np.ndarray:
-        return undistort_keypoints(np.asarray(px, np.float32), self.camera.K, self.distortion)
-
     def _linked(self, points: TrackedPoints, timestamp_s: float, displacement_m: np.ndarray | None) -> TrackedPoints:
         """``points`` on the views a frame at ``timestamp_s`` takes on: each image track linked into the structure
         of the ``LINKED_VIEWS`` views nearest the frame that it may use where it has no point there yet
@@ -167,7 +165,7 @@ class PointFollower:
         t1 = time.perf_counter()
         posed = (self.window.nearest_views_only(points, _moved_to(points, displacement_m), timestamp_s, POSED_VIEWS,
                                                 POSED_VIEW_MIN_POINTS) if self.stored else points)
-        m, inliers = pose_tracked(posed, self._undistort(posed.pixels_px)[:, :2], self.db_east_north_m,
+        m, inliers = pose_tracked(posed, self.relocalizer.undistort(posed.pixels_px)[:, :2], self.db_east_north_m,
                                   self.geometry, self.camera, self.pose)
         m = replace(m, compute_ms=(time.perf_counter() - t1) * 1000.0)
         if inliers is None:
@@ -199,9 +197,13 @@ class PointFollower:
         docstring); ``cancelled()`` is asked after each frame and raises ``MatchCancelled`` when true."""
         p, K = self.params, self.camera.K
         self.window.direction = self._direction(seq)
-        engine = (make_sift(self.sift), make_sift(self.sift.replace(n_features=0)))
+
+        def engines() -> tuple:  # SIFT for the full path and, when asked for, the guided one: one pair per thread
+            return (make_sift(self.sift),
+                    make_sift(self.sift.replace(n_features=0)) if p.guided_relocalization else None)
+        engine = engines()
         pool = ThreadPoolExecutor(1, thread_name_prefix="relocalize") if p.background_relocalization else None
-        background_engine = (make_sift(self.sift), make_sift(self.sift.replace(n_features=0))) if pool else None
+        background_engine = engines() if pool else None
         points: TrackedPoints | None = None
         points_t_s = 0.0  # the time of the frame the points were last seen in
         previous_gray = None

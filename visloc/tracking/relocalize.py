@@ -21,6 +21,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 
 from visloc.features.sift import Query, extract_sift, sift_near, undistort_keypoints
@@ -104,13 +105,14 @@ class Relocalizer:
             first, self._next_track = self._next_track, self._next_track + n
         return first
 
-    def _undistort(self, px: np.ndarray) -> np.ndarray:
+    def undistort(self, px: np.ndarray) -> np.ndarray:
+        """Pixels of the image as read, moved to the pinhole camera (as they are without a distortion)."""
         return undistort_keypoints(np.asarray(px, np.float32), self.camera.K, self.distortion)
 
     def _full(self, gray: np.ndarray, timestamp_s: float, prediction, engine, name: str) -> Localized:
         t0 = time.perf_counter()
         features = extract_sift(gray, self.sift, sift=engine, name=name)
-        keypoints = self._undistort(features.keypoints_f32)
+        keypoints = self.undistort(features.keypoints_f32)
         query = Query(features.descriptors_u8, timestamp_s, keypoints_f32=keypoints,
                       sift_ms=(time.perf_counter() - t0) * 1000.0)
         retrieval, m, r_ms, m_ms = self.localizer.measure(query, prediction)
@@ -181,7 +183,7 @@ class Relocalizer:
             projected.append(uv[front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)])
         near_px = self._distort(np.concatenate(projected))
         features = sift_near(gray, self.sift, near_px, GUIDED_RADIUS_PX + GUIDED_MASK_MARGIN_PX, sift=engine)
-        keypoints = self._undistort(features.keypoints_f32)
+        keypoints = self.undistort(features.keypoints_f32)
         query = Query(features.descriptors_u8, timestamp_s, keypoints_f32=keypoints,
                       sift_ms=(time.perf_counter() - t0) * 1000.0)
         if not len(features):
@@ -203,8 +205,6 @@ class Relocalizer:
         """Pixels of the pinhole camera moved into the image as read (as is without a distortion)."""
         if self.distortion is None or not len(undistorted_px):
             return undistorted_px
-        import cv2
-
         K = np.asarray(self.camera.K, float)
         rays = np.c_[(undistorted_px - K[:2, 2]) / np.diag(K)[:2], np.ones(len(undistorted_px))]
         px, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), K, np.asarray(self.distortion, float))
