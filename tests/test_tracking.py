@@ -347,16 +347,17 @@ def test_frames_posed_on_the_same_points_count_the_map_error_once():
     np.testing.assert_allclose(third.cov_terms_m2["lever"], np.eye(2) * 0.09)
 
 
-def _posed_apart(east_north_m, views_m, lever_m):
+def _posed_apart(east_north_m, views_m, lever_m, side="both"):
     """A geometry measurement at the mean of ``views_m`` (one view's positions), its "views" term the covariance of
-    that mean from their spread, as ``pose_from_views`` states it."""
+    that mean from their spread, as ``pose_from_views`` states it; ``side``: "both" when its views lie on both
+    sides of it, else "one"."""
     from visloc.pose.measurement import Measurement
     from visloc.pose.viewpose import _mean_covariance
 
     views = _mean_covariance(list(views_m)) if len(views_m) > 1 else np.zeros((2, 2))
     terms = {"pnp": np.eye(2) * 1e-4, "views": views, "lever": np.eye(2) * 1e-4}
     return Measurement(np.asarray(east_north_m, float), sum(terms.values()), "geometry", lever_m=lever_m,
-                       cov_terms_m2=terms, views_posed_apart=len(views_m))
+                       cov_terms_m2=terms, views_posed_apart=len(views_m), side=side)
 
 
 def test_a_followed_frame_states_the_scatter_of_its_views_that_the_runs_poses_show():
@@ -404,6 +405,30 @@ def test_a_followed_frame_states_the_scatter_of_its_views_that_the_runs_poses_sh
     # a geotag has no views: as it is
     geotag = Measurement(np.zeros(2), None, "geotag")
     assert scatter.stated(geotag) is geotag
+
+
+def test_a_followed_frames_views_count_once_per_side_they_lie_on():
+    from visloc.pose.trackedcov import ViewScatter
+
+    rng = np.random.default_rng(11)
+    scatter = ViewScatter()
+    for _ in range(50):
+        scatter.add(_posed_apart(np.zeros(2), rng.normal(0.0, 0.08, (3, 2)), 8.0))
+    views_m = rng.normal(0.0, 0.08, (4, 2))
+
+    def views_term(side, views=views_m):
+        return scatter.stated(_posed_apart(views.mean(axis=0), views, 8.0, side)).cov_terms_m2["views"]
+
+    # four views, two ahead and two behind: the mean of one view on each side, not of four independent views
+    one_view = ((4 - 1) * _posed_apart(np.zeros(2), views_m, 8.0).cov_terms_m2["views"] * 4
+                + scatter.per_m2() * 8.0**2) / 4
+    np.testing.assert_allclose(views_term("both"), one_view / 2)
+    # all on one side: they share that side's error, and their mean states one view's covariance
+    np.testing.assert_allclose(views_term("one"), one_view)
+    # one view: its own, on whichever side it lies
+    lone = views_m[:1]
+    np.testing.assert_allclose(views_term("one", lone), views_term("both", lone))
+    np.testing.assert_allclose(views_term("one", lone), scatter.per_m2() * 8.0**2)
 
 
 def test_a_track_chooses_only_its_first_measurement_with_its_first_rule():

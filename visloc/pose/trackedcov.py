@@ -42,7 +42,13 @@ class ViewScatter:
     behind it), with no spread at all. ``stated`` counts the scatter the run's own poses on several views show, at
     the frame's lever (the farther the view, the farther its pose strays), as one more view's worth of spread:
     the views' sample covariance S (n - 1 degrees of freedom) and the pooled one P (one) make
-    ((n - 1) S + P) / n, over n for their mean; one view alone states P."""
+    ((n - 1) S + P) / n, one view's; one view alone states P.
+
+    Their mean is no better than one view on each side of the frame: views on one side share their error (their
+    structure is triangulated from the same neighbours and seen from the same side; frames posed on two views
+    ahead and two behind stray together, for a second at a time, by two or three times what four independent
+    views would claim). So one view's covariance is divided by the sides the views lie on (2 for "both", else
+    1), never by more than n."""
 
     samples: deque = field(default_factory=lambda: deque(maxlen=VIEW_SCATTER_MEASUREMENTS))
 
@@ -68,8 +74,9 @@ class ViewScatter:
                 or "views" not in m.cov_terms_m2):
             return m
         n = max(m.views_posed_apart, 1)
-        own = np.asarray(m.cov_terms_m2["views"], float)
-        views = ((n - 1) * n * own + per_m2 * m.lever_m ** 2) / n / n
+        sides = min(n, 2 if m.side == "both" else 1)
+        own = np.asarray(m.cov_terms_m2["views"], float)  # the views' sample covariance over n
+        views = ((n - 1) * n * own + per_m2 * m.lever_m ** 2) / n / sides
         rounded = np.asarray(m.cov_terms_m2.get("views_round", np.zeros((2, 2))), float)  # the pooled scatter says
         cov = np.asarray(m.cov_m2, float) - own - rounded + views  # what a few views' spread could not
         terms = {k: v for k, v in m.cov_terms_m2.items() if k != "views_round"}
