@@ -4,7 +4,7 @@
     python benchmarks/track_following.py --page   # its section of docs/performance.md from the JSON
 
 For every drive of the data root, queries and database from its image_00 with the 1 s exclusion window (the
-evaluation protocol), four ``visloc track`` configurations on every frame, one after the other on this machine
+evaluation protocol), these ``visloc track`` configurations on every frame, one after the other on this machine
 (each following one ``--repeats`` times, the run of median error standing for them):
 
 * ``full``: ``--no-follow-points``, every frame localized in full (SIFT, retrieval, structure, PnP);
@@ -53,8 +53,7 @@ LOADED = {"follow_paced_loaded"}  # runs made beside a process that keeps one co
 # following is not reproducible run to run where the frames do not wait for the full localizations (the background
 # thread's timing decides which frames relocalize): these runs are made --repeats times and the one of median error
 # stands for them, with the range of their errors; the default run, which waits, is the same every time
-REPEATED = {"follow", "follow_paced", "follow_paced_loaded", "follow_guided", "follow_paced_guided",
-            "follow_paced_guided_every_6"}
+REPEATED = set(RUNS) - {"full", "follow_keeping_up"}
 
 
 def _digest(run: dict) -> dict:

@@ -168,7 +168,7 @@ def test_a_followed_frame_is_posed_on_its_nearest_views_and_carries_the_farther_
     follower.window = ViewWindow(en, t, 1.0, None)
     cameras = np.repeat(np.eye(4)[None], 40, axis=0)
     cameras[:, :2, 3] = en  # each view's camera where its geotag is
-    follower.distortion, follower.geometry, follower.pose = None, SimpleNamespace(T_world_camera=cameras), None
+    follower.geometry, follower.pose = SimpleNamespace(T_world_camera=cameras), None
     follower.camera = type("Camera", (), {"K": np.eye(3)})()
     follower.relocalizer = SimpleNamespace(undistort=lambda px: np.asarray(px, np.float32))  # no distortion
     m, kept, views_ahead = PointFollower._pose(follower, points, 2.0, en[20])  # the points posed at 0; moved 20 m

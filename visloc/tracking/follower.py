@@ -104,13 +104,11 @@ class PointFollower:
                  params: TrackParams, distortion: np.ndarray | None = None, stored: dict | None = None):
         self.localizer = localizer
         self.db_east_north_m = np.asarray(db_east_north_m, float)
-        self.db_timestamps_s = np.asarray(db_timestamps_s, float)
         self.geometry = geometry
         self.camera = query_camera
         self.pose = pose
         self.sift = sift
         self.params = params
-        self.distortion = distortion
         self.stored = stored or {}
         self.window = ViewWindow(db_east_north_m, db_timestamps_s, params.exclusion_s, self.stored)
         self.relocalizer = Relocalizer(localizer, db_east_north_m, geometry, query_camera, pose, sift, self.window,
