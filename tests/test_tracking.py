@@ -347,6 +347,20 @@ def test_frames_posed_on_the_same_points_count_the_map_error_once():
     np.testing.assert_allclose(third.cov_terms_m2["lever"], np.eye(2) * 0.09)
 
 
+def test_a_frames_map_error_repeats_only_while_its_views_stay():
+    """Frames on the same points count their map error once per frame in a row on the same views: a frame that the
+    linking moved on to another view's structure carries that view's error."""
+    from visloc.pose.trackedcov import ViewRuns
+
+    runs = ViewRuns()
+    assert runs.frames((4, 5), 1) == 1
+    assert runs.frames((4, 5), 2) == 2
+    assert runs.frames((5, 6), 3) == 2  # view 5: its third frame in a row; view 6: its first
+    assert runs.frames((7,), 4) == 1  # moved on to a view of its own: counted afresh
+    assert runs.frames((7,), 1) == 1  # fresh points: never more than the frames posed on them
+    assert runs.frames((), 3) == 3  # no view named: the frames on the points
+
+
 def _posed_apart(east_north_m, views_m, lever_m, side="both"):
     """A geometry measurement at the mean of ``views_m`` (one view's positions), its "views" term the covariance of
     that mean from their spread, as ``pose_from_views`` states it; ``side``: "both" when its views lie on both

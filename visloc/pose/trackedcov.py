@@ -1,6 +1,7 @@
 """What a frame posed on followed points states about its error beyond its own pose: the map's error, which
-every frame posed on the same points repeats (``shared_map_error``), and how far one view's pose strays, pooled
-over a run's own poses on several views posed apart (``ViewScatter``). Pure functions over numpy arrays.
+every frame posed on the same points of the same views repeats (``shared_map_error``, ``ViewRuns``), and how far
+one view's pose strays, pooled over a run's own poses on several views posed apart (``ViewScatter``). Pure
+functions over numpy arrays.
 """
 
 from __future__ import annotations
@@ -13,11 +14,13 @@ import numpy as np
 from visloc.pose.measurement import GEOMETRY, Measurement
 
 
-def shared_map_error(m: Measurement, frames: int) -> Measurement:
+def shared_map_error(m: Measurement, frames: float) -> Measurement:
     """A tracked measurement whose map part of the covariance (the views' spread, the lever and the geotags that are
-    no fix: errors of the map points, which every frame posed on the same points repeats) counts ``frames`` times:
-    the filter, which takes measurements as independent, then learns from ``frames`` frames on the same points what
-    it would learn from one about the map's error, and keeps the pixel noise (PnP's term), new in each frame."""
+    no fix: errors of the map points, which every frame posed on the same points of the same views repeats) counts
+    ``frames`` times (``ViewRuns.frames``): the filter then learns from ``frames`` frames on the same map what it
+    would learn from one about the map's error, and keeps the pixel noise (PnP's term), new in each frame. (The
+    filter's own measurement bias, fitted on poses that change views from one frame to the next, does not know
+    that followed frames repeat one map.)"""
     terms = m.cov_terms_m2
     if m.cov_m2 is None or frames <= 1 or not {"pnp", "views", "lever"} <= set(terms):
         return m
@@ -25,6 +28,29 @@ def shared_map_error(m: Measurement, frames: int) -> Measurement:
     cov = np.asarray(terms["pnp"], float) + frames * sum(np.asarray(terms[k], float) for k in map_terms)
     counted = {k: frames * np.asarray(terms[k], float) for k in map_terms}
     return replace(m, cov_m2=cov, cov_terms_m2={**terms, **counted})
+
+
+@dataclass
+class ViewRuns:
+    """How many tracked frames in a row each database view has been posed on.
+
+    Frames posed on the same followed points repeat their map's error only while they rest on the same views: the
+    followed points are linked into the structure of the views the vehicle nears (``visloc.pose.flowtrack.linked``),
+    and a frame posed on another view's structure carries that view's error, as the next frame localized in full
+    does. So the map part counts once per frame in a row on the same views, not once per frame since the points
+    came: ``frames`` is the mean, over a frame's views, of how many frames in a row have been posed on each, at
+    most the frames posed on these points."""
+
+    runs: dict[int, int] = field(default_factory=dict)  # view -> tracked frames in a row posed on it
+
+    def frames(self, views, frames_on_points: int) -> float:
+        """Count a tracked frame posed on the database ``views``; how many times its map error counts: the mean
+        run of its views, at most ``frames_on_points`` (``frames_on_points`` when it names no view)."""
+        views = {int(v) for v in views}
+        self.runs = {v: self.runs.get(v, 0) + 1 for v in views}
+        if not views:
+            return float(frames_on_points)
+        return float(min(np.mean([self.runs[v] for v in views]), frames_on_points))
 
 
 VIEW_SCATTER_MEASUREMENTS = 50  # the view scatter is pooled over the run's last this many poses on views posed apart

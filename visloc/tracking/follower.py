@@ -48,7 +48,7 @@ from visloc.params import RefinedParams, SiftParams, TrackParams
 from visloc.pose.flowtrack import (TrackedPoints, appended, disagree, follow, grid_cells_occupied, linked, merged,
                                    needs_relocalization, pose_tracked, predicted_camera)
 from visloc.pose.measurement import GEOMETRY, Measurement
-from visloc.pose.trackedcov import ViewScatter, shared_map_error
+from visloc.pose.trackedcov import ViewRuns, ViewScatter, shared_map_error
 from visloc.pose.viewpose import DatabaseGeometry, side_of
 from visloc.retrieval.matching import MatchCancelled
 from visloc.retrieval.retrievers import Retrieval
@@ -211,6 +211,7 @@ class PointFollower:
         on_points = 0  # frames posed on the points since fresh ones last came
         min_points = max(6, self.pose.min_pnp_inliers)
         scatter = ViewScatter()  # one view's scatter, from this run's poses on several views posed apart
+        view_runs = ViewRuns()  # how many tracked frames in a row each view has been posed on
         full_ahead = [False]  # whether the last full localization was posed on a view ahead of the vehicle
 
         def learn(done: Relocalization) -> Measurement:
@@ -299,7 +300,8 @@ class PointFollower:
                 if kept is not None:
                     on_points = 1 if joined else on_points + 1
                     scatter.add(tracked)
-                    tracked = shared_map_error(scatter.stated(tracked), on_points)
+                    repeated = view_runs.frames(tracked.view_indices, on_points)  # frames on the same map
+                    tracked = shared_map_error(scatter.stated(tracked), repeated)
                     result = fuse(Query(np.zeros((0, 128), np.uint8), t_s), NO_RETRIEVAL, tracked, 0.0,
                                   tracked.compute_ms)
                     points, points_t_s, kind = kept, t_s, TRACKED
