@@ -260,3 +260,59 @@ def test_guided_matching_takes_no_lone_keypoint_whose_descriptor_is_far():
     bounded = guided_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0,
                              max_distance=200.0)
     assert bounded.query_rows.tolist() == [0] and bounded.view_rows.tolist() == [0]
+
+
+def _guided_by_brute_force(view_points, view_descs, query_xy, query_desc, K, shape, radius_px, ratio, max_distance):
+    """guided_matches' rule, written out pair by pair: (query row, view, view row) of every match."""
+    from visloc.pose.flowtrack import project_px
+
+    h, w = shape
+    claims = {}  # query row -> (distance, view, view row)
+    for view, (rows, points, _) in view_points.items():
+        uv, front = project_px(points, np.eye(4), K)
+        for p, (u, v) in enumerate(uv):
+            if not (front[p] and 0 <= u <= w - 1 and 0 <= v <= h - 1):
+                continue
+            near = np.flatnonzero(((query_xy - (u, v)) ** 2).sum(axis=1) <= radius_px**2)
+            if not len(near):
+                continue
+            d = np.linalg.norm(query_desc[near].astype(float) - view_descs[view][rows[p]].astype(float), axis=1)
+            order = np.argsort(d, kind="stable")
+            second = d[order[1]] if len(order) > 1 else np.inf
+            if d[order[0]] < ratio * second and d[order[0]] <= max_distance:
+                q = int(near[order[0]])
+                if q not in claims or d[order[0]] < claims[q][0]:
+                    claims[q] = (d[order[0]], view, int(rows[p]))
+    return sorted((q, v, r) for q, (_, v, r) in claims.items())
+
+
+def test_guided_matching_takes_what_the_rule_says_pair_by_pair():
+    """Random views' points and keypoints, some planted where points project with their descriptors a little
+    changed: the vectorised matching finds exactly the matches the rule finds pair by pair, at a small and a wide
+    radius."""
+    from visloc.pose.flowtrack import guided_matches
+
+    rng = np.random.default_rng(7)
+    K = np.array([[700.0, 0, 600], [0, 700.0, 180], [0, 0, 1]])
+    shape = (376, 1241)
+    query_xy = np.c_[rng.uniform(0, 1240, 400), rng.uniform(0, 375, 400)]
+    query_desc = rng.integers(0, 120, (400, 128)).astype(np.uint8)
+    view_points, view_descs = {}, []
+    for view in range(3):
+        view_descs.append(rng.integers(0, 120, (300, 128)).astype(np.uint8))
+        rows = rng.choice(300, 120, replace=False)
+        uv = np.c_[rng.uniform(-50, 1290, 120), rng.uniform(-20, 395, 120)]
+        depth = rng.uniform(3, 40, 120) * np.where(rng.random(120) < 0.1, -1, 1)  # a few behind the camera
+        points = np.c_[(uv - K[:2, 2]) / 700.0 * depth[:, None], depth]
+        view_points[view] = (rows, points, np.repeat(np.eye(3)[None], 120, 0))
+        for p in range(0, 120, 4):  # planted: a keypoint near where the point lands, its descriptor a little off
+            q = int(rng.integers(400))
+            query_xy[q] = uv[p] + rng.normal(0, 2, 2)
+            query_desc[q] = np.clip(view_descs[view][rows[p]].astype(int) + rng.integers(-8, 9, 128), 0, 255)
+    for radius_px in (4.0, 24.0):
+        found = guided_matches(view_points, view_descs, query_xy, query_desc, np.eye(4), K, shape,
+                               radius_px=radius_px, max_distance=250.0)
+        got = sorted(zip(found.query_rows.tolist(), found.view_of.tolist(), found.view_rows.tolist()))
+        expected = _guided_by_brute_force(view_points, view_descs, query_xy, query_desc, K, shape, radius_px, 0.8,
+                                          250.0)
+        assert got == expected and len(got) >= 40, (radius_px, len(got), len(expected))

@@ -344,6 +344,14 @@ def appended(points: TrackedPoints, more: TrackedPoints) -> TrackedPoints:
                          points.east_north_m)
 
 
+def _pair_distances(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """(K,) L2 distances between rows ``a[ia]`` and ``b[ib]`` (float32 arrays), a cache-sized chunk at a time."""
+    out = np.empty(len(ia), np.float32)
+    for s in range(0, len(ia), chunk):
+        out[s:s + chunk] = np.linalg.norm(a[ia[s:s + chunk]] - b[ib[s:s + chunk]], axis=1)
+    return out
+
+
 def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,
                    T_world_camera: np.ndarray, K: np.ndarray, image_shape: tuple[int, int], *,
                    radius_px: float = 4.0, ratio: float = 0.8, max_distance: float = np.inf) -> MapCorrespondences:
@@ -354,11 +362,12 @@ def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray
 
     view_points: view -> (rows (M,), points_world (M, 3), points_cov (M, 3, 3)) of its structure;
     ``query_xy_px``: (N, 2) undistorted keypoints. Returns the matches (``T_world_camera`` as given)."""
+    from scipy.spatial import cKDTree  # here: scipy.spatial costs every command's start-up about 0.2 s
+
     h, w = image_shape[:2]
     q_xy = np.asarray(query_xy_px, float)
     q_desc = np.asarray(query_descriptors_u8, np.float32)
-    by_x = np.argsort(q_xy[:, 0], kind="stable")
-    xs = q_xy[by_x, 0]
+    q_tree = cKDTree(q_xy) if len(q_xy) else None
     parts = []
     for view, (rows, points, covs) in view_points.items():
         if not len(rows):
@@ -366,19 +375,16 @@ def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray
         uv, front = project_px(points, T_world_camera, K)
         inside = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
         idx = np.flatnonzero(inside)
-        if not idx.size:
+        if not idx.size or q_tree is None:
             continue
-        # the query keypoints within radius_px in x of each projection (sorted by x), then within the radius
-        lo = np.searchsorted(xs, uv[idx, 0] - radius_px, "left")
-        n = np.searchsorted(xs, uv[idx, 0] + radius_px, "right") - lo
-        pi = np.repeat(np.arange(idx.size), n)
-        qi = by_x[np.repeat(lo, n) + np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)]
-        near = ((uv[idx[pi]] - q_xy[qi]) ** 2).sum(axis=1) <= radius_px**2
-        pi, qi = pi[near], qi[near]
+        # every (projection, query keypoint) pair within the radius
+        near = cKDTree(uv[idx]).sparse_distance_matrix(q_tree, radius_px, output_type="ndarray")
+        pi, qi = near["i"].astype(np.int64), near["j"].astype(np.int64)
         if not pi.size:
             continue
-        v_desc = np.asarray(db_descriptors_u8[view], np.float32)[rows[idx[pi]]]
-        dist = np.linalg.norm(v_desc - q_desc[qi], axis=1)
+        # only the projected points' descriptors made float, not the whole view's
+        v_desc = np.asarray(db_descriptors_u8[view])[rows[idx]].astype(np.float32)
+        dist = _pair_distances(v_desc, q_desc, pi, qi)
         order = np.lexsort((dist, pi))  # by point, nearest first
         pi, qi, dist = pi[order], qi[order], dist[order]
         starts = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
