@@ -230,8 +230,8 @@ class TrackParams(Params):
     guided_relocalization: bool = param(False, "following points: a tracked frame that asks for new points finds "
                                                "them where its pose projects the nearest views' points, SIFT "
                                                "describing only the keypoints there, with no retrieval (the full "
-                                               "path when that gives no pose): cheaper, and more accurate read as "
-                                               "fast as possible, but not at 10 Hz on every drive "
+                                               "path when that gives no pose): cheaper, and on the shared drives "
+                                               "more accurate, as fast as possible and at 10 Hz alike "
                                                "(docs/performance.md)", kind="bool", methods=TRACK_ONLY)
     max_lost_wait_ms: float = param(30.0, "following points, with full localizations beside the tracker: a frame "
                                           "whose points give no pose waits at most this long for the one under "
