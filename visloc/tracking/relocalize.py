@@ -37,9 +37,9 @@ from visloc.tracking.viewwindow import ViewWindow
 LOOKAHEAD_S = 0.5  # a relocalization also takes on the points of views that still serve this much later
 EXTRA_VIEWS = 4  # ... this many of them
 EXTRA_VIEW_RADIUS_M = 40.0
-GUIDED_VIEWS = 8  # a relocalization guided by a pose looks for the points of this many views nearest it that the
-# frame may use now (the views just ahead that the exclusion window takes in a few frames are the nearest that see
-# what it sees: their points serve until then, as the full path's do)
+GUIDED_VIEWS = 8  # a relocalization guided by a pose looks for the points of this many views nearest it
+GUIDED_LOOKAHEAD_S = 0.0  # ... among those the frame may use now: the views just ahead that the exclusion window
+# takes in a few frames are the nearest that see what it sees, and their points serve until then, as the full path's do
 GUIDED_RADIUS_PX = 24.0  # a map point is found among the keypoints within this distance of where it projects: a
 # tracked pose 0.3 m off moves a point 10 m away by 20 px, and within a narrower radius (8 px) only the points of
 # the views it was posed on were found (they agree with its error), so a pose on the views behind it stayed there,
@@ -47,9 +47,9 @@ GUIDED_RADIUS_PX = 24.0  # a map point is found among the keypoints within this 
 GUIDED_MAX_DESCRIPTOR_DISTANCE = 250.0  # ... and its descriptor this near its view keypoint's (L2, uint8 SIFT): with
 # the pose as the only other evidence, a lone keypoint near a projection is no match (else a pose a little off finds
 # keypoints that agree with it, and the track drifts with its own relocalizations)
-GUIDED_MASK_RADIUS_PX = 10.0  # SIFT describes the keypoints this near a projection: where the keypoints are dense
-# a true match lies this near some projection whatever the pose's error, and describing every keypoint within the
-# matching radius cost a third more SIFT time per relocalization on the shared drives, for no more accuracy
+GUIDED_MASK_RADIUS_PX = 10.0  # SIFT describes the keypoints this near a projection: eight views' projections lie so
+# dense that this leaves out few keypoints, and describing every keypoint within the matching radius cost a third
+# more SIFT time per relocalization on the shared drives, for no more accuracy
 NO_RETRIEVAL = Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
 FULL, GUIDED = "full", "guided"
 
@@ -177,7 +177,8 @@ class Relocalizer:
         ``GUIDED_VIEWS`` views nearest it that it may use that SIFT finds where they
         project; posed on them by ``pose_points(points) -> (measurement, points kept or None)``. None when the
         points give no pose (the full path is then the one to ask)."""
-        views = self.window.nearest_views(east_north_m, timestamp_s, 0.0, GUIDED_VIEWS, EXTRA_VIEW_RADIUS_M)
+        views = self.window.nearest_views(east_north_m, timestamp_s, GUIDED_LOOKAHEAD_S, GUIDED_VIEWS,
+                                          EXTRA_VIEW_RADIUS_M)
         if not views:
             return None
         t0 = time.perf_counter()
