@@ -245,7 +245,7 @@ def test_sift_near_describes_what_sift_finds_near_the_given_pixels_and_nothing_e
 def test_guided_matching_takes_no_lone_keypoint_whose_descriptor_is_far():
     """A map point with one keypoint near where it projects: taken when its descriptor is near the view's, not when
     it is farther than the bound (with the pose as the only other evidence, that keypoint is no match)."""
-    from visloc.pose.flowtrack import guided_matches
+    from visloc.pose.flowtrack import guided_view_matches
 
     K = np.array([[700.0, 0, 600], [0, 700.0, 180], [0, 0, 1]])
     view_desc = np.zeros((2, 128), np.uint8)
@@ -255,21 +255,21 @@ def test_guided_matching_takes_no_lone_keypoint_whose_descriptor_is_far():
     query_desc = view_desc.copy()
     query_desc[1] = 0
     query_desc[1, 64:96] = 40  # half of point 1's descriptor: L2 distance 226 from it
-    found = guided_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0)
+    found = guided_view_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0)
     assert sorted(found.query_rows.tolist()) == [0, 1]
-    bounded = guided_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0,
+    bounded = guided_view_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0,
                              max_distance=200.0)
     assert bounded.query_rows.tolist() == [0] and bounded.view_rows.tolist() == [0]
 
 
 def _guided_by_brute_force(view_points, view_descs, query_xy, query_desc, K, shape, radius_px, ratio, max_distance):
-    """guided_matches' rule, written out pair by pair: (query row, view, view row) of every match."""
-    from visloc.pose.flowtrack import project_px
+    """guided_view_matches' rule, written out pair by pair: (query row, view, view row) of every match."""
+    from visloc.pose.guided import project_points
 
     h, w = shape
     claims = {}  # query row -> (distance, view, view row)
     for view, (rows, points, _) in view_points.items():
-        uv, front = project_px(points, np.eye(4), K)
+        uv, front = project_points(points, np.eye(4), K)
         for p, (u, v) in enumerate(uv):
             if not (front[p] and 0 <= u <= w - 1 and 0 <= v <= h - 1):
                 continue
@@ -290,7 +290,7 @@ def test_guided_matching_takes_what_the_rule_says_pair_by_pair():
     """Random views' points and keypoints, some planted where points project with their descriptors a little
     changed: the vectorised matching finds exactly the matches the rule finds pair by pair, at a small and a wide
     radius."""
-    from visloc.pose.flowtrack import guided_matches
+    from visloc.pose.flowtrack import guided_view_matches
 
     rng = np.random.default_rng(7)
     K = np.array([[700.0, 0, 600], [0, 700.0, 180], [0, 0, 1]])
@@ -310,7 +310,7 @@ def test_guided_matching_takes_what_the_rule_says_pair_by_pair():
             query_xy[q] = uv[p] + rng.normal(0, 2, 2)
             query_desc[q] = np.clip(view_descs[view][rows[p]].astype(int) + rng.integers(-8, 9, 128), 0, 255)
     for radius_px in (4.0, 24.0):
-        found = guided_matches(view_points, view_descs, query_xy, query_desc, np.eye(4), K, shape,
+        found = guided_view_matches(view_points, view_descs, query_xy, query_desc, np.eye(4), K, shape,
                                radius_px=radius_px, max_distance=250.0)
         got = sorted(zip(found.query_rows.tolist(), found.view_of.tolist(), found.view_rows.tolist()))
         expected = _guided_by_brute_force(view_points, view_descs, query_xy, query_desc, K, shape, radius_px, 0.8,

@@ -22,6 +22,7 @@ import numpy as np
 
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams
+from visloc.pose.guided import guided_matches, project_points
 from visloc.pose.measurement import Measurement, posed_measurement
 from visloc.pose.viewpose import DatabaseGeometry, MapCorrespondences, pose_from_views
 from visloc.stats import CHI2_2DOF_999
@@ -98,16 +99,6 @@ def predicted_camera(T_world_camera: np.ndarray, from_east_north_m: np.ndarray,
     return T
 
 
-def project_px(points_world: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, 2) pixels of world points seen by a camera, and (M,) bool: in front of it."""
-    R, t = T_world_camera[:3, :3], T_world_camera[:3, 3]
-    p_cam = (np.asarray(points_world, float) - t) @ R  # R^T (X - t), row-wise
-    front = p_cam[:, 2] > 0.1
-    z = np.where(front, p_cam[:, 2], 1.0)
-    uv = (p_cam[:, :2] / z[:, None]) @ K[:2, :2].T + K[:2, 2]
-    return uv, front
-
-
 def follow_points(previous_gray: np.ndarray, gray: np.ndarray, previous_px: np.ndarray, guess_px: np.ndarray,
                   *, max_backward_px: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Pixels (M, 2) of ``previous_px`` found in ``gray`` by pyramidal Lucas-Kanade started at ``guess_px``,
@@ -138,10 +129,10 @@ def follow(points: TrackedPoints, previous_gray: np.ndarray, gray: np.ndarray, K
     if displacement_m is not None and len(points):
         T = predicted_camera(points.T_world_camera, points.east_north_m,
                              points.east_north_m + np.asarray(displacement_m, float))
-        uv, front = project_px(points.points_world, T, K)
+        uv, front = project_points(points.points_world, T, K)
         # the projection carries the motion; the offset of each point's last pixel from its own projection
         # under the last pose carries what the model misses (lens distortion, the point's own error)
-        last, last_front = project_px(points.points_world, points.T_world_camera, K)
+        last, last_front = project_points(points.points_world, points.T_world_camera, K)
         use = front & last_front
         guess[use] = uv[use] + (points.pixels_px[use] - last[use])
     # each track flowed once, from where its points project on average
@@ -344,56 +335,32 @@ def appended(points: TrackedPoints, more: TrackedPoints) -> TrackedPoints:
                          points.east_north_m)
 
 
-def _pair_distances(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """(K,) L2 distances between rows ``a[ia]`` and ``b[ib]`` (float32 arrays), a cache-sized chunk at a time."""
-    out = np.empty(len(ia), np.float32)
-    for s in range(0, len(ia), chunk):
-        out[s:s + chunk] = np.linalg.norm(a[ia[s:s + chunk]] - b[ib[s:s + chunk]], axis=1)
-    return out
-
-
-def guided_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray, query_descriptors_u8: np.ndarray,
-                   T_world_camera: np.ndarray, K: np.ndarray, image_shape: tuple[int, int], *,
-                   radius_px: float = 4.0, ratio: float = 0.8, max_distance: float = np.inf) -> MapCorrespondences:
+def guided_view_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.ndarray,
+                        query_descriptors_u8: np.ndarray, T_world_camera: np.ndarray, K: np.ndarray,
+                        image_shape: tuple[int, int], *, radius_px: float = 4.0, ratio: float = 0.8,
+                        max_distance: float = np.inf) -> MapCorrespondences:
     """Every structure point of some views found among the query's keypoints by its projection: each point
-    projected by the pose takes the query keypoint within ``radius_px`` whose descriptor is nearest its view
-    keypoint's, if nearer than ``ratio`` times the next one within the radius (one point per query keypoint,
-    the nearest). Far more of the map than descriptor matching alone finds: what a tracker follows.
+    projected into the image by the pose takes the query keypoint within ``radius_px`` whose descriptor is nearest
+    its view keypoint's, if nearer than ``ratio`` times the next one within the radius (the guided matching of
+    ``visloc.pose.guided.guided_matches``, view by view), one point per query keypoint over all the views: the
+    nearest (of equals, the first view's). Far more of the map than descriptor matching alone finds: what a
+    tracker follows.
 
     view_points: view -> (rows (M,), points_world (M, 3), points_cov (M, 3, 3)) of its structure;
     ``query_xy_px``: (N, 2) undistorted keypoints. Returns the matches (``T_world_camera`` as given)."""
-    from scipy.spatial import cKDTree  # here: scipy.spatial costs every command's start-up about 0.2 s
-
     h, w = image_shape[:2]
-    q_xy = np.asarray(query_xy_px, float)
-    q_desc = np.asarray(query_descriptors_u8, np.float32)
-    q_tree = cKDTree(q_xy) if len(q_xy) else None
     parts = []
     for view, (rows, points, covs) in view_points.items():
         if not len(rows):
             continue
-        uv, front = project_px(points, T_world_camera, K)
-        inside = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
-        idx = np.flatnonzero(inside)
-        if not idx.size or q_tree is None:
-            continue
-        # every (projection, query keypoint) pair within the radius
-        near = cKDTree(uv[idx]).sparse_distance_matrix(q_tree, radius_px, output_type="ndarray")
-        pi, qi = near["i"].astype(np.int64), near["j"].astype(np.int64)
-        if not pi.size:
-            continue
-        # only the projected points' descriptors made float, not the whole view's
-        v_desc = np.asarray(db_descriptors_u8[view])[rows[idx]].astype(np.float32)
-        dist = _pair_distances(v_desc, q_desc, pi, qi)
-        order = np.lexsort((dist, pi))  # by point, nearest first
-        pi, qi, dist = pi[order], qi[order], dist[order]
-        starts = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
-        second = np.full(len(starts), np.inf)
-        has_second = np.r_[starts[1:], len(pi)] - starts > 1
-        second[has_second] = dist[starts[has_second] + 1]
-        ok = starts[(dist[starts] < ratio * second) & (dist[starts] <= max_distance)]
-        k = idx[pi[ok]]
-        parts.append((dist[ok], qi[ok], np.full(ok.size, view, np.int64), rows[k], points[k], covs[k]))
+        uv, front = project_points(points, T_world_camera, K)
+        with np.errstate(invalid="ignore"):  # a point behind the camera may project to nowhere
+            inside = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
+        pairs, dist = guided_matches(uv, inside, np.asarray(db_descriptors_u8[view])[rows], query_xy_px,
+                                     query_descriptors_u8, radius_px=radius_px, ratio=ratio,
+                                     max_distance=max_distance)
+        k = pairs[:, 0]
+        parts.append((dist, pairs[:, 1], np.full(len(k), view, np.int64), rows[k], points[k], covs[k]))
     if not parts:
         return MapCorrespondences(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64),
                                   np.zeros((0, 3)), np.zeros((0, 3, 3)), np.asarray(T_world_camera, float))

@@ -36,39 +36,52 @@ def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, K: np.n
     return uv, front
 
 
-def guided_matches(points_uv_px: np.ndarray, in_front: np.ndarray, point_descriptors: np.ndarray,
+def _pair_distances(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray, chunk: int = 4096) -> np.ndarray:
+    """(K,) L2 distances between rows ``a[ia]`` and ``b[ib]`` (float32 arrays), a cache-sized chunk at a time."""
+    out = np.empty(len(ia), np.float32)
+    for s in range(0, len(ia), chunk):
+        out[s:s + chunk] = np.linalg.norm(a[ia[s:s + chunk]] - b[ib[s:s + chunk]], axis=1)
+    return out
+
+
+def guided_matches(points_uv_px: np.ndarray, usable: np.ndarray, point_descriptors: np.ndarray,
                    query_xy_px: np.ndarray, query_descriptors: np.ndarray, *, radius_px: float, ratio: float,
-                   max_distance: float) -> np.ndarray:
-    """(K, 2) int64 pairs (point row, query row): for each point in front of the camera, the query keypoint
-    within ``radius_px`` of its projection whose descriptor is nearest the point's, kept when that distance
-    is at most ``max_distance`` and below ``ratio`` times the second nearest's within the radius (a lone
-    candidate passes on the distance alone). A query keypoint claimed by several points goes to the nearest
-    in descriptor distance."""
-    rows = np.flatnonzero(in_front & np.all(np.isfinite(points_uv_px), axis=1))
+                   max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(K, 2) int64 pairs (point row, query row), by point row, and (K,) float32 their descriptor distances: for
+    each ``usable`` point (in front of the camera, say; a non-finite projection never is), the query keypoint
+    within ``radius_px`` of its projection whose descriptor is nearest the point's (of equals, the first query
+    row), kept when that distance is at most ``max_distance`` and below ``ratio`` times the second nearest's
+    within the radius (a lone candidate passes on the distance alone). A query keypoint claimed by several
+    points goes to the nearest in descriptor distance (of equals, the first point row).
+
+    Every (projection, keypoint) pair within the radius comes from a k-d tree at once, and only the usable
+    points' descriptors are made float."""
+    rows = np.flatnonzero(np.asarray(usable, bool) & np.all(np.isfinite(points_uv_px), axis=1))
+    none = np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
     if len(rows) == 0 or len(query_xy_px) == 0:
-        return np.zeros((0, 2), np.int64)
+        return none
     from scipy.spatial import cKDTree  # here: scipy.spatial costs every command's start-up about 0.2 s
 
-    tree = cKDTree(np.asarray(query_xy_px, float))
-    near = tree.query_ball_point(points_uv_px[rows], r=radius_px)
-    q_desc = np.asarray(query_descriptors, np.float32)
-    p_desc = np.asarray(point_descriptors, np.float32)
-    best: dict[int, tuple[float, int]] = {}  # query row -> (distance, point row)
-    for point, candidates in zip(rows.tolist(), near):
-        if not candidates:
-            continue
-        distances = np.linalg.norm(q_desc[candidates] - p_desc[point], axis=1)
-        order = np.argsort(distances, kind="stable")
-        d1 = float(distances[order[0]])
-        if d1 > max_distance:
-            continue
-        if len(order) > 1 and not d1 < ratio * float(distances[order[1]]):
-            continue
-        q_row = int(candidates[order[0]])
-        if q_row not in best or d1 < best[q_row][0]:
-            best[q_row] = (d1, point)
-    pairs = sorted((point, q_row) for q_row, (_, point) in best.items())
-    return np.array(pairs, np.int64).reshape(-1, 2)
+    near = cKDTree(np.asarray(points_uv_px, float)[rows]).sparse_distance_matrix(
+        cKDTree(np.asarray(query_xy_px, float)), radius_px, output_type="ndarray")
+    pi, qi = near["i"].astype(np.int64), near["j"].astype(np.int64)
+    if not pi.size:
+        return none
+    dist = _pair_distances(np.asarray(point_descriptors)[rows].astype(np.float32),
+                           np.asarray(query_descriptors, np.float32), pi, qi)
+    order = np.lexsort((qi, dist, pi))  # by point, nearest first, then by query row
+    pi, qi, dist = pi[order], qi[order], dist[order]
+    starts = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
+    nearest = dist[starts].astype(np.float64)  # the tests in double precision, as a Python float would make them
+    second = np.full(len(starts), np.inf)
+    has_second = np.r_[starts[1:], len(pi)] - starts > 1
+    second[has_second] = dist[starts[has_second] + 1]
+    ok = starts[(nearest <= max_distance) & (nearest < ratio * second)]
+    point_rows, query_rows, dist = rows[pi[ok]], qi[ok], dist[ok]
+    claims = np.lexsort((point_rows, dist))  # a query row's claims, nearest (then first point) first
+    _, first = np.unique(query_rows[claims], return_index=True)
+    keep = np.sort(claims[first])  # by point row, as the points came
+    return np.c_[point_rows[keep], query_rows[keep]], dist[keep]
 
 
 def descriptor_distances(query_descriptors: np.ndarray, view_descriptors: np.ndarray,
@@ -102,9 +115,9 @@ def guided_pairs(pnp: "PnPResult", views, chosen: list[int], structures: dict[in
             continue
         points = np.array([structures[i][r][0] for r in d_rows.tolist()])
         uv, front = project_points(points, pnp.T_world_camera, query_camera.K)
-        found = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], query_xy, query_descriptors,
-                               radius_px=params.guided_radius_px, ratio=params.guided_ratio,
-                               max_distance=max_distance)
+        found, _ = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], query_xy, query_descriptors,
+                                  radius_px=params.guided_radius_px, ratio=params.guided_ratio,
+                                  max_distance=max_distance)
         new = np.c_[found[:, 1], d_rows[found[:, 0]]]
         taken_q, taken_d = set(pairs[:, 0].tolist()), set(pairs[:, 1].tolist())
         new = np.array([(q, d) for q, d in new.tolist() if q not in taken_q and d not in taken_d], np.int64)

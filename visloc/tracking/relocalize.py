@@ -2,7 +2,7 @@
 
 * **In full** (``Relocalizer.relocalize``): SIFT over the whole frame, retrieval, the refined measurement, and the
   map points it hands the tracker: its pose's inliers, widened by the structure of its views and of the views that
-  keep serving (``visloc.pose.flowtrack.guided_matches``), posed again to keep the consistent ones. What a frame with
+  keep serving (``visloc.pose.flowtrack.guided_view_matches``), posed again to keep the consistent ones. What a frame with
   no pose to go on (the first, one the tracker lost) needs.
 * **Guided by a pose** (``Relocalizer.guided``): a frame the tracker has posed already knows where the map's points
   should lie in it. No retrieval (the views nearest its pose that it may use), SIFT describes only the keypoints near
@@ -27,7 +27,8 @@ import numpy as np
 from visloc.features.sift import Query, extract_sift, sift_near, undistort_keypoints
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams, SiftParams
-from visloc.pose.flowtrack import TrackedPoints, guided_matches, points_of, pose_tracked, project_px
+from visloc.pose.flowtrack import TrackedPoints, guided_view_matches, points_of, pose_tracked
+from visloc.pose.guided import project_points
 from visloc.pose.measurement import GEOMETRY, Measurement
 from visloc.pose.viewpose import DatabaseGeometry
 from visloc.retrieval.retrievers import Retrieval
@@ -137,7 +138,7 @@ class Relocalizer:
 
     def _points(self, full: Localized) -> TrackedPoints | None:
         """The map points a fully localized frame hands the tracker: its pose's inliers, widened by the structure
-        of its views and of views that keep serving (``guided_matches``), posed again to keep the consistent ones."""
+        of its views and of views that keep serving (``guided_view_matches``), posed again to keep the consistent ones."""
         m = full.measurement
         if m.source != GEOMETRY or m.inliers is None:
             return None
@@ -153,7 +154,7 @@ class Relocalizer:
                                                  EXTRA_VIEW_RADIUS_M).items():
             if view not in view_points:
                 view_points[view], neighbours[view] = (s.rows, s.points_world, s.cov_world), tuple(s.neighbours)
-        guided = guided_matches(view_points, self.geometry.descriptors_u8, full.query.keypoints_f32[:, :2],
+        guided = guided_view_matches(view_points, self.geometry.descriptors_u8, full.query.keypoints_f32[:, :2],
                                 full.query.descriptors_u8, inliers.T_world_camera, self.camera.K, full.gray.shape)
         wide = points_of(guided, full.raw_px, m.east_north_m, neighbours, first_track)
         if len(wide) <= len(base):
@@ -187,7 +188,7 @@ class Relocalizer:
         h, w = gray.shape[:2]
         projected = []
         for _, points_world, _ in view_points.values():
-            uv, front = project_px(points_world, T_world_camera, self.camera.K)
+            uv, front = project_points(points_world, T_world_camera, self.camera.K)
             projected.append(uv[front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)])
         near_px = self._distort(np.concatenate(projected))
         features = sift_near(gray, self.sift, near_px, GUIDED_MASK_RADIUS_PX, sift=engine)
@@ -197,7 +198,7 @@ class Relocalizer:
         if not len(features):
             return None
         t1 = time.perf_counter()
-        found = guided_matches(view_points, self.geometry.descriptors_u8, keypoints[:, :2], features.descriptors_u8,
+        found = guided_view_matches(view_points, self.geometry.descriptors_u8, keypoints[:, :2], features.descriptors_u8,
                                T_world_camera, self.camera.K, gray.shape, radius_px=GUIDED_RADIUS_PX,
                                max_distance=GUIDED_MAX_DESCRIPTOR_DISTANCE)
         neighbours = {v: tuple(s.neighbours) for v, s in views.items()}
