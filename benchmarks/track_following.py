@@ -8,8 +8,11 @@ evaluation protocol), these ``visloc track`` configurations on every frame, one 
 (each following one ``--repeats`` times, the run of median error standing for them):
 
 * ``full``: ``--no-follow-points``, every frame localized in full (SIFT, retrieval, structure, PnP);
-* ``follow_keeping_up``: ``visloc track``'s default, following points with each frame read once the full
-  localization asked for before it has come (reproducible);
+* ``follow_keeping_up``: ``visloc track``'s default, following points with each frame read once the
+  relocalization asked for before it has come (reproducible), each relocalization of a tracked frame guided by its
+  pose (``--guided-relocalization``, the default: no retrieval, SIFT describing only the keypoints near where the
+  nearest views' points project); ``follow_keeping_up_in_full``: the same with every relocalization in full
+  (``--no-guided-relocalization``: SIFT over the frame, retrieval, the refined measurement);
 * ``follow``: ``--follow-points --pace-hz 0``, frames read as fast as possible: latency per frame (all, tracked, predicted,
   relocalized), the share of each kind and the sustained frames per second;
 * ``follow_paced``: ``--follow-points --pace-hz 10``, frames delivered at the camera's 10 Hz: latency and the
@@ -17,9 +20,8 @@ evaluation protocol), these ``visloc track`` configurations on every frame, one 
   the vehicle's);
 * ``follow_paced_loaded``: the same with another process spinning on one core beside it the whole run (a
   vehicle's other software): its error against the idle paced run's;
-* ``follow_guided``, ``follow_paced_guided``: as fast as possible and at 10 Hz, a tracked frame's relocalizations
-  guided by its pose (``--guided-relocalization``: no retrieval, SIFT describing only the keypoints near where the
-  nearest views' points project);
+  (these three with every relocalization in full)
+* ``follow_guided``, ``follow_paced_guided``: the same as fast as possible and at 10 Hz, relocalizations guided;
 * ``follow_paced_guided_loaded``: the guided run at 10 Hz beside the same busy core, against the idle guided run;
 * ``follow_paced_guided_every_6``: the same at 10 Hz, asking for new points at least every 6 frames instead of 4
   (``--relocalize-every 6``): fewer relocalizations, less processor, and what that costs in accuracy.
@@ -45,9 +47,10 @@ SECTION = Section("track-following", "track_following", REPO / "docs" / "perform
 OUT, PAGE, BEGIN, END = SECTION.out, SECTION.page, SECTION.begin, SECTION.end
 
 PACED = ["--follow-points", "--pace-hz", "10"]
-GUIDED = ["--guided-relocalization"]
-RUNS = {"full": ["--no-follow-points"], "follow_keeping_up": [], "follow": ["--follow-points", "--pace-hz", "0"],
-        "follow_paced": PACED, "follow_paced_loaded": PACED,
+GUIDED, IN_FULL = ["--guided-relocalization"], ["--no-guided-relocalization"]  # the first: the default
+RUNS = {"full": ["--no-follow-points"], "follow_keeping_up": [], "follow_keeping_up_in_full": IN_FULL,
+        "follow": ["--follow-points", "--pace-hz", "0", *IN_FULL],
+        "follow_paced": PACED + IN_FULL, "follow_paced_loaded": PACED + IN_FULL,
         "follow_guided": ["--follow-points", "--pace-hz", "0", *GUIDED], "follow_paced_guided": PACED + GUIDED,
         "follow_paced_guided_loaded": PACED + GUIDED,
         "follow_paced_guided_every_6": PACED + GUIDED + ["--relocalize-every", "6"]}
@@ -56,7 +59,7 @@ LOADED = {"follow_paced_loaded": "follow_paced", "follow_paced_guided_loaded": "
 # following is not reproducible run to run where the frames do not wait for the full localizations (the background
 # thread's timing decides which frames relocalize): these runs are made --repeats times and the one of median error
 # stands for them, with the range of their errors; the default run, which waits, is the same every time
-REPEATED = set(RUNS) - {"full", "follow_keeping_up"}
+REPEATED = set(RUNS) - {"full", "follow_keeping_up", "follow_keeping_up_in_full"}
 
 
 def _digest(run: dict) -> dict:
@@ -122,12 +125,14 @@ def render(result: dict) -> str:
              "`python benchmarks/track_following.py` (every frame of each drive, queries and database from image_00, "
              "1 s exclusion window; targets: p95 ≤ 50 ms, ≥ 30 frames/s as fast as possible, ≤ 50 % of one core "
              "at 10 Hz, mean error within 10 % or 0.02 m of the full path's, estimate NEES 1-4 with 85-99 % inside "
-             "its 95 % ellipse; \"follow keeping up\": the default, each frame read once the full localization "
-             "asked for before it has come, the same every time; \"follow\": as fast as possible (`--pace-hz 0`); "
+             "its 95 % ellipse; \"follow keeping up\": the default, each frame read once the relocalization "
+             "asked for before it has come, the same every time, a tracked frame's relocalizations guided by its pose "
+             "(`--guided-relocalization`, the default); \"in full\": every relocalization in full "
+             "(`--no-guided-relocalization`); \"follow\": as fast as possible (`--pace-hz 0`); "
              "\"follow paced\": at 10 Hz (`--pace-hz 10`); \"follow paced loaded\": paced at 10 Hz while another "
              "process keeps one core busy, its error within 10 % of the idle paced run's (the guided one: of the idle "
-             "guided run's); \"guided\": a tracked frame's "
-             "relocalizations guided by its pose (`--guided-relocalization`); \"every 6\": asking for new "
+             "guided run's); \"guided\": relocalizations guided (\"follow\", \"follow paced\" and \"follow "
+             "paced loaded\" relocalize in full); \"every 6\": asking for new "
              "points at least every 6 frames instead of 4 (`--relocalize-every 6`); the runs that do not wait "
              "are made " f"{result.get('repeats', 1)} times, and the one of median error shown):", "",
              "| drive | run | latency p50 / p95 / max (ms) | tracked frames: share, p95 (ms) | predicted frames: share "

@@ -515,10 +515,10 @@ def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_
         out = tmp_path / f"{name}.json"
         result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
                          "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "25", "--follow-points",
-                         "--no-background-relocalization", "--json", out)
+                         "--no-background-relocalization", "--no-guided-relocalization", "--json", out)
         assert result.returncode == 0, result.stderr
         assert "following points: frames tracked" in result.stdout and "of one core" in result.stdout
-        assert "relocalizations: " in result.stdout and "guided" not in result.stdout  # full ones, by default
+        assert "relocalizations: " in result.stdout and "guided" not in result.stdout  # full ones, as asked
         runs.append(json.loads(out.read_text()))
     run = runs[0]
     kinds = [f["kind"] for f in run["per_frame"]]
@@ -538,11 +538,10 @@ def test_track_following_points_splits_its_frames_and_is_reproducible_without_a_
 
 
 @pytest.mark.slow
-def test_track_with_guided_relocalization_says_how_many_were_guided(store, kitti_root, tmp_path):
+def test_track_relocalizes_guided_by_the_tracked_pose_by_default_and_says_how_many(store, kitti_root, tmp_path):
     out = tmp_path / "guided.json"
     result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store, "--db-source", SOURCE,
-                     "--exclusion-s", "1", "--frames", "14", "--follow-points", "--no-background-relocalization",
-                     "--guided-relocalization", "--json", out)
+                     "--exclusion-s", "1", "--frames", "14", "--no-background-relocalization", "--json", out)
     assert result.returncode == 0, result.stderr
     run = json.loads(out.read_text())
     guided = [f for f in run["per_frame"] if f["relocalized_by"] == "guided"]
@@ -629,7 +628,7 @@ def test_a_frame_left_with_nothing_to_follow_by_a_relocalization_that_found_noth
 
         def _pose(self, points, *args):
             if self.now in blind:
-                return Measurement(None, None, None, fallback_reason="tracked points: no pose"), None
+                return Measurement(None, None, None, fallback_reason="tracked points: no pose"), None, False
             return super()._pose(points, *args)
 
     params = TRACK.replace(exclusion_s=1.0, follow_points=True, background_relocalization=True,

@@ -227,12 +227,13 @@ class TrackParams(Params):
                                                   "frame run beside the tracker, so no frame waits for one "
                                                   "(--no-background-relocalization: the frame that asks waits; "
                                                   "the run is then reproducible)", kind="bool", methods=TRACK_ONLY)
-    guided_relocalization: bool = param(False, "following points: a tracked frame that asks for new points finds "
-                                               "them where its pose projects the nearest views' points, SIFT "
-                                               "describing only the keypoints there, with no retrieval (the full "
-                                               "path when that gives no pose): cheaper, and on the shared drives "
-                                               "more accurate, as fast as possible and at 10 Hz alike "
-                                               "(docs/performance.md)", kind="bool", methods=TRACK_ONLY)
+    guided_relocalization: bool = param(True, "following points: a tracked frame that asks for new points finds "
+                                              "them where its pose projects the nearest views' points, SIFT "
+                                              "describing only the keypoints there, with no retrieval (the full "
+                                              "path when that gives no pose): cheaper, and on the shared drives "
+                                              "as accurate as localizing every frame in full "
+                                              "(--no-guided-relocalization: every relocalization in full, with "
+                                              "retrieval; docs/performance.md)", kind="bool", methods=TRACK_ONLY)
     max_lost_wait_ms: float = param(30.0, "following points, with full localizations beside the tracker: a frame "
                                           "whose points give no pose waits at most this long for the one under "
                                           "way, then the filter predicts it (0: never waits)", unit="ms", low=0,
