@@ -16,7 +16,7 @@ HINTS = {
     "latlon": "Also show latitude and longitude (WGS84, degrees) beside the local east/north metres",
     "mode": "paper: the measurement is the best-matching database image's geotag. refined: a metric pose "
             "solved from the database's own geometry (PnP), the geotag only as fallback. refined-fast: the same "
-            "pose at camera rate, on the 3D points stored at ingest, following them between full localizations "
+            "pose at camera rate, on the 3D points stored at ingest, following them between relocalizations "
             "on the drive's images as visloc track does (it starts at 10 Hz: press Play)",
     "rate": "One query every 1/rate s; also the filter's time step Δt. Choosing a mode moves it to the mode's "
             "own (10 Hz for refined-fast, 1 Hz for the others) unless another rate was chosen",

@@ -142,10 +142,11 @@ def _position(xy: tuple[float, float] | None, geotag: tuple[float, float] | None
 
 
 FOLLOWED_KINDS = {  # how a step of a run that followed points was measured (visloc.DriveMatches.kinds)
-    "tracked": "followed points (no retrieval, no SIFT: the map points of the last full localization, followed "
+    "tracked": "followed points (no retrieval, no SIFT: the map points of the last relocalization, followed "
                "into this frame by optical flow), ",
-    "relocalized": "a full localization (SIFT, retrieval and PnP) that fetched new map points to follow, ",
-    "predicted": "nothing of its own (its points lost, a full localization under way): ",
+    "relocalized": "a relocalization that fetched new map points to follow (in full: SIFT, retrieval and PnP; or "
+                   "guided by the frame's tracked pose: SIFT near where the map's points project, and PnP), ",
+    "predicted": "nothing of its own (its points lost, a relocalization under way): ",
 }
 
 
@@ -268,7 +269,7 @@ def camera_rate_note(matches: visloc.DriveMatches) -> str:
         tracked = sum(1 for k in matches.kinds if k == "tracked")
         return (f" Camera-rate path as `visloc track` runs it: each frame read from the drive's images and described "
                 f"at three quarters of its size; {tracked} of {len(matches)} frames posed on followed map points "
-                "between full localizations, each frame read once the full localization asked for before it had "
+                "between relocalizations, each frame read once the relocalization asked for before it had "
                 "come (so the run is the same every time). R, Q and P0 re-run the filter over these measurements.")
     return (" Camera-rate path on the stored query features, every query localized in full, not following points "
             "as `visloc track` does (the status line says why).")

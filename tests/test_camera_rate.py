@@ -304,14 +304,14 @@ def test_track_exact_path_runs_too(store, kitti_root, tmp_path):
 @pytest.mark.slow
 def test_track_follows_points_by_default_the_same_run_every_time_and_the_dashboard_follows_them_alike(
         store, kitti_root, tmp_path):
-    """By default a track follows points and reads each frame once the full localization asked for before it has
+    """By default a track follows points and reads each frame once the relocalization asked for before it has
     come: the run is the same every time, however busy the machine, and the engine's drive run that the dashboard's
     camera-rate mode plays (``follow_drive``, on the store's query series read again from their images) is that run."""
     out = tmp_path / "a.json"
     result = run_cli("track", kitti_root, "--drive", DRIVE, "--camera", "image_00", "--db", store,
                      "--db-source", SOURCE, "--exclusion-s", "1", "--frames", "12", "--json", out)
     assert result.returncode == 0, result.stderr
-    assert "following points: frames tracked" in result.stdout and "as the full localizations keep up" in result.stdout
+    assert "following points: frames tracked" in result.stdout and "as the relocalizations keep up" in result.stdout
     run = json.loads(out.read_text())
     assert run["params"]["track"]["follow_points"] is True and run["params"]["track"]["pace_hz"] is None
     assert run["pace_hz"] == 0 and {f["kind"] for f in run["per_frame"]} >= {"relocalized", "tracked"}

@@ -374,13 +374,13 @@ def test_the_camera_rate_path_plays_every_frame_at_the_camera_rate(dashboard, br
         assert "Camera-rate path as visloc track runs it" in summary.locator("xpath=..").first.inner_text()
         page.get_by_text(f"Step 1 of {n_frames}", exact=True).wait_for()
         assert row(page, "query").startswith(f"image_00 frame {first_frame},")  # the first frame from the start on
-        assert row(page, "measured by").startswith("a full localization (SIFT, retrieval and PnP)")
+        assert row(page, "measured by").startswith("a relocalization that fetched new map points")
         kinds = set()
         for step in (2, 3, 15):
             go_to_step(page, step)
             kinds.add(row(page, "measured by").split(" (")[0])
             assert "geometry: PnP against frames" in row(page, "measured by")
-        assert "followed points" in kinds  # a frame posed on the points followed from a full localization
+        assert "followed points" in kinds  # a frame posed on the points followed from a relocalization
         assert float(row(page, "measurement error").split()[0]) < 1.0
         control(page, "Play").locator("input").first.check()
         wait_for(lambda: current_step(page) >= 21, SERVER_WORK_S, "playback to move on")  # the page advances by itself

@@ -129,5 +129,5 @@ def test_the_step_panel_says_how_a_step_of_a_followed_run_was_measured():
 
     posed = replace(record(0, source="geometry"), view_db_frames=[3, 9], neighbour_db_frames=[1, 5], n_pnp_inliers=40)
     assert source_text(posed, "tracked").startswith("followed points (no retrieval, no SIFT")
-    assert source_text(posed, "relocalized").startswith("a full localization (SIFT, retrieval and PnP)")
+    assert source_text(posed, "relocalized").startswith("a relocalization that fetched new map points")
     assert source_text(posed, "tracked").endswith(source_text(posed)) and source_text(posed, None) == source_text(posed)

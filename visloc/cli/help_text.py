@@ -77,7 +77,7 @@ examples:
       --geojson out/track.geojson
   # left frames against the right camera's database, first 50 frames, the exact (slow) path
   visloc track {KITTI} --drive 2011_09_26_drive_0001 --camera image_00 --db-camera image_01 --frames 50 --exact
-  # by default the map's points are followed between full localizations, each frame read once the one asked
+  # by default the map's points are followed between relocalizations, each frame read once the one asked
   # for before it has come (the JSON splits latency by tracked and relocalized frames); frames delivered at a
   # camera's 10 Hz instead, to see the share of the processor a live run takes:
   visloc track {KITTI} --drive 2011_09_26_drive_0001 --camera image_00 --pace-hz 10 --json out/track_live.json

@@ -188,42 +188,42 @@ class TrackParams(Params):
                                unit="s", low=0, high=MAX_SECONDS, methods=TRACK_ONLY)
     stride: int = param(1, "localize every stride-th frame (1: every frame); the filter's time step follows",
                         kind="integer", low=1, methods=TRACK_ONLY)
-    follow_points: bool | None = param(None, "between full localizations, follow the last posed frame's map "
+    follow_points: bool | None = param(None, "between relocalizations, follow the last posed frame's map "
                                              "points by optical flow and pose each frame against them: read as "
-                                             "each full localization keeps up (the default), as accurate as "
-                                             "localizing every frame in full (--no-follow-points); at the camera's "
-                                             "10 Hz (--pace-hz 10), about half its processor and a little less "
-                                             "accurate (docs/performance.md); read as fast as possible (--pace-hz "
-                                             "0), far less accurate, as the full localizations fall behind",
+                                             "each relocalization keeps up (the default), as accurate as "
+                                             "localizing every frame in full (--no-follow-points) on the shared "
+                                             "drives; at the camera's 10 Hz (--pace-hz 10) as well, on about half "
+                                             "its processor (docs/performance.md); read as fast as possible "
+                                             "(--pace-hz 0), far less accurate, as the relocalizations fall behind",
                                        kind="bool", methods=TRACK_ONLY,
                                        when_unset="on the camera-rate path at every frame (--stride 1), off on the exact "
                                                   "one (--exact): points are followed from one frame to the next")
-    relocalize_every: int = param(4, "following points: localize in full at least every this many frames, to "
+    relocalize_every: int = param(4, "following points: relocalize at least every this many frames, to "
                                      "find new map points on the nearest views (0: only when the followed ones no "
                                      "longer serve)",
                                   kind="integer", low=0, high=MAX_C_INT, methods=TRACK_ONLY)
     relocalize_behind_only_every: int = param(2, "following points: a frame posed on views behind it only (none "
-                                                 "ahead along the camera's axis) localizes in full once this many "
-                                                 "frames have passed since the last full localization: the views "
+                                                 "ahead along the camera's axis) relocalizes once this many "
+                                                 "frames have passed since the last relocalization: the views "
                                                  "ahead leave the exclusion window a frame or two after they are "
                                                  "handed on, and a pose on one side's views repeats that side's "
                                                  "bias frame after frame (0: only as --relocalize-every says)",
                                               kind="integer", low=0, high=MAX_C_INT, methods=TRACK_ONLY)
     min_followed_points: int = param(40, "following points: a frame posed on fewer image tracks (followed keypoints, "
                                          "each once however many views' structure holds its map point) than this: "
-                                         "localize in full", kind="integer", low=6, high=MAX_C_INT, methods=TRACK_ONLY)
+                                         "relocalize", kind="integer", low=6, high=MAX_C_INT, methods=TRACK_ONLY)
     min_followed_cells: int = param(4, "following points: points in fewer of the image's 4 x 4 cells than this: "
-                                       "localize in full", kind="integer", low=0, high=16, methods=TRACK_ONLY)
+                                       "relocalize", kind="integer", low=0, high=16, methods=TRACK_ONLY)
     max_followed_lever_m: float = param(15.0, "following points: a frame farther than this from the nearest view "
-                                              "its points come from: localize in full", unit="m", low=0.1,
+                                              "its points come from: relocalize", unit="m", low=0.1,
                                         high=1000, methods=TRACK_ONLY)
     max_followed_lever_excess_m: float = param(1.0, "following points: the nearest view of a frame's points farther "
                                                     "than the nearest view it may use by more than this: localize "
-                                                    "in full, to pose on the nearer views", unit="m", low=0,
+                                                    "again, to pose on the nearer views", unit="m", low=0,
                                                high=1000, methods=TRACK_ONLY)
     max_followed_sigma_m: float = param(1.0, "following points: the estimate's 1-sigma larger than this: "
-                                             "localize in full", unit="m", low=0.01, high=1000, methods=TRACK_ONLY)
-    background_relocalization: bool = param(True, "following points: full localizations asked for by a tracked "
+                                             "relocalize", unit="m", low=0.01, high=1000, methods=TRACK_ONLY)
+    background_relocalization: bool = param(True, "following points: relocalizations asked for by a tracked "
                                                   "frame run beside the tracker, so no frame waits for one "
                                                   "(--no-background-relocalization: the frame that asks waits; "
                                                   "the run is then reproducible)", kind="bool", methods=TRACK_ONLY)
@@ -234,14 +234,14 @@ class TrackParams(Params):
                                               "as accurate as localizing every frame in full "
                                               "(--no-guided-relocalization: every relocalization in full, with "
                                               "retrieval; docs/performance.md)", kind="bool", methods=TRACK_ONLY)
-    max_lost_wait_ms: float = param(30.0, "following points, with full localizations beside the tracker: a frame "
+    max_lost_wait_ms: float = param(30.0, "following points, with relocalizations beside the tracker: a frame "
                                           "whose points give no pose waits at most this long for the one under "
                                           "way, then the filter predicts it (0: never waits)", unit="ms", low=0,
                                     high=10000, methods=TRACK_ONLY)
     pace_hz: float | None = param(None, "read frames at this rate, as a live camera delivers them, to measure the "
                                         "share of the processor a live run takes (0: as fast as possible)",
                                   unit="Hz", low=0, high=1000, methods=TRACK_ONLY,
-                                  when_unset="following points, as fast as the full localizations beside the "
+                                  when_unset="following points, as fast as the relocalizations beside the "
                                              "tracker keep up: a frame is read once the one asked for before it "
                                              "has come, as on a vehicle where one takes less than a frame's "
                                              "interval; else as fast as possible")

@@ -218,7 +218,7 @@ def track_text(s: dict) -> str:
         f"{st['filter_ms']:.1f})",
         f"sustained {s['sustained_hz']:.1f} frames/s over {s['wall_s']:.1f} s of wall time"
         + (f" (frames read at {s['pace_hz']:g} Hz, as a camera delivers them)" if s.get("pace_hz") else
-           " (frames read as fast as the full localizations keep up)" if "tracked" in (s.get("kinds") or {})
+           " (frames read as fast as the relocalizations keep up)" if "tracked" in (s.get("kinds") or {})
            and s["params"]["track"].get("pace_hz", 0) is None else "")
         + (f", processor {s['cpu_share_of_one_core']:.2f} of one core" if s.get("cpu_share_of_one_core") else ""),
         *([following_line(s["kinds"])] if "tracked" in (s.get("kinds") or {}) else []),
