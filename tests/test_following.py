@@ -255,10 +255,11 @@ def test_guided_matching_takes_no_lone_keypoint_whose_descriptor_is_far():
     query_desc = view_desc.copy()
     query_desc[1] = 0
     query_desc[1, 64:96] = 40  # half of point 1's descriptor: L2 distance 226 from it
-    found = guided_view_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0)
+    found = guided_view_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241),
+                                radius_px=8.0)
     assert sorted(found.query_rows.tolist()) == [0, 1]
-    bounded = guided_view_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241), radius_px=8.0,
-                             max_distance=200.0)
+    bounded = guided_view_matches(view_points, [view_desc], query_xy, query_desc, np.eye(4), K, (376, 1241),
+                                  radius_px=8.0, max_distance=200.0)
     assert bounded.query_rows.tolist() == [0] and bounded.view_rows.tolist() == [0]
 
 
@@ -311,7 +312,7 @@ def test_guided_matching_takes_what_the_rule_says_pair_by_pair():
             query_desc[q] = np.clip(view_descs[view][rows[p]].astype(int) + rng.integers(-8, 9, 128), 0, 255)
     for radius_px in (4.0, 24.0):
         found = guided_view_matches(view_points, view_descs, query_xy, query_desc, np.eye(4), K, shape,
-                               radius_px=radius_px, max_distance=250.0)
+                                    radius_px=radius_px, max_distance=250.0)
         got = sorted(zip(found.query_rows.tolist(), found.view_of.tolist(), found.view_rows.tolist()))
         expected = _guided_by_brute_force(view_points, view_descs, query_xy, query_desc, K, shape, radius_px, 0.8,
                                           250.0)

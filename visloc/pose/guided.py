@@ -87,9 +87,8 @@ def guided_matches(points_uv_px: np.ndarray, usable: np.ndarray, point_descripto
 def descriptor_distances(query_descriptors: np.ndarray, view_descriptors: np.ndarray,
                          pairs: np.ndarray) -> np.ndarray:
     """(M,) L2 distances of the descriptors of ``pairs`` (query row, view row)."""
-    q = np.asarray(query_descriptors, np.float32)[pairs[:, 0]]
-    v = np.asarray(view_descriptors, np.float32)[pairs[:, 1]]
-    return np.linalg.norm(q - v, axis=1)
+    return _pair_distances(np.asarray(query_descriptors, np.float32), np.asarray(view_descriptors, np.float32),
+                           pairs[:, 0], pairs[:, 1])
 
 
 def guided_pairs(pnp: "PnPResult", views, chosen: list[int], structures: dict[int, dict], query_xy: np.ndarray,
