@@ -49,9 +49,9 @@ GUIDED_MAX_DESCRIPTOR_DISTANCE = 250.0  # ... and its descriptor this near its v
 # the pose as the only other evidence, a lone keypoint near a projection is no match (else a pose a little off finds
 # keypoints that agree with it, and the track drifts with its own relocalizations)
 GUIDED_MASK_RADIUS_PX = 5.0  # SIFT describes the keypoints this near a projection: eight views' projections lie so
-# dense that a keypoint farther than this from its own point's projection is mostly near another's; at 10 px it
-# described 2,230 keypoints of a frame in median where 5 px describes 1,430 (drive 0027), for a tenth less
-# processor paced at 10 Hz and the same accuracy, and at 3 px drive 0005 erred by a tenth more
+# dense that a keypoint farther than this from its own point's projection is mostly near another's; against 10 px
+# it took a tenth less processor paced at 10 Hz for the same accuracy, and at 3 px drive 0005 erred by a tenth
+# more (docs/performance.md)
 NO_RETRIEVAL = Retrieval(np.zeros(0, np.int64), np.zeros(0, np.int64), None)
 FULL, GUIDED = "full", "guided"
 
