@@ -16,11 +16,12 @@ from visloc.protocols.drive import filter_measurements
 from visloc.errors import InputError
 from visloc.features.sift import Query
 from visloc.pose.measurement import GEOMETRY, GEOTAG, geotag_measurement
-from visloc.params import FilterParams, RefinedParams
+from visloc.params import FilterParams, MatchParams, RefinedParams
 from visloc.pose.refined import PoseMeasurer, StructureCache, pose_measurement
 from visloc.pose.selfcheck import self_check_params
 from visloc.pose.viewpose import DatabaseGeometry, agreeing_majority
 from visloc.retrieval.retrievers import Retrieval
+from visloc.retrieval.matching import correspondences
 from visloc.tracking.kalman import run_filter
 from visloc.pose.uncertainty import DEFAULT_LEVER_GAIN, LeverGain
 
@@ -238,6 +239,20 @@ def test_measurement_gives_back_the_known_query_position_within_centimetres():
     again = PoseMeasurer(geotags, geometry, CAMERA, params).measure(Query(dq, 0.0, keypoints_f32=xq), retrieval_over(5))
     np.testing.assert_array_equal(again.east_north_m, m.east_north_m)
     np.testing.assert_array_equal(again.cov_m2, m.cov_m2)
+
+
+def test_a_pair_is_matched_once_for_both_its_ways_and_the_cache_keeps_the_last_pairs():
+    geometry, *_ = synthetic_database([3.0, 6.0, 9.0])
+    params = RefinedParams()
+    match = MatchParams(tau1=params.ratio, tau2=-1.0)
+    d = geometry.descriptors_u8
+    cache = StructureCache(max_pairs=2)
+    np.testing.assert_array_equal(cache.pairs(geometry, 0, 1, params), correspondences(d[0], d[1], match))
+    np.testing.assert_array_equal(cache.pairs(geometry, 1, 0, params), correspondences(d[1], d[0], match))
+    assert cache.pairs_matched == 1  # the second way came with the first
+    cache.pairs(geometry, 2, 1, params)  # two more pairs kept: (0, 1) and (1, 0) are let go
+    cache.pairs(geometry, 0, 1, params)
+    assert cache.pairs_matched == 3
 
 
 def test_views_are_taken_on_both_sides_of_the_query_when_the_database_has_both():

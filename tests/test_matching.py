@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from visloc.retrieval.matching import correspondence_mask, correspondences, count_correspondences, nearest_two
+from visloc.retrieval.matching import (correspondence_mask, correspondences, correspondences_both_ways,
+                                      count_correspondences, nearest_two, nearest_two_both_ways)
 from visloc.params import MatchParams
 
 
@@ -106,6 +107,37 @@ def test_nearest_two_by_blocks_of_query_rows_equals_one_product_of_all_rows(monk
     for name in ("index1", "dist1_sq", "dist2_sq", "cosine1"):
         a, b = getattr(whole, name), getattr(blocks, name)
         assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name
+
+
+def same_neighbours(a, b) -> None:
+    for name in ("index1", "dist1_sq", "dist2_sq", "cosine1"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.shape == y.shape and np.array_equal(x, y, equal_nan=True), name
+
+
+@pytest.mark.parametrize("n_a,n_b", [(0, 5), (5, 0), (1, 1), (1, 9), (9, 1), (300, 400), (400, 300)])
+@pytest.mark.parametrize("block_rows", [None, 7])
+@pytest.mark.parametrize("threads", [1, 2])
+def test_both_ways_from_one_product_equal_two_searches(monkeypatch, n_a, n_b, block_rows, threads):
+    """A pair's nearest two both ways from one product are those of two searches, array for array: ties (few
+    values), duplicated and zero rows, one row on either side, blocks of query rows with a short last one, and
+    the rows shared among threads."""
+    import visloc.retrieval.matching as matching
+
+    rng = np.random.default_rng(n_a * 1000 + n_b)
+    a = rng.integers(0, 4, (n_a, 128), dtype=np.uint8)
+    b = rng.integers(0, 4, (n_b, 128), dtype=np.uint8)
+    if n_a > 3 and n_b > 3:
+        b[:2], a[3] = a[:2], 0
+    if block_rows:
+        monkeypatch.setattr(matching, "_SCORE_BLOCK_BYTES", 4 * max(n_a, n_b) * block_rows)
+    monkeypatch.setattr(matching, "_blas_threads", lambda: threads)
+    forward, backward = nearest_two_both_ways(a, b)
+    same_neighbours(forward, nearest_two(a, b))
+    same_neighbours(backward, nearest_two(b, a))
+    params = MatchParams(tau1=0.9, tau2=-1.0)
+    a_to_b, b_to_a = correspondences_both_ways(a, b, params)
+    assert np.array_equal(a_to_b, correspondences(a, b, params)) and np.array_equal(b_to_a, correspondences(b, a, params))
 
 
 @pytest.mark.parametrize("tau1,tau2", [(0.6, 0.9), (0.8, 0.97), (1.0, -1.0)])

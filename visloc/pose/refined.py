@@ -48,6 +48,7 @@ there is nothing to pose: ``PoseMeasurer`` refuses to be built.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import replace
 
@@ -58,7 +59,7 @@ from visloc.geometry.bundle import PosePriors, refine_database_poses
 from visloc.features.sift import Query
 from visloc.geometry.projective import CameraModel, essential_inliers, heading_deg_of, heading_difference_deg
 from visloc.geometry.multiview import triangulate_tracks
-from visloc.retrieval.matching import correspondences
+from visloc.retrieval.matching import correspondences, correspondences_both_ways
 from visloc.pose.measurement import Measurement, MeasurementEnd, query_pixels
 from visloc.params import MatchParams, RefinedParams
 from visloc.retrieval.retrievers import Retrieval
@@ -67,11 +68,16 @@ from visloc.pose.viewpose import DatabaseGeometry, PosedViews, pose_from_views, 
 
 class StructureCache:
     """Memoised structure per (view, neighbours) and matches per database pair: database-side work,
-    reusable across queries."""
+    reusable across queries. A pair's matches are found both ways from one product of the two images'
+    descriptors (``correspondences_both_ways``): a view's neighbour is mostly a neighbour's view too. The
+    last ``max_pairs`` pairs asked for are kept: a drive's views are built in time order, so those are the ones
+    asked again."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_pairs: int = 4096) -> None:
         self._views: dict[tuple[int, tuple[int, ...]], dict[int, np.ndarray]] = {}
-        self._pairs: dict[tuple[int, int], np.ndarray] = {}
+        self._pairs: OrderedDict[tuple[int, int, float], np.ndarray] = OrderedDict()
+        self._max_pairs = max_pairs
+        self.pairs_matched = 0  # database pairs matched so far (both ways of a pair count once)
         self.build_ms = 0.0
 
     def get(self, key: tuple[int, tuple[int, ...]]) -> dict[int, np.ndarray] | None:
@@ -81,16 +87,24 @@ class StructureCache:
         self._views[key] = value
         self.build_ms += ms
 
-    def pairs(self, geometry: "DatabaseGeometry", a: int, b: int, params: RefinedParams) -> np.ndarray:
-        if (a, b) not in self._pairs:
-            match = MatchParams(tau1=params.ratio, tau2=-1.0)
-            self._pairs[(a, b)] = correspondences(geometry.descriptors_u8[a], geometry.descriptors_u8[b], match)
-        return self._pairs[(a, b)]
+    def share_pairs(self, other: "StructureCache") -> None:
+        """Keep the database pairs' matches in ``other``'s store of them: what either matched, both have."""
+        self._pairs, self._max_pairs = other._pairs, other._max_pairs
 
-    @property
-    def pairs_matched(self) -> int:
-        """Database pairs matched so far (each once)."""
-        return len(self._pairs)
+    def pairs(self, geometry: "DatabaseGeometry", a: int, b: int, params: RefinedParams) -> np.ndarray:
+        """(M, 2) rows of database images ``a`` and ``b`` whose descriptors pass the ratio test from ``a``'s side."""
+        key = (a, b, params.ratio)
+        if key in self._pairs:
+            self._pairs.move_to_end(key)
+            return self._pairs[key]
+        match = MatchParams(tau1=params.ratio, tau2=-1.0)
+        a_to_b, b_to_a = correspondences_both_ways(geometry.descriptors_u8[a], geometry.descriptors_u8[b], match)
+        self.pairs_matched += 1
+        self._pairs[(b, a, params.ratio)] = b_to_a
+        self._pairs[key] = a_to_b
+        while len(self._pairs) > self._max_pairs:
+            self._pairs.popitem(last=False)
+        return a_to_b
 
     def __len__(self) -> int:
         return len(self._views)

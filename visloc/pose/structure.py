@@ -121,12 +121,17 @@ def choose_variant(structures: dict[str, ViewStructure], allowed: np.ndarray | N
     return None
 
 
-def seeded_structure_cache(structures: Mapping[int, dict[str, ViewStructure]]) -> StructureCache:
+def seeded_structure_cache(structures: Mapping[int, dict[str, ViewStructure]],
+                           pairs: StructureCache | None = None) -> StructureCache:
     """A ``StructureCache`` holding stored structure under the keys the exact path looks up (view and
     its neighbours): where the exact path would triangulate the same view with the same neighbours,
     it reads the stored points instead (the same numbers). A view's stored structure is taken when
-    the exact path first looks it up (a sharded store's is read from its tile then)."""
-    return _SeededStructureCache(structures)
+    the exact path first looks it up (a sharded store's is read from its tile then). ``pairs``: a cache whose
+    database pairs' matches this one shares."""
+    cache = _SeededStructureCache(structures)
+    if pairs is not None:
+        cache.share_pairs(pairs)
+    return cache
 
 
 class _SeededStructureCache(StructureCache):

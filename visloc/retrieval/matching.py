@@ -69,10 +69,7 @@ def best_two(score: np.ndarray, q_sq: np.ndarray) -> tuple[np.ndarray, np.ndarra
     best = np.take_along_axis(score, index1[..., None], axis=-1)[..., 0]
     np.put_along_axis(score, index1[..., None], -np.inf, axis=-1)
     second = score.max(axis=-1)  # -inf with one database descriptor
-    q_sq = q_sq.reshape(q_sq.shape + (1,) * (best.ndim - q_sq.ndim))
-    with np.errstate(over="ignore", invalid="ignore"):
-        dist1_sq = np.maximum(q_sq - 2.0 * best, 0.0).astype(np.float32)
-        dist2_sq = np.maximum(q_sq - 2.0 * second, 0.0).astype(np.float32)
+    dist1_sq, dist2_sq = _squared_distances(q_sq.reshape(q_sq.shape + (1,) * (best.ndim - q_sq.ndim)), best, second)
     return index1, best, dist1_sq, dist2_sq
 
 
@@ -100,16 +97,76 @@ def _row_threads(n: int) -> ThreadPoolExecutor:
 
 def nearest_two(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
     """Exact two nearest neighbours of every query row among the database rows."""
+    return _nearest_two(query_u8, database_u8, both_ways=False)[0]
+
+
+def nearest_two_both_ways(a_u8: np.ndarray, b_u8: np.ndarray) -> tuple[NearestTwo, NearestTwo]:
+    """(``nearest_two(a, b)``, ``nearest_two(b, a)``), the same numbers, from one product of the two images'
+    descriptors instead of two: the products are exact (module docstring), so b's scores against a are the
+    transposed products less a's halved squared norms, and the nearest two of each b row are gathered over a's row
+    blocks as they pass, the earliest row winning a tie as ``argmax`` has it."""
+    forward, backward = _nearest_two(a_u8, b_u8, both_ways=True)
+    return forward, backward
+
+
+def _no_neighbours(n_query: int) -> NearestTwo:
+    return NearestTwo(np.full(n_query, -1, np.int64), np.full(n_query, np.inf, np.float32),
+                      np.full(n_query, np.inf, np.float32), np.zeros(n_query, np.float32))
+
+
+class _ColumnsBestTwo:
+    """The nearest two query rows of every database row (a column of the scores), gathered block by block of
+    query rows in their order: index of the best, its score, the second score (-inf until seen)."""
+
+    def __init__(self, n_columns: int):
+        self.index1 = np.full(n_columns, -1, np.intp)
+        self.best = np.full(n_columns, -np.inf, np.float32)
+        self.second = np.full(n_columns, -np.inf, np.float32)
+
+    def merge(self, index1: np.ndarray, best: np.ndarray, second: np.ndarray) -> None:
+        """Take the best two of rows that come after every row seen so far: a later row wins only when better."""
+        later = best > self.best
+        self.second = np.where(later, np.maximum(self.best, second), np.maximum(self.second, best))
+        self.index1 = np.where(later, index1, self.index1)
+        self.best = np.where(later, best, self.best)
+
+    def add_block(self, column_score: np.ndarray, first_row: int) -> None:
+        """``column_score`` (rows, columns), the block's scores from the columns' side, is overwritten."""
+        index1 = np.argmax(column_score, axis=0)
+        columns = np.arange(column_score.shape[1])
+        best = column_score[index1, columns]
+        column_score[index1, columns] = -np.inf
+        self.merge(index1 + first_row, best, column_score.max(axis=0))
+
+
+def _squared_distances(q_sq: np.ndarray, best: np.ndarray, second: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """|g - f|^2 = |g|^2 - 2 score to the nearest two, from their scores (``best_two``)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        return (np.maximum(q_sq - 2.0 * best, 0.0).astype(np.float32),
+                np.maximum(q_sq - 2.0 * second, 0.0).astype(np.float32))
+
+
+def _with_cosine(index1: np.ndarray, best: np.ndarray, dist1_sq: np.ndarray, dist2_sq: np.ndarray, q_sq: np.ndarray,
+                 d_sq: np.ndarray) -> NearestTwo:
+    """A ``NearestTwo`` from each query row's nearest (index, score) and squared distances to the nearest two."""
+    dot1 = best + 0.5 * d_sq[index1]
+    norms = np.sqrt(q_sq) * np.sqrt(d_sq[index1])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cosine1 = np.where(norms > 0, dot1 / norms, np.nan).astype(np.float32)
+    return NearestTwo(index1.astype(np.int64), dist1_sq, dist2_sq, cosine1)
+
+
+def _nearest_two(query_u8: np.ndarray, database_u8: np.ndarray, *, both_ways: bool
+                 ) -> tuple[NearestTwo, NearestTwo | None]:
     q = np.asarray(query_u8, dtype=np.float32)
     d = np.asarray(database_u8, dtype=np.float32)
     n_query, n_db = q.shape[0], d.shape[0]
     if n_query == 0 or n_db == 0:
-        empty_f = np.zeros(n_query, np.float32)
-        return NearestTwo(np.full(n_query, -1, np.int64), np.full(n_query, np.inf, np.float32),
-                          np.full(n_query, np.inf, np.float32), empty_f)
+        return _no_neighbours(n_query), _no_neighbours(n_db) if both_ways else None
     q_sq = np.einsum("ij,ij->i", q, q)
     d_sq = np.einsum("ij,ij->i", d, d)
     half_d_sq = 0.5 * d_sq
+    half_q_sq = 0.5 * q_sq
     d_t = np.ascontiguousarray(d.T)
     # |g - f|^2 = |g|^2 + |f|^2 - 2 g.f; per row |g|^2 is constant, so the nearest f
     # maximises score = g.f - |f|^2 / 2 (exact in float32, see the module docstring). The query rows
@@ -121,15 +178,22 @@ def nearest_two(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
     dist1_sq = np.empty(n_query, np.float32)
     dist2_sq = np.empty(n_query, np.float32)
 
-    def blocks(first: int, last: int) -> None:  # query rows first..last-1, a block at a time
+    def blocks(first: int, last: int) -> _ColumnsBestTwo | None:  # query rows first..last-1, a block at a time
         score_block = np.empty((min(rows, last - first), n_db), np.float32)
+        columns = _ColumnsBestTwo(n_db) if both_ways else None
+        column_block = np.empty_like(score_block) if both_ways else None
         for start in range(first, last, rows):
             stop = min(start + rows, last)
             score = score_block[: stop - start]
             np.matmul(q[start:stop], d_t, out=score)
+            if columns is not None:  # the database rows' scores against these query rows: f.g - |g|^2 / 2
+                column_score = column_block[: stop - start]
+                np.subtract(score, half_q_sq[start:stop, None], out=column_score)
+                columns.add_block(column_score, start)
             score -= half_d_sq
             index1[start:stop], best[start:stop], dist1_sq[start:stop], dist2_sq[start:stop] = \
                 best_two(score, q_sq[start:stop])
+        return columns
 
     # The blocks' products are small: with BLAS's own threads, a second thread mostly waits for the first (about
     # twice the CPU time for the same pair, and far more on a busy machine, where it waits to be scheduled). So
@@ -138,15 +202,18 @@ def nearest_two(query_u8: np.ndarray, database_u8: np.ndarray) -> NearestTwo:
     n_threads = min(_blas_threads(), -(-n_query // rows))
     with _blas().limit(limits=1, user_api="blas"):
         if n_threads <= 1:
-            blocks(0, n_query)
+            parts = [blocks(0, n_query)]
         else:
             cuts = [round(n_query * k / n_threads) for k in range(n_threads + 1)]
-            list(_row_threads(n_threads).map(blocks, cuts[:-1], cuts[1:]))
-    dot1 = best + 0.5 * d_sq[index1]
-    norms = np.sqrt(q_sq) * np.sqrt(d_sq[index1])
-    with np.errstate(invalid="ignore", divide="ignore"):
-        cosine1 = np.where(norms > 0, dot1 / norms, np.nan).astype(np.float32)
-    return NearestTwo(index1.astype(np.int64), dist1_sq, dist2_sq, cosine1)
+            parts = list(_row_threads(n_threads).map(blocks, cuts[:-1], cuts[1:]))
+    forward = _with_cosine(index1, best, dist1_sq, dist2_sq, q_sq, d_sq)
+    if not both_ways:
+        return forward, None
+    columns = parts[0]
+    for part in parts[1:]:  # the threads' row ranges in their order
+        columns.merge(part.index1, part.best, part.second)
+    return forward, _with_cosine(columns.index1, columns.best, *_squared_distances(d_sq, columns.best, columns.second),
+                                 d_sq, q_sq)
 
 
 def correspondence_mask(nn: NearestTwo, params: MatchParams) -> np.ndarray:
@@ -158,7 +225,16 @@ def correspondence_mask(nn: NearestTwo, params: MatchParams) -> np.ndarray:
 
 def correspondences(query_u8: np.ndarray, database_u8: np.ndarray, params: MatchParams) -> np.ndarray:
     """(M, 2) int64 pairs (query row, database row) that correspond."""
-    nn = nearest_two(query_u8, database_u8)
+    return _pairs(nearest_two(query_u8, database_u8), params)
+
+
+def correspondences_both_ways(a_u8: np.ndarray, b_u8: np.ndarray, params: MatchParams) -> tuple[np.ndarray, np.ndarray]:
+    """(``correspondences(a, b)``, ``correspondences(b, a)``) from one product (``nearest_two_both_ways``)."""
+    forward, backward = nearest_two_both_ways(a_u8, b_u8)
+    return _pairs(forward, params), _pairs(backward, params)
+
+
+def _pairs(nn: NearestTwo, params: MatchParams) -> np.ndarray:
     mask = correspondence_mask(nn, params)
     return np.stack([np.flatnonzero(mask), nn.index1[mask]], axis=1)
 

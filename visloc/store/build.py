@@ -47,9 +47,13 @@ def ingest_sequence(ws: Workspace, sequence: Drive, sift: SiftParams, *, workers
                              cluster=cluster)
     if structure and ws.stored_frame_count(sequence.source, sequence.camera):
         build_global_vectors(ws, sequence.source, sequence.camera, progress=vectors_progress)
+        # the self-check matches the pairs the structure did (a worker process keeps them from one to the other)
+        pairs, run = StructureCache(), uuid.uuid4().hex
         with _build_processes(ws, workers, cluster) as engine:
-            build_structure(ws, sequence.source, sequence.camera, progress=structure_progress, cluster=engine)
-            build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress, cluster=engine)
+            build_structure(ws, sequence.source, sequence.camera, progress=structure_progress, cluster=engine,
+                            pairs=pairs, run=run)
+            build_self_check(ws, sequence.source, sequence.camera, progress=self_check_progress, cluster=engine,
+                             pairs=pairs, run=run)
         build_self_check(ws, sequence.source, sequence.camera, CAMERA_RATE_PARAMS,
                          progress=camera_rate_check_progress, camera_rate=sequence)
     return report
@@ -105,13 +109,15 @@ def _pending(db, done: set[int], progress) -> tuple[list[int], list[int]]:
 
 
 def build_structure(ws: Workspace, source: str, camera: str, params: RefinedParams = REFINED,
-                    progress: Progress = None, cluster=None) -> int:
+                    progress: Progress = None, cluster=None, pairs: StructureCache | None = None,
+                    run: str | None = None) -> int:
     """Triangulate every image of (source, camera) the store holds no structure for (made with
     ``params``' structure settings), each variant of ``visloc.pose.structure``, committing image by
     image: an interrupted build resumes. Nothing to do without calibration and attitudes.
     ``cluster``: triangulate on a distributed engine's workers or this machine's processes
     (``visloc.store.processes``), a few images per task, each committed as it comes back (the same rows as
-    in this process). Returns the images built."""
+    in this process). Returns the images built. ``pairs``: the database pairs matched so far, kept for the
+    self-check; ``run``: the build's name on the engine's workers (``_on_cluster``)."""
     settings = structure_settings_json(params)
     ids = ws.image_ids(source, camera)
     done = ws.structure_complete_ids(ids.tolist(), settings, len(VARIANTS))
@@ -123,26 +129,31 @@ def build_structure(ws: Workspace, source: str, camera: str, params: RefinedPara
         return 0
     ids_of, todo = _pending(db, done, progress)
     if cluster is not None and cluster.worth_spreading(len(todo)):
-        return _on_cluster(cluster, structure_records, ws.save_structure, ws, source, camera, params, todo, 4, progress)
+        return _on_cluster(cluster, structure_records, ws.save_structure, ws, source, camera, params, todo, 4, progress,
+                           run)
+    pairs = pairs if pairs is not None else StructureCache()  # a view's neighbour is mostly a neighbour's view too
     for n, k in enumerate(todo, 1):
-        ws.save_structure(_view_records(geometry, ids_of, k, params, settings))
+        ws.save_structure(_view_records(geometry, ids_of, k, params, settings, pairs))
         if progress:
             progress(n, len(todo))
     return len(todo)
 
 
-def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, settings: str) -> list[StructureRecord]:
+def _view_records(geometry, ids_of: list[int], k: int, params: RefinedParams, settings: str,
+                  pairs: StructureCache) -> list[StructureRecord]:
+    """The structure records of database index ``k``; ``pairs``: the matches of database pairs found so far."""
     return [StructureRecord(ids_of[k], s.variant, settings, tuple(ids_of[j] for j in s.neighbours),
                             s.rows, s.points_world, s.cov_world, s.reason, s.build_ms)
-            for s in view_structures(geometry, k, params, StructureCache())]  # with one BLAS thread
+            for s in view_structures(geometry, k, params, pairs)]  # with one BLAS thread
 
 
 def _on_cluster(cluster, task, keep, ws: Workspace, source: str, camera: str, params: RefinedParams,
-                todo: list[int], per_task: int, progress: Progress) -> int:
+                todo: list[int], per_task: int, progress: Progress, run: str | None = None) -> int:
     """Run ``task`` on chunks of the database indices ``todo`` on the distributed engine (at most
     ``per_task`` each, ``task_sizes``), keeping each chunk's records (``keep``) as it comes back: an
-    interrupted step resumes. Returns len(todo)."""
-    run = uuid.uuid4().hex  # workers of a cluster outlive a run: what they loaded for another is not used
+    interrupted step resumes. Returns len(todo). ``run``: the build's name (default a new one), under which a worker
+    keeps what it loaded from one task to the next, and from a build's structure to its self-check."""
+    run = run or uuid.uuid4().hex  # workers of a cluster outlive a run: what they loaded for another is not used
     chunks, start = [], 0
     for size in task_sizes(len(todo), cluster.n_workers, per_task):
         chunks.append((str(ws.path), source, camera, params, run, todo[start : start + size]))
@@ -173,34 +184,35 @@ _loaded: dict[tuple, tuple] = {}  # in a worker: the last database a task loaded
 
 
 def _database_for(path: str, source: str, camera: str, run: str):
-    """(database, its geometry) of (source, camera) in the store at ``path``, loaded once per build step
-    (``run``) in a worker process of the distributed engine."""
+    """(database, its geometry, a cache of its pairs' matches) of (source, camera) in the store at ``path``, loaded
+    once per build step (``run``) in a worker process of the distributed engine."""
     key = (path, source, camera, run)
     if key not in _loaded:
         _loaded.clear()
         db = Workspace(path, read_only=True).load_database(source, camera)
-        _loaded[key] = (db, db.geometry())
+        _loaded[key] = (db, db.geometry(), StructureCache())
     return _loaded[key]
 
 
 def structure_records(path: str, source: str, camera: str, params: RefinedParams, run: str, views: list[int]
                       ) -> list[StructureRecord]:
     """A task of the distributed engine: the structure records of the database indices ``views``."""
-    db, geometry = _database_for(path, source, camera, run)
+    db, geometry, pairs = _database_for(path, source, camera, run)
     ids_of = [im.image_id for im in db.images]
     settings = structure_settings_json(params)
-    return [r for k in views for r in _view_records(geometry, ids_of, k, params, settings)]
+    return [r for k in views for r in _view_records(geometry, ids_of, k, params, settings, pairs)]
 
 
 def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedParams = REFINED,
-                     progress: Progress = None, cluster=None, camera_rate: Drive | None = None) -> int:
+                     progress: Progress = None, cluster=None, camera_rate: Drive | None = None,
+                     pairs: StructureCache | None = None, run: str | None = None) -> int:
     """Pose the images of (source, camera) the self-check poses (``self_checked_indices``: every other one) that
     have no self-check with ``params``' settings as queries of their own drive (``visloc.pose.selfcheck``),
     committing every few images: an interrupted check resumes. Nothing to do without calibration, attitudes or
     global vectors. Returns the images checked. ``camera_rate``: the drive itself, for the camera-rate path's
     self-check (``params``: that path's, ``CAMERA_RATE_PARAMS``): its images described as that path
     describes a frame (``TRACK``'s scale and keypoints), posed on the stored structure (nothing to do without
-    it); it triangulates nothing, so it runs in this process."""
+    it); it triangulates nothing, so it runs in this process. ``pairs`` and ``run``: as ``build_structure``'s."""
     settings = self_check_settings_json(params, camera_rate=camera_rate is not None)
     ids = ws.image_ids(source, camera).tolist()
     wanted = {ids[k] for k in self_checked_indices(len(ids))}
@@ -221,9 +233,9 @@ def build_self_check(ws: Workspace, source: str, camera: str, params: RefinedPar
     ids_of, todo = _pending(db, done, progress)
     if camera_rate is None and cluster is not None and cluster.worth_spreading(len(todo)):
         return _on_cluster(cluster, self_check_records, ws.add_self_checks, ws, source, camera, params, todo, 16,
-                           progress)
+                           progress, run)
     # the refined path reads the views' stored structure where it would triangulate the same
-    cache = seeded_structure_cache(ws.load_structure(db, params)) if camera_rate is None else None
+    cache = seeded_structure_cache(ws.load_structure(db, params), pairs) if camera_rate is None else None
     for start in range(0, len(todo), 16):
         chunk = todo[start : start + 16]
         queries = None if camera_rate is None else _frames_as_queries(camera_rate, db, chunk, ws.sift_params)
@@ -249,10 +261,11 @@ def _frames_as_queries(drive: Drive, db, indices: list[int], store_sift: SiftPar
 def self_check_records(path: str, source: str, camera: str, params: RefinedParams, run: str, indices: list[int]
                        ) -> list:
     """A task of the distributed engine: the self-check records of the database indices ``indices``."""
-    db, geometry = _database_for(path, source, camera, run)
+    db, geometry, pairs = _database_for(path, source, camera, run)
     if ("cache", run) not in _loaded:
         ws = Workspace(path, read_only=True)
-        _loaded[("cache", run)] = (seeded_structure_cache(ws.load_structure(db, params)), ws.global_vectors.load_database_index(db))
+        _loaded[("cache", run)] = (seeded_structure_cache(ws.load_structure(db, params), pairs),
+                                   ws.global_vectors.load_database_index(db))
     cache, index = _loaded[("cache", run)]
     settings = self_check_settings_json(params)
     ids_of = [im.image_id for im in db.images]
