@@ -77,7 +77,7 @@ class StructureCache:
         self._views: dict[tuple[int, tuple[int, ...]], dict[int, np.ndarray]] = {}
         self._pairs: OrderedDict[tuple[int, int, float], np.ndarray] = OrderedDict()
         self._max_pairs = max_pairs
-        self.pairs_matched = 0  # database pairs matched so far (both ways of a pair count once)
+        self.pairs_matched = 0  # descriptor products made so far: one per pair, for both its ways
         self.build_ms = 0.0
 
     def get(self, key: tuple[int, tuple[int, ...]]) -> dict[int, np.ndarray] | None:

@@ -105,8 +105,7 @@ def nearest_two_both_ways(a_u8: np.ndarray, b_u8: np.ndarray) -> tuple[NearestTw
     descriptors instead of two: the products are exact (module docstring), so b's scores against a are the
     transposed products less a's halved squared norms, and the nearest two of each b row are gathered over a's row
     blocks as they pass, the earliest row winning a tie as ``argmax`` has it."""
-    forward, backward = _nearest_two(a_u8, b_u8, both_ways=True)
-    return forward, backward
+    return _nearest_two(a_u8, b_u8, both_ways=True)
 
 
 def _no_neighbours(n_query: int) -> NearestTwo:
