@@ -187,7 +187,7 @@ def test_missing_data_root_is_named(tmp_path):
 def test_evaluate_on_a_small_kitti_layout_writes_json_and_plot(tmp_path):
     from helpers import make_fake_kitti
 
-    make_fake_kitti(tmp_path / "kitti", n_frames=24)
+    make_fake_kitti(tmp_path / "kitti", n_frames=24, with_calib=False)  # the paper's method needs none
     out = tmp_path / "e.json"
     result = run_cli("evaluate", tmp_path / "kitti", "--db", tmp_path / "s.sqlite", "--steps", "2",
                      "--exclusion-s", "0", "--json", out, "--workers", "1")
@@ -308,7 +308,7 @@ def test_evaluate_drives_runs_every_drive_with_the_protocols_it_supports(tmp_pat
 
     from helpers import make_fake_kitti
 
-    stereo = make_fake_kitti(tmp_path / "kitti", n_frames=24)
+    stereo = make_fake_kitti(tmp_path / "kitti", n_frames=24, with_calib=False)  # the paper's method needs none
     one_camera = stereo.parent / "2011_09_26_drive_0002_sync"  # a drive dropped into the folder is picked up
     shutil.copytree(stereo, one_camera)
     shutil.rmtree(one_camera / "image_01")
