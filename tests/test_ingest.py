@@ -64,7 +64,7 @@ def _ingest_process(csv_path, db_path):
 @pytest.mark.slow
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGINT])
 def test_killed_ingest_process_resumes_to_the_same_store(tmp_path, sig):
-    n_frames = 240  # long enough that a loaded machine cannot finish it between the 8th row and the signal
+    n_frames = 120  # long enough that a loaded machine cannot finish it between the 8th row and the signal
     csv_path = write_csv_drive(tmp_path / "long", n_frames=n_frames, step_px=60)
     db_path = tmp_path / "killed.sqlite"
     proc = _ingest_process(csv_path, db_path)
