@@ -365,8 +365,6 @@ def start_at(page, start_s: float) -> None:
     wait_for(lambda: run_number(page) > runs, RUN_S, f"the run from {start_s:g} s")
 
 
-
-
 @pytest.mark.slow
 def test_the_camera_rate_path_plays_every_frame_at_the_camera_rate(dashboard, browser, kitti_root):
     drive = visloc.open_source(kitti_root, drive=KITTI_DRIVE, camera="image_00")
