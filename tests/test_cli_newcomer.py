@@ -231,7 +231,8 @@ def fake_kitti(tmp_path_factory):
 def test_the_papers_numbers_appear_only_for_its_drive_and_protocol(tmp_path):
     # the paper's method needs no calibration; without one, ingest stores no structure or self-check, which only
     # the refined modes read
-    fake_kitti = make_fake_kitti(tmp_path / "kitti", n_frames=24, with_calib=False).parent.parent
+    fake_kitti = tmp_path / "kitti"  # a data root of its own, not the module's calibrated one
+    make_fake_kitti(fake_kitti, n_frames=24, with_calib=False)
     store = tmp_path / "s.sqlite"
     common = ("--db", store, "--steps", "2", "--start-frames", "0", "--workers", "1")
     paper = run_cli("evaluate", fake_kitti, *common)

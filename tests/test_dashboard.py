@@ -43,7 +43,7 @@ from helpers import (
 # the page's runs start later than the drive for the costly ones, each at a frame the evaluation counted (frames 0, 10,
 # ..., 100 from 0 s at one query a second): the paper's run from there reads its counts from the store
 CAMERA_RATE_START_S = 8.2  # frame 80 on: every frame of the last three seconds, at the camera's rate
-REMATCH_START_S = 5.1  # frame 50 on: the drive's last six queries at one a second (a re-match, no exclusion)
+REMATCH_START_S = 5.1  # frame 50 on: the drive's last six queries at one a second (the τ1 re-match, the run with no exclusion)
 REFINED_START_S = 7.2  # frame 70 on: its last four
 
 
