@@ -22,7 +22,7 @@ import numpy as np
 
 from visloc.geometry.projective import CameraModel
 from visloc.params import RefinedParams
-from visloc.pose.guided import guided_matches, project_points
+from visloc.pose.guided import QueryKeypoints, guided_matches, project_points
 from visloc.pose.measurement import Measurement, posed_measurement
 from visloc.pose.viewpose import DatabaseGeometry, MapCorrespondences, pose_from_views
 from visloc.stats import CHI2_2DOF_999
@@ -350,15 +350,15 @@ def guided_view_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.nd
     ``query_xy_px``: (N, 2) undistorted keypoints. Returns the matches (``T_world_camera`` as given)."""
     h, w = image_shape[:2]
     parts = []
+    query = QueryKeypoints(query_xy_px, query_descriptors_u8)  # made once for every view
     for view, (rows, points, covs) in view_points.items():
         if not len(rows):
             continue
         uv, front = project_points(points, T_world_camera, K)
         with np.errstate(invalid="ignore"):  # a point behind the camera may project to nowhere
             inside = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
-        pairs, dist = guided_matches(uv, inside, np.asarray(db_descriptors_u8[view])[rows], query_xy_px,
-                                     query_descriptors_u8, radius_px=radius_px, ratio=ratio,
-                                     max_distance=max_distance)
+        pairs, dist = guided_matches(uv, inside, np.asarray(db_descriptors_u8[view])[rows], None, None,
+                                     radius_px=radius_px, ratio=ratio, max_distance=max_distance, query=query)
         k = pairs[:, 0]
         parts.append((dist, pairs[:, 1], np.full(len(k), view, np.int64), rows[k], points[k], covs[k]))
     if not parts:

@@ -36,17 +36,49 @@ def project_points(points_world: np.ndarray, T_world_camera: np.ndarray, K: np.n
     return uv, front
 
 
-def _pair_distances(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray, chunk: int = 4096) -> np.ndarray:
-    """(K,) L2 distances between rows ``a[ia]`` and ``b[ib]`` (float32 arrays), a cache-sized chunk at a time."""
+def _pair_distances(a: np.ndarray, b: np.ndarray, ia: np.ndarray, ib: np.ndarray, chunk: int = 2048) -> np.ndarray:
+    """(K,) L2 distances between rows ``a[ia]`` and ``b[ib]`` (float32 arrays), a cache-sized chunk at a time.
+
+    The squares are summed by ``einsum`` on the difference made in place: about four times faster than
+    ``np.linalg.norm`` of the difference, and as exact. For descriptors that
+    hold whole numbers (uint8 SIFT) every partial sum is a whole number below 2**24, exact in float32 in any
+    order, so the distances are the same to the bit."""
     out = np.empty(len(ia), np.float32)
     for s in range(0, len(ia), chunk):
-        out[s:s + chunk] = np.linalg.norm(a[ia[s:s + chunk]] - b[ib[s:s + chunk]], axis=1)
-    return out
+        d = a[ia[s:s + chunk]]
+        d -= b[ib[s:s + chunk]]
+        out[s:s + chunk] = np.einsum("ij,ij->i", d, d)
+    return np.sqrt(out, out=out)
+
+
+class QueryKeypoints:
+    """A query's keypoints made ready for guided matching against many views: a k-d tree over their pixels
+    (``xy_px`` (N, 2)) and their descriptors as float32, made once and shared by every view's points."""
+
+    def __init__(self, xy_px: np.ndarray, descriptors: np.ndarray):
+        from scipy.spatial import cKDTree  # here: scipy.spatial costs every command's start-up about 0.2 s
+
+        self.n = len(xy_px)
+        self.tree = cKDTree(np.asarray(xy_px, float)) if self.n else None
+        self.descriptors_f32 = np.asarray(descriptors, np.float32)
+
+
+def _by_point_distance_query(pi: np.ndarray, dist: np.ndarray, qi: np.ndarray) -> np.ndarray:
+    """The order of pairs by point, then descriptor distance, then query row: ``np.lexsort((qi, dist, pi))``,
+    made by one sort of a 64-bit key where the three fit in one (the pairs are unique, so the order is the same;
+    a non-negative float32's bits order as the float does), three to four times faster."""
+    p_bits, q_bits = int(pi.max()).bit_length(), int(qi.max()).bit_length()
+    if p_bits + 32 + q_bits > 64 or (dist < 0).any():
+        return np.lexsort((qi, dist, pi))
+    key = ((pi.astype(np.uint64) << np.uint64(32 + q_bits)) | (dist.view(np.uint32).astype(np.uint64) << np.uint64(q_bits))
+           | qi.astype(np.uint64))
+    return np.argsort(key)
 
 
 def guided_matches(points_uv_px: np.ndarray, usable: np.ndarray, point_descriptors: np.ndarray,
-                   query_xy_px: np.ndarray, query_descriptors: np.ndarray, *, radius_px: float, ratio: float,
-                   max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+                   query_xy_px: np.ndarray | None, query_descriptors: np.ndarray | None, *, radius_px: float,
+                   ratio: float, max_distance: float,
+                   query: QueryKeypoints | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(K, 2) int64 pairs (point row, query row), by point row, and (K,) float32 their descriptor distances: for
     each ``usable`` point (in front of the camera, say; a non-finite projection never is), the query keypoint
     within ``radius_px`` of its projection whose descriptor is nearest the point's (of equals, the first query
@@ -55,21 +87,22 @@ def guided_matches(points_uv_px: np.ndarray, usable: np.ndarray, point_descripto
     points goes to the nearest in descriptor distance (of equals, the first point row).
 
     Every (projection, keypoint) pair within the radius comes from a k-d tree at once, and only the usable
-    points' descriptors are made float."""
+    points' descriptors are made float. ``query``: the query's keypoints made ready once (``QueryKeypoints``),
+    in place of ``query_xy_px`` and ``query_descriptors``, when many views' points are matched to them."""
+    query = query if query is not None else QueryKeypoints(query_xy_px, query_descriptors)
     rows = np.flatnonzero(np.asarray(usable, bool) & np.all(np.isfinite(points_uv_px), axis=1))
     none = np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
-    if len(rows) == 0 or len(query_xy_px) == 0:
+    if len(rows) == 0 or query.n == 0:
         return none
-    from scipy.spatial import cKDTree  # here: scipy.spatial costs every command's start-up about 0.2 s
+    from scipy.spatial import cKDTree
 
-    near = cKDTree(np.asarray(points_uv_px, float)[rows]).sparse_distance_matrix(
-        cKDTree(np.asarray(query_xy_px, float)), radius_px, output_type="ndarray")
+    near = cKDTree(np.asarray(points_uv_px, float)[rows]).sparse_distance_matrix(query.tree, radius_px,
+                                                                                 output_type="ndarray")
     pi, qi = near["i"].astype(np.int64), near["j"].astype(np.int64)
     if not pi.size:
         return none
-    dist = _pair_distances(np.asarray(point_descriptors)[rows].astype(np.float32),
-                           np.asarray(query_descriptors, np.float32), pi, qi)
-    order = np.lexsort((qi, dist, pi))  # by point, nearest first, then by query row
+    dist = _pair_distances(np.asarray(point_descriptors)[rows].astype(np.float32), query.descriptors_f32, pi, qi)
+    order = _by_point_distance_query(pi, dist, qi)  # by point, nearest first, then by query row
     pi, qi, dist = pi[order], qi[order], dist[order]
     starts = np.flatnonzero(np.r_[True, pi[1:] != pi[:-1]])
     nearest = dist[starts].astype(np.float64)  # the tests in double precision, as a Python float would make them
@@ -105,6 +138,7 @@ def guided_pairs(pnp: "PnPResult", views, chosen: list[int], structures: dict[in
     distances = np.concatenate([descriptor_distances(query_descriptors, geometry.descriptors_u8[i],
                                                      views.rows[k][views.view_of[k] == i]) for i in chosen])
     max_distance = float(distances.max()) if len(distances) else 0.0
+    query = QueryKeypoints(query_xy, query_descriptors)
     out = {}
     for i in chosen:
         pairs = views.rows[k][views.view_of[k] == i]  # the first pose's inliers: its outliers free their points
@@ -114,9 +148,9 @@ def guided_pairs(pnp: "PnPResult", views, chosen: list[int], structures: dict[in
             continue
         points = np.array([structures[i][r][0] for r in d_rows.tolist()])
         uv, front = project_points(points, pnp.T_world_camera, query_camera.K)
-        found, _ = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], query_xy, query_descriptors,
+        found, _ = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], None, None,
                                   radius_px=params.guided_radius_px, ratio=params.guided_ratio,
-                                  max_distance=max_distance)
+                                  max_distance=max_distance, query=query)
         new = np.c_[found[:, 1], d_rows[found[:, 0]]]
         taken_q, taken_d = set(pairs[:, 0].tolist()), set(pairs[:, 1].tolist())
         new = np.array([(q, d) for q, d in new.tolist() if q not in taken_q and d not in taken_d], np.int64)
