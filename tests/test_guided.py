@@ -93,3 +93,20 @@ def test_matching_all_points_at_once_takes_what_the_rule_takes_point_by_point_ti
                                             max_distance)
             got = [(int(p), int(q), float(d)) for (p, q), d in zip(pairs, distances)]
             assert got == expected, (seed, radius_px)
+
+
+def test_pairs_ordered_by_one_key_as_by_three_and_distances_exact():
+    """The pairs' order (point, distance, query row) from one 64-bit key is lexsort's, ties included, and so is
+    it where the indices are too large for one key; the distances are numpy's float32 norms to the bit."""
+    from visloc.pose.guided import _by_point_distance_query, _pair_distances
+
+    rng = np.random.default_rng(3)
+    for p_max, q_max in ((50, 40), (3000, 9000), (2**31, 2**31)):  # the last: no room in 64 bits
+        pi = rng.integers(0, p_max, 2000)
+        qi = rng.permutation(np.arange(2000) * (q_max // 2000 + 1))  # unique, as pairs are
+        dist = (rng.integers(0, 5, 2000) * 40).astype(np.float32)  # many equal distances
+        assert np.array_equal(_by_point_distance_query(pi, dist, qi), np.lexsort((qi, dist, pi)))
+    a = rng.integers(0, 256, (300, 128)).astype(np.float32)
+    b = rng.integers(0, 256, (200, 128)).astype(np.float32)
+    ia, ib = rng.integers(0, 300, 5000), rng.integers(0, 200, 5000)
+    assert np.array_equal(_pair_distances(a, b, ia, ib), np.linalg.norm(a[ia] - b[ib], axis=1))
