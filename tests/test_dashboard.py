@@ -157,11 +157,9 @@ def test_moving_tau1_rematches_in_the_background(dashboard, browser):
     ``REMATCH_START_S``: six queries.)"""
     page = open_page(browser, dashboard.url)
     try:
-        start_at(page, REMATCH_START_S)
+        start_at(page, REMATCH_START_S, n_steps=6)
         page.get_by_role("tab", name="Current step").click()
         dismiss_webgl_notice(page)
-        go_to_step(page, 0)  # the session's step may be any the tests before left
-        page.get_by_text("Step 1 of 6", exact=True).wait_for()
         go_to_step(page, 2)
         runs = run_number(page)
         best_before = row(page, "best match")
@@ -220,9 +218,7 @@ def test_a_zero_exclusion_on_the_queries_own_drive_is_warned_of(dashboard, brows
     try:
         assert page.get_by_text("1 s exclusion (the database holds this drive's own images)").count() >= 1
         assert page.get_by_text(warning).count() == 0
-        start_at(page, REMATCH_START_S)  # six queries: each is matched again to the images the exclusion left out
-        go_to_step(page, 0)  # the session's step may be any the tests before left
-        page.get_by_text("Step 1 of 6", exact=True).wait_for()
+        start_at(page, REMATCH_START_S, n_steps=6)  # each query is matched again to the images the exclusion left out
         runs = run_number(page)
         box = control(page, "Exclusion (s)").locator("input:not([type=hidden])")
         box.fill("0")
@@ -325,9 +321,7 @@ def test_switching_to_the_refined_mode_measures_metric_poses(dashboard, browser)
     """From ``REFINED_START_S`` on (four queries: the refined run is the slowest of the page's runs)."""
     page = open_page(browser, dashboard.url)
     try:
-        start_at(page, REFINED_START_S)
-        go_to_step(page, 0)  # the session's step may be any the tests before left
-        page.get_by_text("Step 1 of 4", exact=True).wait_for()
+        start_at(page, REFINED_START_S, n_steps=4)
         go_to_step(page, 2)
         paper_error = float(row(page, "measurement error").split()[0])
         assert row(page, "measured by") == "geotag of the best match"
@@ -359,13 +353,18 @@ def current_step(page) -> int:
                .group(1))
 
 
-def start_at(page, start_s: float) -> None:
-    """Move the start time, as a user types it, and wait for the run from there."""
+def start_at(page, start_s: float, n_steps: int | None = None) -> None:
+    """Move the start time, as a user types it, and wait for the run from there; with ``n_steps``, go to its
+    first step and wait for the panel to say it has ``n_steps`` (the page's session is shared by its tabs, so
+    the step the tests before left may still be selected, a later one than the shorter run has)."""
     runs = run_number(page)
     box = control(page, "Start time (s)").locator("input:not([type=hidden])")
     box.fill(f"{start_s:g}")
     box.press("Enter")
     wait_for(lambda: run_number(page) > runs, RUN_S, f"the run from {start_s:g} s")
+    if n_steps is not None:
+        go_to_step(page, 0)
+        page.get_by_text(f"Step 1 of {n_steps}", exact=True).wait_for()
 
 
 @pytest.mark.slow
