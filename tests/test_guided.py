@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from visloc.pose.guided import guided_matches, project_points
+from visloc.pose.guided import QueryKeypoints, guided_matches, project_points
 
 K = np.array([[700.0, 0, 600], [0, 700.0, 180], [0, 0, 1]])
 
@@ -28,7 +28,8 @@ def test_every_point_finds_its_own_keypoint_among_distractors():
     # the query: each point's keypoint 1 px off with a slightly changed descriptor, plus far-off distractors
     query_xy = np.r_[uv + rng.normal(0, 0.7, uv.shape), rng.uniform(0, 1200, (300, 2))]
     query_desc = np.r_[point_desc + rng.normal(0, 3, point_desc.shape), rng.integers(0, 120, (300, 128))]
-    pairs, _ = guided_matches(uv, front, point_desc, query_xy, query_desc, radius_px=4.0, ratio=0.9, max_distance=1e9)
+    pairs, _ = guided_matches(uv, front, point_desc, QueryKeypoints(query_xy, query_desc), radius_px=4.0, ratio=0.9,
+                              max_distance=1e9)
     assert len(pairs) >= 195
     assert np.array_equal(pairs[:, 0], pairs[:, 1])  # point k matched query row k, never a distractor
     assert len(np.unique(pairs[:, 1])) == len(pairs)
@@ -40,13 +41,13 @@ def test_ambiguous_far_and_behind_points_are_not_matched():
     uv, front = project_points(points, np.eye(4), K)
     query_xy = np.r_[uv[:1], uv[:1] + [1.5, 0], uv[1:2] + [10, 0], uv[2:3]]
     query_desc = np.r_[point_desc[:1] + 1, point_desc[:1] + 1.05, point_desc[1:2], point_desc[2:3] + 50]
-    found, _ = guided_matches(uv, front, point_desc, query_xy, query_desc, radius_px=4.0, ratio=0.9, max_distance=100.0)
+    query = QueryKeypoints(query_xy, query_desc)
+    found, _ = guided_matches(uv, front, point_desc, query, radius_px=4.0, ratio=0.9, max_distance=100.0)
     # point 0: two near-equal candidates (ratio); point 1: its keypoint 10 px off; point 2: too far in descriptor
     assert len(found) == 0
     behind = front.copy()
     behind[:] = False
-    assert len(guided_matches(uv, behind, point_desc, query_xy, query_desc, radius_px=4.0, ratio=0.9,
-                              max_distance=1e9)[0]) == 0
+    assert len(guided_matches(uv, behind, point_desc, query, radius_px=4.0, ratio=0.9, max_distance=1e9)[0]) == 0
 
 
 def _rule_point_by_point(uv, usable, point_desc, query_xy, query_desc, radius_px, ratio, max_distance):
@@ -87,8 +88,8 @@ def test_matching_all_points_at_once_takes_what_the_rule_takes_point_by_point_ti
         point_desc = rng.integers(0, levels, (n_points, 128)).astype(np.uint8) * 40
         point_desc[rng.random(n_points) < 0.3] = point_desc[0]  # points sharing a descriptor claim alike
         for radius_px, ratio, max_distance in ((6.0, 0.8, np.inf), (15.0, 1.0, 500.0), (30.0, 0.9, 300.0)):
-            pairs, distances = guided_matches(uv, usable, point_desc, query_xy, query_desc, radius_px=radius_px,
-                                              ratio=ratio, max_distance=max_distance)
+            pairs, distances = guided_matches(uv, usable, point_desc, QueryKeypoints(query_xy, query_desc),
+                                              radius_px=radius_px, ratio=ratio, max_distance=max_distance)
             expected = _rule_point_by_point(uv, usable, point_desc, query_xy, query_desc, radius_px, ratio,
                                             max_distance)
             got = [(int(p), int(q), float(d)) for (p, q), d in zip(pairs, distances)]

@@ -357,8 +357,8 @@ def guided_view_matches(view_points: dict, db_descriptors_u8, query_xy_px: np.nd
         uv, front = project_points(points, T_world_camera, K)
         with np.errstate(invalid="ignore"):  # a point behind the camera may project to nowhere
             inside = front & (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= w - 1) & (uv[:, 1] <= h - 1)
-        pairs, dist = guided_matches(uv, inside, np.asarray(db_descriptors_u8[view])[rows], None, None,
-                                     radius_px=radius_px, ratio=ratio, max_distance=max_distance, query=query)
+        pairs, dist = guided_matches(uv, inside, np.asarray(db_descriptors_u8[view])[rows], query,
+                                     radius_px=radius_px, ratio=ratio, max_distance=max_distance)
         k = pairs[:, 0]
         parts.append((dist, pairs[:, 1], np.full(len(k), view, np.int64), rows[k], points[k], covs[k]))
     if not parts:

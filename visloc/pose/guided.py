@@ -66,9 +66,10 @@ class QueryKeypoints:
 def _by_point_distance_query(pi: np.ndarray, dist: np.ndarray, qi: np.ndarray) -> np.ndarray:
     """The order of pairs by point, then descriptor distance, then query row: ``np.lexsort((qi, dist, pi))``,
     made by one sort of a 64-bit key where the three fit in one (the pairs are unique, so the order is the same;
-    a non-negative float32's bits order as the float does), three to four times faster."""
+    a distance is never negative, and a non-negative float32's bits order as the float does), three to four
+    times faster."""
     p_bits, q_bits = int(pi.max()).bit_length(), int(qi.max()).bit_length()
-    if p_bits + 32 + q_bits > 64 or (dist < 0).any():
+    if p_bits + 32 + q_bits > 64:
         return np.lexsort((qi, dist, pi))
     key = ((pi.astype(np.uint64) << np.uint64(32 + q_bits)) | (dist.view(np.uint32).astype(np.uint64) << np.uint64(q_bits))
            | qi.astype(np.uint64))
@@ -76,9 +77,8 @@ def _by_point_distance_query(pi: np.ndarray, dist: np.ndarray, qi: np.ndarray) -
 
 
 def guided_matches(points_uv_px: np.ndarray, usable: np.ndarray, point_descriptors: np.ndarray,
-                   query_xy_px: np.ndarray | None, query_descriptors: np.ndarray | None, *, radius_px: float,
-                   ratio: float, max_distance: float,
-                   query: QueryKeypoints | None = None) -> tuple[np.ndarray, np.ndarray]:
+                   query: QueryKeypoints, *, radius_px: float, ratio: float,
+                   max_distance: float) -> tuple[np.ndarray, np.ndarray]:
     """(K, 2) int64 pairs (point row, query row), by point row, and (K,) float32 their descriptor distances: for
     each ``usable`` point (in front of the camera, say; a non-finite projection never is), the query keypoint
     within ``radius_px`` of its projection whose descriptor is nearest the point's (of equals, the first query
@@ -87,9 +87,8 @@ def guided_matches(points_uv_px: np.ndarray, usable: np.ndarray, point_descripto
     points goes to the nearest in descriptor distance (of equals, the first point row).
 
     Every (projection, keypoint) pair within the radius comes from a k-d tree at once, and only the usable
-    points' descriptors are made float. ``query``: the query's keypoints made ready once (``QueryKeypoints``),
-    in place of ``query_xy_px`` and ``query_descriptors``, when many views' points are matched to them."""
-    query = query if query is not None else QueryKeypoints(query_xy_px, query_descriptors)
+    points' descriptors are made float. ``query``: the query's keypoints (``QueryKeypoints``), made once for
+    every view whose points are matched to them."""
     rows = np.flatnonzero(np.asarray(usable, bool) & np.all(np.isfinite(points_uv_px), axis=1))
     none = np.zeros((0, 2), np.int64), np.zeros(0, np.float32)
     if len(rows) == 0 or query.n == 0:
@@ -148,9 +147,9 @@ def guided_pairs(pnp: "PnPResult", views, chosen: list[int], structures: dict[in
             continue
         points = np.array([structures[i][r][0] for r in d_rows.tolist()])
         uv, front = project_points(points, pnp.T_world_camera, query_camera.K)
-        found, _ = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], None, None,
+        found, _ = guided_matches(uv, front, geometry.descriptors_u8[i][d_rows], query,
                                   radius_px=params.guided_radius_px, ratio=params.guided_ratio,
-                                  max_distance=max_distance, query=query)
+                                  max_distance=max_distance)
         new = np.c_[found[:, 1], d_rows[found[:, 0]]]
         taken_q, taken_d = set(pairs[:, 0].tolist()), set(pairs[:, 1].tolist())
         new = np.array([(q, d) for q, d in new.tolist() if q not in taken_q and d not in taken_d], np.int64)

@@ -115,12 +115,12 @@ class PointFollower:
                                        distortion, self.stored)
         # per view structure (view, its neighbours): the first image track not yet linked into it
         self._linked_from: dict[tuple, int] = {}
-        # Guided matching's k-d trees come from scipy.spatial, which the CLI imports only when asked (about 0.2-0.7 s):
-        # imported here, before the first frame is read, its cost does not delay that frame, and a run paced at the
-        # camera's rate does not start that much behind, hurrying through the frames that came meanwhile faster
-        # than its relocalizations (which left the first second of every paced run predicted, not posed).
-        import scipy.spatial  # noqa: F401
         self._trees: dict = {}  # each view structure's k-d tree over its points, for linking
+        # Guided matching's k-d trees come from scipy.spatial, which the CLI imports only when asked (a few tenths
+        # of a second): imported here, before the first frame is read, it does not delay that frame, so a run paced
+        # at the camera's rate does not start that far behind and hurry through the frames that came meanwhile
+        # faster than its relocalizations arrive (6-11 frames of each shared drive were left predicted, not posed).
+        import scipy.spatial  # noqa: F401
 
     def _rests_ahead(self, views: np.ndarray, T_world_camera: np.ndarray) -> bool:
         """Whether one of the database ``views`` lies ahead of a camera posed at ``T_world_camera``."""
