@@ -18,7 +18,7 @@ from types import SimpleNamespace
 import pytest
 
 from helpers import (CSV_PAIR_FRAMES, DRIVE_0005, DRIVE_0005_FRAMES, KITTI_DRIVE, OTHER_MEAS_VAR_M2, OTHER_RUN_NAME,
-                     PAPER_CONTRAST, built_once, copy_store, require_drive, run_cli, write_csv_drive)
+                     PAPER_CONTRAST, SERIES_STARTS, built_once, copy_store, require_drive, run_cli, write_csv_drive)
 from visloc.db import FeatureStore
 from visloc.sources.drives import default_data_root
 
@@ -80,13 +80,14 @@ def store_0005(kitti_root, shared_tmp) -> Path:
 
 @pytest.fixture(scope="session")
 def kitti_evaluation(kitti_root, shared_tmp):
-    """``visloc evaluate`` on three series (start frames 0, 25, 50) of the real drive, as a user
+    """``visloc evaluate`` on two series (start frames 0 and 50) of the real drive, as a user
     runs it: (folder holding kitti.sqlite and eval.json, the JSON report, stdout). The store then
-    holds both cameras' features and the counts of every query frame 0, 10, ..., 100. Shared: a test
+    holds both cameras' features and the counts of every query frame 0, 10, ..., 100, the queries of a run over
+    the whole drive at one a second (the dashboard's first). Shared: a test
     that writes into the store copies it first (``copy_store``)."""
     def build(folder: Path) -> dict:
         result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", folder / "kitti.sqlite",
-                         "--start-frames", "0,25,50", "--json", folder / "eval.json", *PAPER_CONTRAST, timeout=1800)
+                         "--start-frames", SERIES_STARTS, "--json", folder / "eval.json", *PAPER_CONTRAST, timeout=1800)
         assert result.returncode == 0, result.stderr
         return {"stdout": result.stdout}
 
@@ -96,13 +97,13 @@ def kitti_evaluation(kitti_root, shared_tmp):
 
 @pytest.fixture(scope="session")
 def kitti_refined(kitti_evaluation, kitti_root, shared_tmp):
-    """The same three series in the refined mode, with the smoother, on a copy of the session's store:
+    """The same two series in the refined mode, with the smoother, on a copy of the session's store:
     (the JSON report, stdout)."""
     evaluated, _, _ = kitti_evaluation
 
     def build(folder: Path) -> dict:
         store = copy_store(evaluated / "kitti.sqlite", folder)
-        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", store, "--start-frames", "0,25,50",
+        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", store, "--start-frames", SERIES_STARTS,
                          "--mode", "refined", "--smooth", "--json", folder / "refined.json", timeout=1800)
         assert result.returncode == 0, result.stderr
         return {"stdout": result.stdout}
@@ -122,7 +123,7 @@ def kitti_two_runs(kitti_evaluation, kitti_root, shared_tmp):
     def build(folder: Path) -> dict:
         shutil.copy(evaluated / "eval.json", folder / "eval.json")  # the two runs side by side
         store = copy_store(evaluated / "kitti.sqlite", folder)
-        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", store, "--start-frames", "0,25,50",
+        result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", store, "--start-frames", SERIES_STARTS,
                          "--meas-var-m2", OTHER_MEAS_VAR_M2, "--json", folder / OTHER_RUN_NAME, timeout=1800)
         assert result.returncode == 0, result.stderr
         return {}

@@ -33,6 +33,7 @@ from visloc.params import PAPER_SIFT
 
 REPO = Path(__file__).resolve().parent.parent
 KITTI_DRIVE = "2011_09_26_drive_0001"
+SERIES_STARTS = "0,50"  # the shared evaluations' series of drive 0001 (conftest.kitti_evaluation): frames 0-100
 DRIVE_0005 = "2011_09_26_drive_0005"
 DRIVE_0005_FRAMES = 40  # frames of drive 0005's left camera in the shared store (conftest.store_0005)
 ORIGIN_LAT_DEG, ORIGIN_LON_DEG = 49.015003823272, 8.4342971002335  # first OXTS record of drive 0001

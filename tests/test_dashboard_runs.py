@@ -32,7 +32,7 @@ def opened(browser, viewer):
     page = new_page(browser)
     visit(page, viewer.url)
     compared = re.escape(OTHER_RUN_NAME.removesuffix(".json"))
-    page.get_by_text(re.compile(rf"^eval: \d+ steps in 3 series; compared with {compared}$")).wait_for()
+    page.get_by_text(re.compile(rf"^eval: \d+ steps in 2 series; compared with {compared}$")).wait_for()
     page.get_by_text(re.compile(r"^Step \d+ of \d+$")).first.wait_for()  # tabs share one state: any step
     dismiss_webgl_notice(page)
     return page
