@@ -43,8 +43,8 @@ from helpers import (
 # the page's runs start later than the drive for the costly ones, each at a frame the evaluation counted (frames 0, 10,
 # ..., 100 from 0 s at one query a second): the paper's run from there reads its counts from the store
 CAMERA_RATE_START_S = 8.2  # frame 80 on: every frame of the last three seconds, at the camera's rate
-REMATCH_START_S = 5.1  # frame 50 on: the drive's last six queries at one a second (the τ1 re-match, the run with no exclusion)
-REFINED_START_S = 7.2  # frame 70 on: its last four
+LAST_FOUR_START_S = 7.2  # frame 70 on: the drive's last four queries at one a second (the τ1 re-match, the run
+# with no exclusion, the refined run: the page's costliest)
 
 
 @pytest.fixture(scope="module")
@@ -154,17 +154,17 @@ def test_moving_tau1_rematches_in_the_background(dashboard, browser):
     previous run's numbers, marked as such in the step panel, its plot and the map, until the new run gets
     there; the first step shows the new run's numbers as soon as it is matched. (One re-match serves
     every check: matching the drive's queries again is the costliest thing the page does, so the run starts at
-    ``REMATCH_START_S``: six queries.)"""
+    ``LAST_FOUR_START_S``: four queries.)"""
     page = open_page(browser, dashboard.url)
     try:
-        start_at(page, REMATCH_START_S, n_steps=6)
+        start_at(page, LAST_FOUR_START_S, n_steps=4)
         page.get_by_role("tab", name="Current step").click()
         dismiss_webgl_notice(page)
-        go_to_step(page, 2)
+        go_to_step(page, 0)  # frame 70: its best match gains correspondences at τ1 0.83
         runs = run_number(page)
         best_before = row(page, "best match")
         count_before = int(re.search(r"(\d+) correspondences", best_before).group(1))
-        go_to_step(page, 5)  # the last step (the slider's 6): matched last
+        go_to_step(page, 3)  # the last step (the slider's 4): matched last
         thumb = control(page, "τ1 (Lowe ratio)").locator("[role=slider]")
         thumb.focus()
         box = control(page, "τ1 (Lowe ratio)").locator("input:not([type=hidden])")
@@ -193,15 +193,15 @@ def test_moving_tau1_rematches_in_the_background(dashboard, browser):
         screenshot(page, "newcomer_refilling.png")
         # the page stays responsive while the worker matches
         page.get_by_role("button", name="Next ▶").click()
-        page.get_by_text("Step 2 of 6", exact=True).wait_for()
+        page.get_by_text("Step 2 of 4", exact=True).wait_for()
         screenshot(page, "dashboard_matching.png")
         wait_for(lambda: run_number(page) > runs, RUN_S, "the run with τ1 = 0.83")
         assert run_number(page) == runs + 1, "superseded runs must not complete"
         assert "τ1 0.83, τ2 0.97)" in status_text(page)
-        go_to_step(page, 5)
+        go_to_step(page, 3)
         badge.first.wait_for(state="detached")
         wait_for(lambda: "previous run" not in title.inner_text(), SERVER_WORK_S, "the plot to be current")
-        go_to_step(page, 2)
+        go_to_step(page, 0)
         count_after = int(re.search(r"(\d+) correspondences", row(page, "best match")).group(1))
         assert count_after != count_before
         assert count_after >= count_before  # a looser ratio test admits a superset of pairs for the same image
@@ -218,7 +218,7 @@ def test_a_zero_exclusion_on_the_queries_own_drive_is_warned_of(dashboard, brows
     try:
         assert page.get_by_text("1 s exclusion (the database holds this drive's own images)").count() >= 1
         assert page.get_by_text(warning).count() == 0
-        start_at(page, REMATCH_START_S, n_steps=6)  # each query is matched again to the images the exclusion left out
+        start_at(page, LAST_FOUR_START_S, n_steps=4)  # each query is matched again to the images the exclusion left out
         runs = run_number(page)
         box = control(page, "Exclusion (s)").locator("input:not([type=hidden])")
         box.fill("0")
@@ -228,7 +228,7 @@ def test_a_zero_exclusion_on_the_queries_own_drive_is_warned_of(dashboard, brows
         # queries may now be matched to images less than 1 s from them (their stereo twins, for most): the steps
         # are looked at in turn until one is
         offsets_s = []
-        for step in range(6):
+        for step in range(4):
             go_to_step(page, step)
             offsets_s.append(abs(float(re.search(r"\(([+-]\d+\.\d\d) s\)", row(page, "best match")).group(1))))
             if offsets_s[-1] < 1.0:
@@ -318,10 +318,10 @@ def test_query_images_that_are_not_there_or_not_needed_are_a_one_line_error(tmp_
 
 @pytest.mark.slow
 def test_switching_to_the_refined_mode_measures_metric_poses(dashboard, browser):
-    """From ``REFINED_START_S`` on (four queries: the refined run is the slowest of the page's runs)."""
+    """From ``LAST_FOUR_START_S`` on (four queries: the refined run is the slowest of the page's runs)."""
     page = open_page(browser, dashboard.url)
     try:
-        start_at(page, REFINED_START_S, n_steps=4)
+        start_at(page, LAST_FOUR_START_S, n_steps=4)
         go_to_step(page, 2)
         paper_error = float(row(page, "measurement error").split()[0])
         assert row(page, "measured by") == "geotag of the best match"
