@@ -80,11 +80,11 @@ def store_0005(kitti_root, shared_tmp) -> Path:
 
 @pytest.fixture(scope="session")
 def kitti_evaluation(kitti_root, shared_tmp):
-    """``visloc evaluate`` on two series (start frames 0 and 50) of the real drive, as a user
-    runs it: (folder holding kitti.sqlite and eval.json, the JSON report, stdout). The store then
-    holds both cameras' features and the counts of every query frame 0, 10, ..., 100, the queries of a run over
-    the whole drive at one a second (the dashboard's first). Shared: a test
-    that writes into the store copies it first (``copy_store``)."""
+    """``visloc evaluate`` on two series (start frames 0 and 50) of the real drive, as a user runs it:
+    (folder holding kitti.sqlite and eval.json, the JSON report, stdout). The store then holds both cameras'
+    features and the counts of every query frame 0, 10, ..., 100: the queries of a run over the whole drive at
+    one a second, the dashboard's first. Shared: a test that writes into the store copies it first
+    (``copy_store``)."""
     def build(folder: Path) -> dict:
         result = run_cli("evaluate", kitti_root, "--drive", KITTI_DRIVE, "--db", folder / "kitti.sqlite",
                          "--start-frames", SERIES_STARTS, "--json", folder / "eval.json", *PAPER_CONTRAST, timeout=1800)
